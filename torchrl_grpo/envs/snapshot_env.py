@@ -1,0 +1,246 @@
+"""A TorchRL env over any gymnasium env whose state a :class:`StateCodec` can capture.
+
+The env follows TorchRL's deterministic-reset idiom: ``get_state()`` returns a
+TensorDict of tensors, and ``reset(td_with_state, set_state=True)`` puts the
+simulator back into exactly that state, in this process or in a worker of a
+``ParallelEnv`` (the state travels through its shared buffers like any tensor).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
+from torchrl.envs import EnvBase
+from torchrl.envs.libs.gym import _gym_to_torchrl_spec_transform
+
+from torchrl_grpo.envs.codec import StateCodec, check_state_layout
+from torchrl_grpo.envs.errors import SnapshotError, StateCorruptedError
+
+logger = logging.getLogger(__name__)
+
+STATE_KEY = "state"
+
+
+class SnapshotEnv(EnvBase):
+    """A gymnasium env, wrapped for TorchRL, whose complete state is a TensorDict.
+
+    Args:
+        env: a gymnasium env id, an env instance, or a callable that builds one.
+        codec: the state codec for this simulator. Defaults to the codec registered
+            for the env id (see :func:`~torchrl_grpo.envs.codec_for`).
+        seed: seeds the first episode (``None``: gymnasium's entropy).
+        return_state: also write the state *after* each step into the step's output
+            (``("next", "state")``), so that any step of a collected trajectory can be
+            branched from later. Costs one snapshot per step.
+        categorical_action_encoding: discrete actions as integer indices (``True``)
+            or one-hot vectors (``False``, TorchRL's ``GymEnv`` default).
+        device: the device of the output tensors.
+        make_kwargs: keyword arguments for ``gym.make`` when ``env`` is an id.
+
+    The state has two parts: ``state["sim"]`` (the codec's encoding of the
+    simulator) and ``state["output"]`` (the observation the env last returned,
+    which a restore returns again without re-observing: observing may draw from
+    the simulator's random generator).
+
+    Example:
+        >>> from torchrl.envs.utils import check_env_specs
+        >>> env = SnapshotEnv("CartPole-v1", seed=0)
+        >>> check_env_specs(env)
+        >>> td = env.reset()
+        >>> state = env.get_state()
+        >>> a = env.rollout(5, break_when_any_done=False)
+        >>> _ = env.reset(TensorDict(state=state), set_state=True)
+        >>> b = env.rollout(5, auto_reset=False, tensordict=_, break_when_any_done=False)
+        >>> bool((a["next", "observation"] == b["next", "observation"]).all())
+        True
+    """
+
+    _supports_set_state = True
+
+    def __init__(
+        self,
+        env: str | gym.Env | Callable[[], gym.Env],
+        codec: StateCodec | None = None,
+        *,
+        seed: int | None = None,
+        return_state: bool = False,
+        categorical_action_encoding: bool = True,
+        device: torch.device | str = "cpu",
+        make_kwargs: dict | None = None,
+    ) -> None:
+        super().__init__(device=device, batch_size=())
+        if isinstance(env, str):
+            env = gym.make(env, disable_env_checker=True, **(make_kwargs or {}))
+        elif callable(env) and not isinstance(env, gym.Env):
+            env = env()
+        self._env: gym.Env = env
+        if codec is None:
+            from torchrl_grpo.envs.registry import codec_for
+
+            codec = codec_for(self._env_id())
+        self.codec = codec
+        self.return_state = return_state
+        self._categorical = categorical_action_encoding
+        self._pending_seed: int | None = None
+        obs, info = self._gym_reset(seed)
+        codec.bind(self._env)
+        self._make_specs(obs, info)
+        self._last_output = self._read_output(obs, info)
+
+    # ------------------------------------------------------------------ specs
+    def _env_id(self) -> str:
+        spec = self._env.spec
+        return spec.id if spec is not None else type(self._env.unwrapped).__name__
+
+    def _make_specs(self, obs: Any, info: dict) -> None:
+        self.action_spec = _gym_to_torchrl_spec_transform(
+            self._env.action_space,
+            device=self.device,
+            categorical_action_encoding=self._categorical,
+        )
+        obs_spec = _gym_to_torchrl_spec_transform(self._env.observation_space, device=self.device)
+        if not isinstance(obs_spec, Composite):
+            obs_spec = Composite(observation=obs_spec, device=self.device)
+        for key, spec in self._info_spec(info).items():
+            obs_spec[key] = spec
+        self.observation_spec = obs_spec
+        self.reward_spec = Unbounded((1,), dtype=torch.float32, device=self.device)
+        done = Categorical(2, (1,), dtype=torch.bool, device=self.device)
+        self.done_spec = Composite(
+            done=done.clone(), terminated=done.clone(), truncated=done.clone(), device=self.device
+        )
+        self._snapshot_output_spec = obs_spec.clone()
+        self.state_spec = Composite(
+            {STATE_KEY: Composite(sim=self.codec.state_spec(), output=self._snapshot_output_spec.clone())},
+            device=self.device,
+        )
+
+    def _info_spec(self, info: dict) -> dict[Any, TensorSpec]:
+        """Extra entries read from gymnasium's ``info`` dict; subclasses override with
+        :meth:`_read_info`."""
+        return {}
+
+    def _read_info(self, info: dict) -> dict[Any, torch.Tensor]:
+        """Tensors for the entries declared by :meth:`_info_spec`."""
+        return {}
+
+    # ------------------------------------------------------------------ state
+    def get_state(self) -> TensorDict:
+        """The complete current state: a new TensorDict of tensors only.
+
+        Restore it with ``env.reset(TensorDict(state=state), set_state=True)``.
+        """
+        return TensorDict(
+            sim=self.codec.encode(self._env), output=self._last_output.clone(), device=self.device
+        )
+
+    def set_state(self, state: TensorDictBase) -> TensorDict:
+        """Restore a state from :meth:`get_state` and return the reset output.
+
+        A shortcut for ``env.reset(TensorDict(state=state), set_state=True)``.
+        """
+        return self.reset(TensorDict({STATE_KEY: state}, batch_size=()), set_state=True)
+
+    # ------------------------------------------------------------------ EnvBase
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDict:
+        if kwargs.get("set_state"):
+            output = self._restore(tensordict)
+        else:
+            obs, info = self._gym_reset(self._pending_seed)
+            self._pending_seed = None
+            output = self._read_output(obs, info)
+        self._last_output = output
+        out = output.clone(False)
+        false = torch.zeros((1,), dtype=torch.bool, device=self.device)
+        out.update({"done": false, "terminated": false.clone(), "truncated": false.clone()})
+        out[STATE_KEY] = self.get_state()
+        return out
+
+    def _restore(self, tensordict: TensorDictBase | None) -> TensorDict:
+        if tensordict is None or STATE_KEY not in tensordict.keys():
+            raise SnapshotError(
+                f"reset(set_state=True) needs a tensordict holding a {STATE_KEY!r} entry "
+                "(from env.get_state()); none was given"
+            )
+        state = tensordict.get(STATE_KEY)
+        if tuple(state.batch_size) != ():
+            raise StateCorruptedError(
+                f"this env is unbatched but the state has batch size {tuple(state.batch_size)}; "
+                "restore batched states through a ParallelEnv / SerialEnv of matching size"
+            )
+        check_state_layout(state.get("output"), self._snapshot_output_spec)
+        self._before_restore(state)
+        self.codec.decode(self._env, state.get("sim"))
+        return state.get("output").clone()
+
+    def _before_restore(self, state: TensorDictBase) -> None:
+        """Hook for subclasses: validate more before the simulator is written."""
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDict:
+        action = self._to_gym_action(tensordict.get("action"))
+        obs, reward, terminated, truncated, info = self._env.step(action)
+        out = self._read_output(obs, info)
+        self._last_output = out
+        out = out.clone(False)
+        out.update(
+            {
+                "reward": torch.tensor([reward], dtype=torch.float32, device=self.device),
+                "terminated": torch.tensor([bool(terminated)], device=self.device),
+                "truncated": torch.tensor([bool(truncated)], device=self.device),
+                "done": torch.tensor([bool(terminated or truncated)], device=self.device),
+            }
+        )
+        if self.return_state:
+            out[STATE_KEY] = self.get_state()
+        return out
+
+    def _set_seed(self, seed: int | None) -> None:
+        # Applied at the next fresh reset, as gymnasium seeds through reset(seed=...).
+        self._pending_seed = seed
+
+    # ------------------------------------------------------------------ gym glue
+    def _gym_reset(self, seed: int | None) -> tuple[Any, dict]:
+        return self._env.reset(seed=seed)
+
+    def _to_gym_action(self, action: torch.Tensor) -> Any:
+        space = self._env.action_space
+        if isinstance(space, gym.spaces.Discrete):
+            if not self._categorical:
+                action = action.argmax(-1)
+            return int(action)
+        return action.detach().cpu().numpy()
+
+    def _read_output(self, obs: Any, info: dict) -> TensorDict:
+        if isinstance(obs, dict):
+            entries = {("observation" if k == "state" else k): v for k, v in obs.items()}
+        else:
+            entries = {"observation": obs}
+        out = {
+            key: torch.as_tensor(np.array(value), device=self.device).to(
+                self.observation_spec[key].dtype
+            )
+            for key, value in entries.items()
+        }
+        out.update(self._read_info(info))
+        return TensorDict(out, batch_size=(), device=self.device)
+
+    @property
+    def gym_env(self) -> gym.Env:
+        """The wrapped gymnasium env (read-only use: it is the simulator itself)."""
+        return self._env
+
+    def render(self) -> np.ndarray | None:
+        """Render the current frame (needs ``render_mode="rgb_array"``)."""
+        return self._env.render()
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        """Close the gymnasium env and the TorchRL env."""
+        self._env.close()
+        super().close(raise_if_closed=raise_if_closed)
