@@ -21,8 +21,10 @@ from torchrl_grpo.envs.gym_state import (
 
 
 class CartPoleStateCodec(StateCodec):
-    """Snapshot of ``CartPole-v1``: the 4 physical variables, the termination counter,
-    the RNG and the wrappers' counters.
+    """Snapshot of ``CartPole-v1``.
+
+    It holds the 4 physical variables, the termination counter, the RNG and the
+    wrappers' counters.
 
     Example:
         >>> from torchrl_grpo.envs import SnapshotEnv
@@ -52,9 +54,7 @@ class CartPoleStateCodec(StateCodec):
             physics=torch.as_tensor(np.asarray(core.state, dtype=np.float64)).clone(),
             steps_beyond_terminated=torch.tensor(-1 if beyond is None else beyond),
             rng=torch.from_numpy(rng),
-            wrappers=TensorDict(
-                {k: torch.from_numpy(v) for k, v in encode_wrappers(env).items()}
-            ),
+            wrappers=TensorDict({k: torch.from_numpy(v) for k, v in encode_wrappers(env).items()}),
         )
 
     def decode(self, env: gym.Env, state: TensorDictBase) -> None:

@@ -116,12 +116,26 @@ def _json_default(obj: Any) -> Any:
     return repr(obj)
 
 
-def check_state_layout(state: TensorDictBase, spec: Composite) -> None:
+SpecLayout = dict[Any, tuple[torch.Size, torch.dtype]]
+
+
+def spec_layout(spec: Composite) -> SpecLayout:
+    """The ``{key: (shape, dtype)}`` of every leaf of a spec, for fast repeated checks.
+
+    Example:
+        >>> from torchrl.data import Composite, Unbounded
+        >>> spec_layout(Composite(x=Unbounded((2,))))
+        {'x': (torch.Size([2]), torch.float32)}
+    """
+    return {key: (spec[key].shape, spec[key].dtype) for key in spec.keys(True, True)}
+
+
+def check_state_layout(state: TensorDictBase, spec: Composite | SpecLayout) -> None:
     """Raise :class:`StateCorruptedError` unless ``state`` has the spec's keys, shapes, dtypes.
 
     Args:
         state: a candidate state.
-        spec: the spec it must match.
+        spec: the spec it must match, or its precomputed :func:`spec_layout`.
 
     Example:
         >>> import torch
@@ -132,26 +146,25 @@ def check_state_layout(state: TensorDictBase, spec: Composite) -> None:
     """
     if not isinstance(state, TensorDictBase):
         raise StateCorruptedError(f"a state must be a TensorDict, got {type(state).__name__}")
-    expected = set(spec.keys(True, True))
-    present = set(state.keys(True, True))
-    missing = sorted(map(str, expected - present))
+    layout = spec_layout(spec) if isinstance(spec, Composite) else spec
+    found = {key: value for key, value in state.items(True, True)}
+    missing = sorted(map(str, layout.keys() - found.keys()))
     if missing:
         raise StateCorruptedError(f"the state is truncated: missing entries {missing}")
-    extra = sorted(map(str, present - expected))
+    extra = sorted(map(str, found.keys() - layout.keys()))
     if extra:
         raise StateMismatchError(
             f"the state has entries this env does not know: {extra} "
             "(was it captured from another kind of env?)"
         )
-    for key in expected:
-        leaf_spec = spec[key]
-        value = state.get(key)
+    for key, (shape, dtype) in layout.items():
+        value = found[key]
         if not isinstance(value, torch.Tensor):
             raise StateCorruptedError(f"state entry {key!r} is not a tensor")
-        if value.shape != leaf_spec.shape or value.dtype != leaf_spec.dtype:
+        if value.shape != shape or value.dtype != dtype:
             raise StateCorruptedError(
                 f"state entry {key!r} has shape {tuple(value.shape)} and dtype {value.dtype}, "
-                f"expected {tuple(leaf_spec.shape)} and {leaf_spec.dtype}"
+                f"expected {tuple(shape)} and {dtype}"
             )
 
 

@@ -183,5 +183,7 @@ def _check_config_keys(scenario: str, config: dict) -> None:
         hints = {k: difflib.get_close_matches(k, known, n=1) for k in unknown}
         raise ValueError(
             f"unknown config keys for {scenario}: "
-            + ", ".join(f"{k!r}" + (f" (did you mean {h[0]!r}?)" if h else "") for k, h in hints.items())
+            + ", ".join(
+                f"{k!r}" + (f" (did you mean {h[0]!r}?)" if h else "") for k, h in hints.items()
+            )
         )

@@ -21,12 +21,20 @@ from highway_env.vehicle.kinematics import Vehicle
 from highway_env.vehicle.objects import Landmark, Obstacle
 
 FieldKind = Literal[
-    "float", "int", "bool", "vec2", "lane", "route", "speeds", "color", "ref", "enum",
-    "action", "array",
+    "float",
+    "int",
+    "bool",
+    "vec2",
+    "lane",
+    "route",
+    "speeds",
+    "color",
+    "ref",
+    "enum",
+    "action",
+    "array",
 ]
 
-MAX_ROUTE = 16  # lane segments a planned route may hold
-MAX_SPEEDS = 16  # entries of an MDPVehicle's target_speeds
 MAX_COLOR = 4  # RGB or RGBA
 
 
@@ -94,14 +102,14 @@ FIELDS: dict[str, Field] = {
     # BicycleVehicle
     "lateral_speed": Field("float"),
     "yaw_rate": Field("float"),
-    "theta": Field("array", shape=(2,)),
-    "A_lat": Field("array", shape=(2, 2)),
-    "B_lat": Field("array", shape=(2, 1)),
 }
 
 # Rebuilt on restore rather than stored: references to the env's road and lane
-# objects, and render-only buffers.
-DERIVED_ATTRIBUTES: frozenset[str] = frozenset({"road", "lane", "log", "history"})
+# objects, render-only buffers, and BicycleVehicle's linearised dynamics (a pure
+# function of class constants, recomputed before every use).
+DERIVED_ATTRIBUTES: frozenset[str] = frozenset(
+    {"road", "lane", "log", "history", "theta", "A_lat", "B_lat"}
+)
 
 VEHICLE_CLASSES: list[type] = [
     Obstacle,

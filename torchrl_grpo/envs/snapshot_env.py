@@ -20,7 +20,7 @@ from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase
 from torchrl.envs.libs.gym import _gym_to_torchrl_spec_transform
 
-from torchrl_grpo.envs.codec import StateCodec, check_state_layout
+from torchrl_grpo.envs.codec import StateCodec, check_state_layout, spec_layout
 from torchrl_grpo.envs.errors import SnapshotError, StateCorruptedError
 
 logger = logging.getLogger(__name__)
@@ -117,14 +117,18 @@ class SnapshotEnv(EnvBase):
             done=done.clone(), terminated=done.clone(), truncated=done.clone(), device=self.device
         )
         self._snapshot_output_spec = obs_spec.clone()
+        self._output_layout = spec_layout(obs_spec)
         self.state_spec = Composite(
-            {STATE_KEY: Composite(sim=self.codec.state_spec(), output=self._snapshot_output_spec.clone())},
+            {
+                STATE_KEY: Composite(
+                    sim=self.codec.state_spec(), output=self._snapshot_output_spec.clone()
+                )
+            },
             device=self.device,
         )
 
     def _info_spec(self, info: dict) -> dict[Any, TensorSpec]:
-        """Extra entries read from gymnasium's ``info`` dict; subclasses override with
-        :meth:`_read_info`."""
+        """Extra output entries; subclasses override it together with :meth:`_read_info`."""
         return {}
 
     def _read_info(self, info: dict) -> dict[Any, torch.Tensor]:
@@ -150,7 +154,8 @@ class SnapshotEnv(EnvBase):
 
     # ------------------------------------------------------------------ EnvBase
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDict:
-        if kwargs.get("set_state"):
+        restoring = bool(kwargs.get("set_state"))
+        if restoring:
             output = self._restore(tensordict)
         else:
             obs, info = self._gym_reset(self._pending_seed)
@@ -160,7 +165,10 @@ class SnapshotEnv(EnvBase):
         out = output.clone(False)
         false = torch.zeros((1,), dtype=torch.bool, device=self.device)
         out.update({"done": false, "terminated": false.clone(), "truncated": false.clone()})
-        out[STATE_KEY] = self.get_state()
+        if not restoring:
+            # On restore the input tensordict already holds the state, and reset() returns
+            # that tensordict updated: decode(encode(x)) is the identity on valid states.
+            out[STATE_KEY] = self.get_state()
         return out
 
     def _restore(self, tensordict: TensorDictBase | None) -> TensorDict:
@@ -175,7 +183,7 @@ class SnapshotEnv(EnvBase):
                 f"this env is unbatched but the state has batch size {tuple(state.batch_size)}; "
                 "restore batched states through a ParallelEnv / SerialEnv of matching size"
             )
-        check_state_layout(state.get("output"), self._snapshot_output_spec)
+        check_state_layout(state.get("output"), self._output_layout)
         self._before_restore(state)
         self.codec.decode(self._env, state.get("sim"))
         return state.get("output").clone()
