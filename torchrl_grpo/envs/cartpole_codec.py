@@ -30,7 +30,7 @@ class CartPoleStateCodec(StateCodec):
         >>> from torchrl_grpo.envs import SnapshotEnv
         >>> env = SnapshotEnv("CartPole-v1", codec=CartPoleStateCodec(), seed=0)
         >>> state = env.get_state()
-        >>> state["physics"].shape
+        >>> state["sim", "physics"].shape
         torch.Size([4])
     """
 

@@ -53,12 +53,13 @@ class SnapshotEnv(EnvBase):
         >>> from torchrl.envs.utils import check_env_specs
         >>> env = SnapshotEnv("CartPole-v1", seed=0)
         >>> check_env_specs(env)
-        >>> td = env.reset()
+        >>> _ = env.reset()
         >>> state = env.get_state()
-        >>> a = env.rollout(5, break_when_any_done=False)
+        >>> push = TensorDict(action=torch.tensor(1))
+        >>> a = [env.step(push.clone())["next", "observation"] for _ in range(5)]
         >>> _ = env.reset(TensorDict(state=state), set_state=True)
-        >>> b = env.rollout(5, auto_reset=False, tensordict=_, break_when_any_done=False)
-        >>> bool((a["next", "observation"] == b["next", "observation"]).all())
+        >>> b = [env.step(push.clone())["next", "observation"] for _ in range(5)]
+        >>> all(torch.equal(x, y) for x, y in zip(a, b))
         True
     """
 
