@@ -1,0 +1,16 @@
+"""Critic-free objectives: group-relative advantages, GRPOLoss, KL estimators, reference sync."""
+
+from torchrl_grpo.objectives.advantage import GroupRelativeAdvantage
+from torchrl_grpo.objectives.grpo import Aggregation, GRPOLoss
+from torchrl_grpo.objectives.kl import KLEstimator, analytic_kl, kl_estimate
+from torchrl_grpo.objectives.reference import ReferenceSync
+
+__all__ = [
+    "Aggregation",
+    "GRPOLoss",
+    "GroupRelativeAdvantage",
+    "KLEstimator",
+    "ReferenceSync",
+    "analytic_kl",
+    "kl_estimate",
+]

@@ -1,0 +1,480 @@
+"""GRPOLoss: the GRPO objective and its variants for any TorchRL probabilistic actor."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from tensordict import NestedKey, TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import (
+    CompositeDistribution,
+    ProbabilisticTensorDictSequential,
+    composite_lp_aggregate,
+)
+from torch import distributions as d
+from torchrl.objectives import LossModule
+
+from torchrl_grpo.objectives._segments import trajectory_index
+from torchrl_grpo.objectives.kl import KLEstimator, analytic_kl, kl_estimate
+
+__all__ = ["Aggregation", "GRPOLoss"]
+
+Aggregation = Literal["dapo", "bnpo", "token_mean", "grpo", "prompt_mean", "dr_grpo"]
+"""Loss aggregations: TRL's ``loss_type`` names and TorchRL's ``aggregation`` names."""
+
+# Several names for one rule: TRL's loss_type and TorchRL's aggregation spell
+# the same normalisers differently; users of either should feel at home.
+_AGGREGATION_RULES = {
+    "dapo": "step_mean",
+    "bnpo": "step_mean",
+    "token_mean": "step_mean",
+    "grpo": "trajectory_mean",
+    "prompt_mean": "trajectory_mean",
+    "dr_grpo": "constant",
+}
+
+
+class GRPOLoss(LossModule):
+    r"""Group Relative Policy Optimisation loss for any ``ProbabilisticActor``.
+
+    TorchRL's ``torchrl.objectives.llm.GRPOLoss`` needs an LLM wrapper; this one
+    takes a plain actor (Categorical, Normal, TanhNormal, ...) and the branch-group
+    data of this project: batch ``[R, G, T]``, ``[N, T]`` or flat ``[B]``, a boolean
+    ``mask`` of valid steps, a precomputed ``advantage`` (see
+    :class:`~torchrl_grpo.objectives.GroupRelativeAdvantage`). No critic.
+
+    Per valid step, with ``rho = pi_theta(a|s) / pi_old(a|s)`` (``pi_old`` being the
+    ``sample_log_prob`` entry) and advantage ``A``:
+
+    .. math::
+
+        \ell_{obj} = -\min(\rho A, \mathrm{clip}(\rho, 1 - \epsilon_{low}, 1 + \epsilon_{high}) A)
+
+    with, if ``dual_clip=c``, ``max(., c A)`` applied inside the ``-`` when ``A < 0``
+    (verl's ``clip_ratio_c``); ``\ell_{kl} = \beta\,KL`` to the reference policy;
+    ``\ell_{ent} = -c_H H(\pi_\theta)``. Each term is aggregated over the valid steps
+    by the same rule:
+
+    - ``"dapo"`` / ``"bnpo"`` / ``"token_mean"``: mean over all valid steps;
+    - ``"grpo"`` / ``"prompt_mean"``: mean over each trajectory's valid steps, then
+      mean over trajectories (DeepSeekMath);
+    - ``"dr_grpo"``: sum over valid steps divided by the constant
+      ``n_trajectories * max_steps`` (Dr. GRPO).
+
+    Trajectories are the rows of the last batch dimension (time) when the batch has
+    two or more dimensions, and the ``(group_id, branch)`` pairs for a flat batch;
+    a row without any valid step is padding, not a trajectory. Masked steps never
+    reach the actor, so their content may be anything.
+
+    With ``beta = 0``, a symmetric clip and ``"dapo"``, the objective equals
+    TorchRL's ``ClipPPOLoss(actor, None, critic_coeff=None)`` on the same advantage.
+
+    Args:
+        actor_network: the policy; its ``get_dist`` gives the distribution.
+
+    Keyword Args:
+        clip_epsilon: ``eps`` for symmetric clipping, or ``(eps_low, eps_high)`` for
+            DAPO's clip-higher, e.g. ``(0.2, 0.28)``. Schedulable buffers
+            ``clip_epsilon_low`` / ``clip_epsilon_high``.
+        dual_clip: the dual-clip bound ``c > 1`` on the loss of negative-advantage
+            steps (verl ``clip_ratio_c``, typically 3.0); ``None`` disables it.
+        kl_to_ref_coeff: ``beta``, the weight of the KL to the reference policy
+            (TRL's ``beta``). ``None`` (default) builds no reference and emits no
+            ``loss_kl``; a float, even 0.0, freezes a copy of the actor as the
+            reference (``target_actor_network_params``, moved by
+            :class:`~torchrl_grpo.objectives.ReferenceSync`).
+        kl_estimator: ``"k1"``, ``"k2"``, ``"k3"`` (default, DeepSeekMath) or
+            ``"analytic"`` (closed form, when the distribution has one). For the
+            ``k`` estimators a ``ref_log_prob`` entry in the input, if present, is
+            used instead of running the reference policy.
+        entropy_bonus: whether to emit ``loss_entropy``.
+        entropy_coeff: entropy weight (schedulable buffer).
+        samples_mc_entropy: samples for the entropy of distributions with no closed
+            form (TanhNormal).
+        aggregation: see above. Defaults to ``"dapo"`` (TRL's default loss type).
+        max_steps: Dr. GRPO's constant ``L``; defaults to the time dimension of the
+            batch (longest trajectory for a flat batch). Set it to the branch
+            horizon for a normaliser that is constant across batches.
+        device: device of the coefficient buffers.
+
+    Keys (change them with :meth:`set_keys`): ``advantage`` (``"advantage"``),
+    ``action`` (``"action"``), ``sample_log_prob`` (the actor's log-prob key,
+    ``"action_log_prob"`` for a ProbabilisticActor in TorchRL 0.14), ``ref_log_prob``
+    (``"ref_log_prob"``, optional), ``mask`` (``"mask"``), ``group_id`` and
+    ``branch`` (read only for trajectory aggregations of a flat batch).
+
+    Outputs: ``loss_objective``, ``loss_entropy`` (if ``entropy_bonus``), ``loss_kl``
+    (if ``kl_to_ref_coeff`` is set), and the diagnostics ``clip_fraction``,
+    ``kl_approx`` (mean ``log pi_old - log pi_theta``), ``ESS`` (normalised effective
+    sample size of the ratios, in (0, 1]), ``min_ratio``, ``mean_ratio``, ``max_ratio``,
+    ``entropy``, ``kl_to_ref``, ``advantage_mean``, ``advantage_std``.
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from tensordict.nn import TensorDictModule
+        >>> from torchrl.modules import ProbabilisticActor
+        >>> from torchrl_grpo.objectives import GRPOLoss
+        >>> net = TensorDictModule(torch.nn.Linear(3, 4), ["observation"], ["logits"])
+        >>> actor = ProbabilisticActor(
+        ...     net, ["logits"], distribution_class=torch.distributions.Categorical,
+        ...     return_log_prob=True)
+        >>> data = actor(TensorDict(observation=torch.randn(2, 3, 5, 3), batch_size=[2, 3, 5]))
+        >>> data["advantage"] = torch.randn(2, 3, 5, 1)
+        >>> data["mask"] = torch.ones(2, 3, 5, dtype=torch.bool)
+        >>> loss = GRPOLoss(actor, clip_epsilon=(0.2, 0.28), kl_to_ref_coeff=0.04)
+        >>> out = loss(data.detach())
+        >>> sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        >>> float(out["loss_kl"].detach())  # the reference is still the policy
+        0.0
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Tensordict keys read by :class:`GRPOLoss`, set with ``set_keys``.
+
+        Attributes:
+            advantage: per-step advantage, ``[*batch, 1]``.
+            action: the action taken.
+            sample_log_prob: log-prob of the action under the behaviour policy.
+                Defaults to the actor's log-prob key.
+            ref_log_prob: optional precomputed reference log-prob.
+            mask: boolean, ``True`` on valid steps.
+            group_id: integer id of the root (flat batches only).
+            branch: integer branch index (flat batches only).
+        """
+
+        advantage: NestedKey = "advantage"
+        action: NestedKey = "action"
+        sample_log_prob: NestedKey | None = None
+        ref_log_prob: NestedKey = "ref_log_prob"
+        mask: NestedKey = "mask"
+        group_id: NestedKey = "group_id"
+        branch: NestedKey = "branch"
+
+        def __post_init__(self) -> None:
+            if self.sample_log_prob is None:
+                # TorchRL's own default, which depends on tensordict's
+                # composite log-prob aggregation setting
+                aggregate = composite_lp_aggregate(nowarn=True)
+                self.sample_log_prob = "sample_log_prob" if aggregate else "action_log_prob"
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    actor_network: ProbabilisticTensorDictSequential
+    actor_network_params: TensorDictParams
+    target_actor_network_params: TensorDictParams | None
+    _schedulable_buffers = frozenset(
+        {"clip_epsilon_low", "clip_epsilon_high", "dual_clip", "kl_to_ref_coeff", "entropy_coeff"}
+    )
+
+    def __init__(
+        self,
+        actor_network: ProbabilisticTensorDictSequential,
+        *,
+        clip_epsilon: float | tuple[float, float] = 0.2,
+        dual_clip: float | None = None,
+        kl_to_ref_coeff: float | None = None,
+        kl_estimator: KLEstimator = "k3",
+        entropy_bonus: bool = True,
+        entropy_coeff: float = 0.01,
+        samples_mc_entropy: int = 1,
+        aggregation: Aggregation = "dapo",
+        max_steps: int | None = None,
+        device: torch.device | None = None,
+    ) -> None:
+        if aggregation not in _AGGREGATION_RULES:
+            raise ValueError(
+                f"aggregation must be one of {sorted(_AGGREGATION_RULES)}, got {aggregation!r}."
+            )
+        if kl_estimator not in ("k1", "k2", "k3", "analytic"):
+            raise ValueError(
+                f"kl_estimator must be 'k1', 'k2', 'k3' or 'analytic', got {kl_estimator!r}."
+            )
+        eps_low, eps_high = _validate_clip_epsilon(clip_epsilon)
+        if dual_clip is not None and dual_clip <= 1.0:
+            raise ValueError(f"dual_clip must be > 1, got {dual_clip}.")
+        if max_steps is not None and max_steps < 1:
+            raise ValueError(f"max_steps must be >= 1, got {max_steps}.")
+        if samples_mc_entropy < 1:
+            raise ValueError(f"samples_mc_entropy must be >= 1, got {samples_mc_entropy}.")
+        self._in_keys = None
+        self._out_keys = None
+        super().__init__()
+        has_reference = kl_to_ref_coeff is not None
+        self.convert_to_functional(
+            actor_network, "actor_network", create_target_params=has_reference
+        )
+        # A frozen reference is a valid setup, not a forgotten target updater:
+        # silence TorchRL's "no updater associated" warning.
+        self._has_update_associated["actor_network"] = True
+        if device is None:
+            device = next(
+                iter(self.actor_network_params.values(True, True)), torch.zeros(())
+            ).device
+        self.register_coeff_buffer("clip_epsilon_low", eps_low, device=device)
+        self.register_coeff_buffer("clip_epsilon_high", eps_high, device=device)
+        self.register_coeff_buffer("dual_clip", dual_clip, device=device)
+        self.register_coeff_buffer("kl_to_ref_coeff", kl_to_ref_coeff, device=device)
+        self.register_coeff_buffer("entropy_coeff", entropy_coeff, device=device)
+        self.kl_estimator = kl_estimator
+        self.entropy_bonus = entropy_bonus
+        self.samples_mc_entropy = samples_mc_entropy
+        self.aggregation = aggregation
+        self.max_steps = max_steps
+        log_prob_keys = getattr(actor_network, "log_prob_keys", None)
+        if log_prob_keys:
+            if len(log_prob_keys) > 1:
+                raise ValueError(
+                    f"GRPOLoss supports a single action head; the actor has log-prob keys "
+                    f"{log_prob_keys}."
+                )
+            self.set_keys(
+                sample_log_prob=log_prob_keys[0], action=actor_network.dist_sample_keys[0]
+            )
+
+    # ------------------------------------------------------------------ keys
+    def _set_in_keys(self) -> None:
+        k = self.tensor_keys
+        keys = [*self.actor_network.in_keys, k.action, k.sample_log_prob, k.advantage, k.mask]
+        self._in_keys = list(dict.fromkeys(keys))
+
+    @property
+    def in_keys(self) -> list[NestedKey]:  # noqa: D102
+        if self._in_keys is None:
+            self._set_in_keys()
+        return self._in_keys
+
+    @in_keys.setter
+    def in_keys(self, values: list[NestedKey]) -> None:
+        self._in_keys = values
+
+    @property
+    def out_keys(self) -> list[NestedKey]:  # noqa: D102
+        if self._out_keys is None:
+            keys = ["loss_objective"]
+            if self.entropy_bonus:
+                keys += ["loss_entropy", "entropy"]
+            if self.kl_to_ref_coeff is not None:
+                keys += ["loss_kl", "kl_to_ref"]
+            keys += ["clip_fraction", "kl_approx", "ESS", "min_ratio", "mean_ratio", "max_ratio"]
+            keys += ["advantage_mean", "advantage_std"]
+            self._out_keys = keys
+        return self._out_keys
+
+    @out_keys.setter
+    def out_keys(self, values: list[NestedKey]) -> None:
+        self._out_keys = values
+
+    def _forward_value_estimator_keys(self, **kwargs: object) -> None:
+        # no value estimator in a critic-free loss: only refresh the input keys
+        self._set_in_keys()
+
+    # --------------------------------------------------------------- forward
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Computes the loss terms and diagnostics over the valid steps of ``tensordict``."""
+        keys = self.tensor_keys
+        batch_size = tensordict.batch_size
+        mask = _require(tensordict, keys.mask, "mask")
+        mask = _per_step(mask, batch_size, keys.mask)
+        if mask.dtype != torch.bool:
+            raise ValueError(f"{keys.mask!r} must be boolean, got dtype {mask.dtype}.")
+        all_valid = bool(mask.all())
+        if all_valid:
+            steps = tensordict
+            valid_idx = None
+        else:
+            valid_idx = mask.nonzero().squeeze(-1)
+            if not valid_idx.numel():
+                raise ValueError(f"{keys.mask!r} marks no valid step: nothing to optimise.")
+            # keep masked steps away from the actor: their observations may be
+            # garbage, and NaN activations poison gradients even when zeroed later
+            needed = [*self.in_keys, keys.ref_log_prob, keys.group_id, keys.branch]
+            steps = tensordict.select(*needed, strict=False).reshape(-1)[valid_idx]
+        n_batch = len(steps.batch_size)
+
+        advantage = _per_step(
+            _require(steps, keys.advantage, "advantage", hint=_ADVANTAGE_HINT),
+            steps.batch_size,
+            keys.advantage,
+        )
+        prev_log_prob = self._behaviour_log_prob(steps)
+        dist = self._dist(steps, self.actor_network_params)
+        action = _require(steps, keys.action, "action")
+        log_prob = _per_step(
+            _sum_event(dist.log_prob(action), n_batch), steps.batch_size, "log-prob"
+        )
+        weights = self._step_weights(tensordict, mask, valid_idx, advantage.numel())
+
+        log_weight = log_prob - prev_log_prob
+        log_weight_clip = log_weight.clamp(
+            (-self.clip_epsilon_low).log1p(), self.clip_epsilon_high.log1p()
+        )
+        ratio = log_weight.exp()
+        gain = torch.minimum(ratio * advantage, log_weight_clip.exp() * advantage)
+        if self.dual_clip is not None:
+            gain = torch.where(advantage < 0, torch.maximum(gain, self.dual_clip * advantage), gain)
+        out = {"loss_objective": -self._aggregate(gain, weights)}
+
+        diag = {}
+        if self.entropy_bonus:
+            entropy = _per_step(self._entropy(dist, n_batch), steps.batch_size, "entropy")
+            out["loss_entropy"] = -self.entropy_coeff * self._aggregate(entropy, weights)
+            diag["entropy"] = entropy
+        if self.kl_to_ref_coeff is not None:
+            kl = self._kl_to_reference(steps, dist, log_prob, n_batch)
+            out["loss_kl"] = self.kl_to_ref_coeff * self._aggregate(kl, weights)
+            diag["kl_to_ref"] = kl
+
+        with torch.no_grad():
+            for name, value in diag.items():
+                out[name] = value.detach().mean()
+            n = log_weight.numel()
+            lw = log_weight.detach()
+            out["clip_fraction"] = (log_weight_clip != log_weight).sum() / n
+            out["kl_approx"] = -lw.mean()
+            out["ESS"] = (2 * lw.logsumexp(0) - (2 * lw).logsumexp(0)).exp() / n
+            out["min_ratio"], out["max_ratio"] = torch.aminmax(ratio.detach())
+            out["mean_ratio"] = ratio.detach().mean()
+            out["advantage_mean"] = advantage.mean()
+            out["advantage_std"] = advantage.std(correction=0)
+        return TensorDict(out, batch_size=[])
+
+    # ------------------------------------------------------------- helpers
+    def _dist(self, steps: TensorDictBase, params: TensorDictBase) -> d.Distribution:
+        with params.to_module(self.actor_network, preserve_module_state=False):
+            dist = self.actor_network.get_dist(steps)
+        if isinstance(dist, CompositeDistribution):
+            raise NotImplementedError("GRPOLoss supports single-head (non-composite) actors.")
+        return dist
+
+    def _behaviour_log_prob(self, steps: TensorDictBase) -> torch.Tensor:
+        key = self.tensor_keys.sample_log_prob
+        value = steps.get(key, None)
+        if value is None:
+            others = [k for k in ("sample_log_prob", "action_log_prob") if k in steps.keys()]
+            hint = f" The input has {others}: call set_keys(sample_log_prob=...)." if others else ""
+            raise ValueError(f"the input has no {key!r} entry (behaviour log-prob).{hint}")
+        if value.requires_grad:
+            raise ValueError(f"{key!r} requires grad: store the behaviour log-prob detached.")
+        return _per_step(_sum_event(value, len(steps.batch_size)), steps.batch_size, key)
+
+    def _entropy(self, dist: d.Distribution, n_batch: int) -> torch.Tensor:
+        try:
+            entropy = dist.entropy()
+        except NotImplementedError:
+            entropy = None
+        if entropy is None or not bool(torch.isfinite(entropy).all()):
+            # no closed form (TanhNormal): Monte-Carlo, reparameterised when possible
+            n = (self.samples_mc_entropy,)
+            sample = dist.rsample(n) if dist.has_rsample else dist.sample(n)
+            entropy = -dist.log_prob(sample).mean(0)
+        return _sum_event(entropy, n_batch)
+
+    def _kl_to_reference(
+        self, steps: TensorDictBase, dist: d.Distribution, log_prob: torch.Tensor, n_batch: int
+    ) -> torch.Tensor:
+        if self.kl_estimator == "analytic":
+            with torch.no_grad():
+                ref_dist = self._dist(steps, self.target_actor_network_params)
+            kl = _sum_event(analytic_kl(dist, ref_dist), n_batch)
+            return _per_step(kl, steps.batch_size, "analytic KL")
+        ref_log_prob = steps.get(self.tensor_keys.ref_log_prob, None)
+        if ref_log_prob is None:
+            with torch.no_grad():
+                ref_dist = self._dist(steps, self.target_actor_network_params)
+                ref_log_prob = ref_dist.log_prob(steps.get(self.tensor_keys.action))
+        ref_log_prob = _per_step(
+            _sum_event(ref_log_prob, n_batch), steps.batch_size, self.tensor_keys.ref_log_prob
+        )
+        return kl_estimate(log_prob, ref_log_prob.detach(), self.kl_estimator)
+
+    def _step_weights(
+        self,
+        tensordict: TensorDictBase,
+        mask: torch.Tensor,
+        valid_idx: torch.Tensor | None,
+        n_valid: int,
+    ) -> torch.Tensor | None:
+        """Per-valid-step weights of the aggregation; ``None`` for a plain mean."""
+        rule = _AGGREGATION_RULES[self.aggregation]
+        if rule == "step_mean":
+            return None
+        batch_size = tensordict.batch_size
+        if len(batch_size) >= 2:
+            horizon = batch_size[-1]
+            flat = torch.arange(mask.numel(), device=mask.device)
+            traj = (flat if valid_idx is None else valid_idx) // horizon
+            n_rows = mask.numel() // horizon
+        else:
+            keys = self.tensor_keys
+            group_id = _per_step(
+                _require(tensordict, keys.group_id, "group_id"), batch_size, keys.group_id
+            )
+            branch = _per_step(_require(tensordict, keys.branch, "branch"), batch_size, keys.branch)
+            if valid_idx is not None:
+                group_id, branch = group_id[valid_idx], branch[valid_idx]
+            traj, traj_group, _ = trajectory_index(
+                group_id, branch, group_key=keys.group_id, branch_key=keys.branch
+            )
+            n_rows = traj_group.numel()
+            horizon = None
+        counts = torch.bincount(traj, minlength=n_rows)
+        n_traj = int((counts > 0).sum())
+        if rule == "trajectory_mean":
+            weights = 1.0 / (counts[traj] * n_traj)
+        else:
+            max_steps = self.max_steps or horizon or int(counts.max())
+            weights = torch.full((n_valid,), 1.0 / (n_traj * max_steps), device=mask.device)
+        return weights.to(torch.get_default_dtype())
+
+    @staticmethod
+    def _aggregate(values: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
+        if weights is None:
+            return values.mean()
+        return (values * weights.to(values.dtype)).sum()
+
+
+_ADVANTAGE_HINT = " Compute it first, e.g. with GroupRelativeAdvantage."
+
+
+def _require(tensordict: TensorDictBase, key: NestedKey, name: str, hint: str = "") -> torch.Tensor:
+    value = tensordict.get(key, None)
+    if value is None:
+        raise ValueError(
+            f"the input has no {key!r} entry (the {name!r} key; rename it with "
+            f"set_keys({name}=...)).{hint}"
+        )
+    return value
+
+
+def _per_step(value: torch.Tensor, batch_size: torch.Size, key: object) -> torch.Tensor:
+    # [*batch] or [*batch, 1] -> [numel(batch)]; any other shape is a layout error
+    if value.shape == batch_size or value.shape == (*batch_size, 1):
+        return value.reshape(-1)
+    raise ValueError(
+        f"{key!r} has shape {tuple(value.shape)}; expected {tuple(batch_size)} or "
+        f"{(*batch_size, 1)}."
+    )
+
+
+def _sum_event(value: torch.Tensor, n_batch: int) -> torch.Tensor:
+    # Normal (not Independent) returns per-dimension log-probs and entropies:
+    # the joint over the action dimensions is their sum.
+    if value.ndim > n_batch:
+        return value.sum(tuple(range(n_batch, value.ndim)))
+    return value
+
+
+def _validate_clip_epsilon(clip_epsilon: float | tuple[float, float]) -> tuple[float, float]:
+    if isinstance(clip_epsilon, (tuple, list)):
+        if len(clip_epsilon) != 2:
+            raise ValueError(f"clip_epsilon must be a float or (low, high), got {clip_epsilon}.")
+        low, high = float(clip_epsilon[0]), float(clip_epsilon[1])
+    else:
+        low = high = float(clip_epsilon)
+    if not (0.0 <= low < 1.0 and high >= 0.0 and math.isfinite(high)):
+        raise ValueError(f"clip_epsilon needs 0 <= low < 1 and 0 <= high, got ({low}, {high}).")
+    return low, high
