@@ -162,13 +162,21 @@ class HighwayEnv(SnapshotEnv):
         self._remember_class_params()
         return output
 
-    def _step(self, tensordict: TensorDictBase):
+    def _apply_class_params(self) -> None:
         # Envs of several scenarios may share this process: put back this env's values
-        # of the process-global class constants before simulating.
+        # of the process-global class constants before simulating or snapshotting.
         for (cls, name), value in zip(self._param_keys, self._class_params, strict=True):
             if getattr(cls, name) != value:
                 setattr(cls, name, value)
+
+    def _step(self, tensordict: TensorDictBase):
+        self._apply_class_params()
         return super()._step(tensordict)
+
+    def get_state(self):
+        """See :meth:`SnapshotEnv.get_state`; the state holds this env's class constants."""
+        self._apply_class_params()
+        return super().get_state()
 
 
 def _check_config_keys(scenario: str, config: dict) -> None:

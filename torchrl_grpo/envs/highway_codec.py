@@ -63,6 +63,7 @@ from torchrl_grpo.envs.gym_state import (
 from torchrl_grpo.envs.highway_layout import NONE as _NONE
 from torchrl_grpo.envs.highway_layout import OBJECT, VEHICLE, EntityLayout
 
+_SPAWN_CAPACITY = 32  # vehicle slots of scenarios that spawn traffic (intersection-v0)
 # Name-mangled private attributes of highway-env's action / observation types.
 _ACTION_VEHICLE = "_ActionType__controlled_vehicle"
 _OBSERVER = "_ObservationType__observer_vehicle"
@@ -102,7 +103,7 @@ class HighwayStateCodec(StateCodec):
 
     Args:
         max_vehicles: slots for ``road.vehicles``; defaults to the count after the
-            first reset, plus 16 in scenarios that spawn traffic (intersection-v0).
+            first reset, or 32 in scenarios that spawn traffic (intersection-v0).
         max_objects: slots for ``road.objects``; defaults to the count after reset.
         max_trajectory: rows kept of lane-keeping's growing ``trajectory``; defaults
             to the TimeLimit plus 8.
@@ -152,7 +153,10 @@ class HighwayStateCodec(StateCodec):
         self.class_index = {cls: i for i, cls in enumerate(self.classes)}
         self.class_parameters = list(schema.CLASS_PARAMETERS)
         spawns = "spawn_probability" in core.config
-        self.max_vehicles = self._max_vehicles or len(road.vehicles) + (16 if spawns else 0)
+        # Spawning scenarios get a fixed default, so that envs built with different seeds
+        # (ParallelEnv workers) share one layout and can exchange states.
+        default = max(_SPAWN_CAPACITY, len(road.vehicles) + 16) if spawns else len(road.vehicles)
+        self.max_vehicles = self._max_vehicles or default
         self.max_objects = self._max_objects or len(road.objects)
         self.n_controlled = len(core.controlled_vehicles)
         nodes = sorted(_road_nodes(road.network), key=repr)

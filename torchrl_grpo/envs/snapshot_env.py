@@ -216,6 +216,10 @@ class SnapshotEnv(EnvBase):
 
     # ------------------------------------------------------------------ gym glue
     def _gym_reset(self, seed: int | None) -> tuple[Any, dict]:
+        if seed is not None:
+            # Some envs sample their action space during reset (highway-env's reset info):
+            # seed it too, so that a seed fixes the whole reset output.
+            self._env.action_space.seed(seed)
         return self._env.reset(seed=seed)
 
     def _to_gym_action(self, action: torch.Tensor) -> Any:
