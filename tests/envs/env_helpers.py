@@ -26,17 +26,6 @@ RUN_STEPS = {s: 30 for s in HIGHWAY_SCENARIOS}
 RUN_STEPS["lane-keeping-v0"] = 205
 RUN_STEPS["parking-v0"] = 60
 
-# intersection-v0's default padding depends on the seed of the first reset (a bug, see
-# test_determinism): tests that move its states between envs fix the padding.
-PADDING = {"intersection-v0": {"max_vehicles": 32}}
-
-
-def make_env(scenario: str, **kwargs):
-    """``HighwayEnv(scenario, **kwargs)`` with the padding of :data:`PADDING`."""
-    from torchrl_grpo.envs import HighwayEnv
-
-    return HighwayEnv(scenario, **{**PADDING.get(scenario, {}), **kwargs})
-
 
 # ---------------------------------------------------------------------- actions
 def careful_actions(env, n: int) -> list[torch.Tensor]:
@@ -137,6 +126,18 @@ def runs_differ(a: list[TensorDict], b: list[TensorDict]) -> bool:
     return any(bit_differences(x, y) for x, y in zip(a, b, strict=True))
 
 
-# ---------------------------------------------------------------------- fixtures
-# highway-env's own values, read before any test could build intersection-v0 (which
-# overwrites them for the whole process).
+# ---------------------------------------------------------------------- worker factories
+def make_env_after_intersection(scenario: str, **kwargs):
+    """A ParallelEnv worker factory (module level: picklable) whose process creates and
+    steps intersection-v0 before building the env, and resets it once more afterwards:
+    intersection-v0 overwrites IDMVehicle's constants for the whole process."""
+    import gymnasium as gym
+
+    from torchrl_grpo.envs import HighwayEnv
+
+    crossing = gym.make("intersection-v0")
+    crossing.reset(seed=0)
+    crossing.step(1)
+    env = HighwayEnv(scenario, **kwargs)
+    crossing.reset(seed=1)
+    return env

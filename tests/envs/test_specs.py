@@ -15,7 +15,6 @@ from env_helpers import (
     bit_differences,
     careful_actions,
     faithful_copy,
-    make_env,
     random_actions,
     restore,
     run,
@@ -164,7 +163,7 @@ def test_states_equal_agrees_with_a_reference_bit_comparison():
 # ---------------------------------------------------------------- where a state can travel
 def _branch_check(scenario, make_copy):
     """Snapshots of a run, sent through ``make_copy``, restore and replay bit for bit."""
-    env = make_env(scenario, seed=0, return_state=True)
+    env = HighwayEnv(scenario, seed=0, return_state=True)
     env.reset()
     actions = random_actions(env, 8, seed=1)
     states = [env.step(TensorDict(action=a))["next", "state"] for a in actions]
@@ -172,9 +171,9 @@ def _branch_check(scenario, make_copy):
     assert copies.shape[0] == len(states)
     for t in (1, 5):
         assert_bitwise_equal(copies[t], states[t], f"state {t} after the trip")
-    branch = make_env(scenario, seed=3)
+    branch = HighwayEnv(scenario, seed=3)
     restore(branch, copies[1])
-    ref_branch = make_env(scenario, seed=4)
+    ref_branch = HighwayEnv(scenario, seed=4)
     restore(ref_branch, states[1])
     out, final = run(branch, actions[2:])
     ref_out, ref_final = run(ref_branch, actions[2:])
@@ -211,9 +210,9 @@ def test_torch_save_and_load_weights_only_through_to_dict(scenario):
 @pytest.mark.xfail(
     strict=True,
     raises=pickle.UnpicklingError,
-    reason="BUG (docs/envs.md promises torch.save / torch.load(weights_only=True)): a state "
-    "is a TensorDict, and torch.load(weights_only=True) refuses TensorDict objects "
-    "(UnpicklingError); only state.to_dict() round-trips",
+    reason="LIMITATION (documented in docs/envs.md): torch.load(weights_only=True) refuses "
+    "a TensorDict object (UnpicklingError: tensordict._reductions._make_td is not an "
+    "allowed global); save state.to_dict() instead (tested above)",
 )
 def test_torch_save_state_load_weights_only():
     state = HighwayEnv("merge-v0", seed=0).get_state()

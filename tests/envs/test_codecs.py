@@ -1,0 +1,193 @@
+"""The CartPole codec, and a user's own highway-env vehicle class with an extra field."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from env_helpers import (
+    assert_bitwise_equal,
+    assert_same_run,
+    bit_differences,
+    faithful_copy,
+    random_actions,
+    restore,
+    run,
+    runs_differ,
+)
+from highway_env.vehicle.behavior import IDMVehicle
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+from torchrl_grpo.envs import (
+    CartPoleStateCodec,
+    Field,
+    HighwayEnv,
+    SnapshotEnv,
+    SnapshotError,
+    StateCorruptedError,
+    UnknownFieldError,
+    register_vehicle_class,
+)
+from torchrl_grpo.envs import highway_schema as schema
+
+
+# ---------------------------------------------------------------- CartPole
+def cartpole(seed=0):
+    return SnapshotEnv("CartPole-v1", seed=seed)
+
+
+def test_cartpole_specs_and_codec():
+    env = cartpole()
+    assert isinstance(env.codec, CartPoleStateCodec)
+    check_env_specs(env)
+    state = env.get_state()
+    assert all(isinstance(v, torch.Tensor) for v in state.values(True, True))
+    assert env.state_spec["state"].is_in(state)
+
+
+def test_cartpole_restore_replays_past_termination():
+    """60 random steps: CartPole terminates early and keeps stepping (steps_beyond_terminated)."""
+    env = cartpole()
+    env.reset()
+    actions = random_actions(env, 65, seed=2)
+    run(env, actions[:5])
+    snapshot = env.get_state()
+    ref, ref_final = run(env, actions[5:])
+    assert any(bool(o["terminated"]) for o in ref), "the run should reach termination"
+    assert bit_differences(snapshot, ref_final)
+    for target, what in ((env, "same env"), (cartpole(seed=9), "fresh env")):
+        restore(target, snapshot)
+        assert_bitwise_equal(target.get_state(), snapshot, f"{what}: right after restore")
+        got, final = run(target, actions[5:])
+        assert_same_run(ref, got, what)
+        assert_bitwise_equal(final, ref_final, f"{what}: final state")
+
+
+def test_cartpole_rng_and_time_limit_are_part_of_the_state():
+    env = cartpole()
+    env.reset()
+    snapshot = env.get_state()
+    next_episode = env.reset()
+    other = cartpole(seed=5)
+    own = other.reset()
+    restore(other, snapshot)
+    assert_bitwise_equal(other.reset(), next_episode, "fresh episode after restore")
+    assert bit_differences(own, next_episode)
+
+    # TimeLimit(500): a state whose counter says 499 truncates at the next step.
+    nearly = faithful_copy(snapshot)
+    nearly["sim", "wrappers", "elapsed_steps"].fill_(499)
+    restore(other, nearly)
+    assert other.step(TensorDict(action=torch.tensor(0)))["next", "truncated"].item()
+    restore(other, snapshot)
+    assert not other.step(TensorDict(action=torch.tensor(0)))["next", "truncated"].item()
+
+
+@pytest.mark.parametrize("bad", ["nan-physics", "truncated", "wrong-dtype", "highway-state"])
+def test_cartpole_bad_states_leave_it_untouched(bad):
+    env, twin = cartpole(), cartpole()
+    actions = random_actions(env, 8, seed=4)
+    run(env, actions[:3])
+    run(twin, actions[:3])
+    state = env.get_state()
+    broken = faithful_copy(state)
+    if bad == "nan-physics":
+        broken["sim", "physics"][2] = float("nan")
+        error, match = StateCorruptedError, "non-finite"
+    elif bad == "truncated":
+        del broken["sim", "steps_beyond_terminated"]
+        error, match = StateCorruptedError, "steps_beyond_terminated"
+    elif bad == "wrong-dtype":
+        broken["sim", "physics"] = broken["sim", "physics"].float()
+        error, match = StateCorruptedError, "physics.*dtype"
+    else:
+        broken = HighwayEnv("merge-v0", seed=0).get_state()
+        error, match = SnapshotError, "."
+    with pytest.raises(error, match=match):
+        restore(env, broken)
+    assert_bitwise_equal(env.get_state(), state, "after the error")
+    out, final = run(env, actions[3:])
+    ref, ref_final = run(twin, actions[3:])
+    assert_same_run(ref, out, "after the error")
+    assert_bitwise_equal(final, ref_final, "final state")
+
+
+# ---------------------------------------------------------------- a user's vehicle class
+class PatientIDM(IDMVehicle):
+    """An IDM driver whose patience runs out every few frames: then it wants 1 m/s more."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.patience = 2.0
+
+    def act(self, action=None):
+        self.patience -= 1.0
+        if self.patience <= 0:
+            self.target_speed += 1.0
+            self.patience = 2.0 + float(self.lane_index[2])
+        super().act(action)
+
+
+PATIENT_CONFIG = {"other_vehicles_type": f"{PatientIDM.__module__}.{PatientIDM.__qualname__}"}
+
+
+@pytest.fixture
+def isolated_registry(monkeypatch):
+    """Registrations made by a test are undone afterwards (other envs keep their layout)."""
+    monkeypatch.setattr(schema, "FIELDS", dict(schema.FIELDS))
+    monkeypatch.setattr(schema, "VEHICLE_CLASSES", list(schema.VEHICLE_CLASSES))
+
+
+def _patient_env(seed):
+    env = HighwayEnv("highway-fast-v0", config=PATIENT_CONFIG, seed=seed)
+    others = env.gym_env.unwrapped.road.vehicles[1:]
+    assert others and all(type(v) is PatientIDM for v in others)
+    return env
+
+
+def _patience(env):
+    return [v.patience for v in env.gym_env.unwrapped.road.vehicles[1:]]
+
+
+def test_registered_vehicle_class_with_an_extra_field(isolated_registry):
+    register_vehicle_class(PatientIDM, {"patience": Field("float")})
+    env = _patient_env(seed=0)
+    env.reset()
+    actions = random_actions(env, 28, seed=6)
+    run(env, actions[:3])
+    snapshot, patience = env.get_state(), _patience(env)
+    ref, ref_final = run(env, actions[3:])
+
+    fresh = _patient_env(seed=8)
+    restore(fresh, snapshot)
+    assert _patience(fresh) == patience
+    assert all(type(v) is PatientIDM for v in fresh.gym_env.unwrapped.road.vehicles[1:])
+    got, final = run(fresh, actions[3:])
+    assert_same_run(ref, got, "custom vehicles")
+    assert_bitwise_equal(final, ref_final, "final state with custom vehicles")
+
+    # The field decides the future, so a codec that dropped it would be caught above.
+    restore(fresh, snapshot)
+    for vehicle in fresh.gym_env.unwrapped.road.vehicles[1:]:
+        vehicle.patience += 5.0
+    impatient, _ = run(fresh, actions[3:])
+    assert runs_differ(ref, impatient)
+
+
+def test_unregistered_vehicle_class_fails_loudly(isolated_registry):
+    env = _patient_env(seed=0)
+    with pytest.raises(UnknownFieldError, match="PatientIDM"):
+        env.get_state()
+
+
+def test_registered_class_without_its_field_names_the_field(isolated_registry):
+    register_vehicle_class(PatientIDM)
+    env = _patient_env(seed=0)
+    with pytest.raises(UnknownFieldError, match=r"PatientIDM\.patience"):
+        env.get_state()
+
+
+def test_registering_a_known_field_with_another_kind_is_refused(isolated_registry):
+    with pytest.raises(ValueError, match="timer"):
+        register_vehicle_class(PatientIDM, {"timer": Field("int")})
+    assert PatientIDM not in schema.VEHICLE_CLASSES
