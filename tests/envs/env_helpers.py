@@ -13,6 +13,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from torchrl_grpo.envs import HIGHWAY_SCENARIOS
+from torchrl_grpo.envs.codec import FLOAT_BITS
 
 # highway-env flags its older scenario versions as out of date on every gym.make.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -98,6 +99,9 @@ def leaf_bits(td: TensorDictBase) -> dict:
     for key, value in td.items(include_nested=True, leaves_only=True):
         assert isinstance(value, torch.Tensor), f"{key!r} is not a tensor: {type(value)}"
         value = value.detach().cpu()
+        if value.dtype.is_floating_point:
+            # States hold floats as integer bit patterns: compare outputs in that form too.
+            value = value.view(FLOAT_BITS[value.dtype])
         out[key] = (value.dtype, tuple(value.shape), value.numpy().tobytes())
     return out
 

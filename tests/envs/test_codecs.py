@@ -92,7 +92,9 @@ def test_cartpole_bad_states_leave_it_untouched(bad):
     state = env.get_state()
     broken = faithful_copy(state)
     if bad == "nan-physics":
-        broken["sim", "physics"][2] = float("nan")
+        broken["sim", "physics"][2] = torch.tensor(float("nan"), dtype=torch.float64).view(
+            torch.int64
+        )
         error, match = StateCorruptedError, "non-finite"
     elif bad == "truncated":
         del broken["sim", "steps_beyond_terminated"]

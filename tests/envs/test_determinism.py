@@ -147,15 +147,6 @@ def test_fresh_reset_after_restore_draws_the_same_next_episode(scenario):
         assert bit_differences(own_episode["state", "sim"], next_episode["state", "sim"])
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="BUG: a reset output's reward_components come from highway-env's "
-    "_info(obs, action=self.action_space.sample()) inside reset(). Seeding action_space "
-    "before env.reset (snapshot_env._gym_reset) has no effect: reset() first calls "
-    "define_spaces(), which replaces action_space with a new, unseeded space. The same "
-    "seed still gives different reset outputs (racetrack action_reward; merge/roundabout "
-    "lane_change_reward 2 times in 5)",
-)
 def test_reset_output_is_reproducible():
     envs = [HighwayEnv("racetrack-v0", seed=0), HighwayEnv("racetrack-v0", seed=0)]
     for env in envs:

@@ -144,20 +144,16 @@ def test_states_equal_agrees_with_a_reference_bit_comparison():
     state = env.get_state()
     twin = faithful_copy(state)
     assert states_equal(state, twin) and not bit_differences(state, twin)
-    for key, value in state["sim"].items(True, True):
-        if value.dtype == torch.float64 and value.numel():
-            nudged = faithful_copy(state)
-            flat = nudged["sim", *((key,) if isinstance(key, str) else key)].view(-1)
-            flat[0] = torch.nextafter(flat[0], torch.tensor(np.inf, dtype=torch.float64))
-            assert not states_equal(state, nudged), f"1 ulp at {key} not seen"
-            assert bit_differences(state, nudged)
-            signed = faithful_copy(state)
-            flat = signed["sim", *((key,) if isinstance(key, str) else key)].view(-1)
-            flat[0] = -flat[0] if flat[0] == 0 else flat[0]
-            assert states_equal(state, signed) == (not bit_differences(state, signed))
-            break
-    else:
-        pytest.fail("the state has no float64 entry")
+    # Floats are stored as int64 bit patterns: nudge the float64 values they stand for.
+    nudged = faithful_copy(state)
+    flat = nudged["sim", "entities", "f64"].view(torch.float64).view(-1)
+    flat[0] = torch.nextafter(flat[0], torch.tensor(np.inf, dtype=torch.float64))
+    assert not states_equal(state, nudged), "1 ulp in entities.f64 not seen"
+    assert bit_differences(state, nudged)
+    signed = faithful_copy(state)
+    time = signed["sim", "env", "time"].view(torch.float64)
+    time.copy_(-time if time == 0 else time)
+    assert states_equal(state, signed) == (not bit_differences(state, signed))
 
 
 # ---------------------------------------------------------------- where a state can travel
@@ -184,11 +180,8 @@ def _with_negative_zero(env):
     """A vehicle heading of -0.0: valid, and a bit pattern a faithful copy must keep."""
     env.gym_env.unwrapped.road.vehicles[1].heading = -0.0
     state = env.get_state()
-    if not any(
-        bool((torch.signbit(v) & (v == 0)).any())
-        for v in state["sim"].values(True, True)
-        if v.dtype.is_floating_point
-    ):
+    floats = state["sim", "entities", "f64"].view(torch.float64)  # stored as bit patterns
+    if not bool((torch.signbit(floats) & (floats == 0)).any()):
         raise RuntimeError("precondition: the state should hold a -0.0")
     return state
 
@@ -249,14 +242,6 @@ def test_memmap_round_trip(tmp_path):
     assert_bitwise_equal(loaded, state, "memmap")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="BUG: TensorDict.clone() of a td with a device copies through "
-    "torch._foreach_add(x, 0), which turns -0.0 into +0.0, and get_state() sets "
-    "device='cpu': state.clone() (or expand(N).clone()) is not bit-identical, so a restore "
-    "from a clone is not exact. Storing float64 columns as int64 bit patterns would fix it",
-)
 def test_state_survives_tensordict_clone():
     env = HighwayEnv("highway-fast-v0", seed=0)
     state = _with_negative_zero(env)
@@ -266,13 +251,6 @@ def test_state_survives_tensordict_clone():
     assert_bitwise_equal(fresh.get_state(), state, "state restored from a clone")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="BUG: get_state() stores the last output through TensorDict.clone() (see "
-    "test_state_survives_tensordict_clone), so an observation holding -0.0 comes back as "
-    "+0.0 after a restore: the restored output is not the one the env returned",
-)
 def test_snapshot_output_is_what_the_env_returned():
     env = HighwayEnv("parking-v0", seed=2)
     env.reset()

@@ -37,7 +37,8 @@ class CartPoleStateCodec(StateCodec):
     def state_spec(self) -> Composite:
         """See :meth:`StateCodec.state_spec`."""
         return Composite(
-            physics=Unbounded((4,), dtype=torch.float64),
+            # x, x_dot, theta, theta_dot as float64 bit patterns (see codec.FLOAT_BITS).
+            physics=Unbounded((4,), dtype=torch.int64),
             # gymnasium counts steps taken after termination (None before): -1 encodes None.
             steps_beyond_terminated=Unbounded((), dtype=torch.int64),
             rng=rng_spec(),
@@ -51,7 +52,7 @@ class CartPoleStateCodec(StateCodec):
         encode_rng(core.np_random, rng)
         beyond = core.steps_beyond_terminated
         return TensorDict(
-            physics=torch.as_tensor(np.asarray(core.state, dtype=np.float64)).clone(),
+            physics=torch.from_numpy(np.array(core.state, dtype=np.float64).view(np.int64)),
             steps_beyond_terminated=torch.tensor(-1 if beyond is None else beyond),
             rng=torch.from_numpy(rng),
             wrappers=TensorDict({k: torch.from_numpy(v) for k, v in encode_wrappers(env).items()}),
@@ -60,7 +61,7 @@ class CartPoleStateCodec(StateCodec):
     def decode(self, env: gym.Env, state: TensorDictBase) -> None:
         """See :meth:`StateCodec.decode`."""
         check_state_layout(state, self.state_spec())
-        physics = state["physics"].numpy().copy()
+        physics = state["physics"].numpy().view(np.float64).copy()
         if not np.isfinite(physics).all():
             raise StateCorruptedError(f"CartPole physics holds non-finite values: {physics}")
         rng_state = decode_rng(state["rng"].numpy())

@@ -20,7 +20,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Composite
+from torchrl.data import Composite, Unbounded
 
 from torchrl_grpo.envs.errors import StateCorruptedError, StateMismatchError
 
@@ -80,6 +80,13 @@ class StateCodec(ABC):
             SnapshotError: the state does not fit this env; ``env`` is unchanged.
         """
 
+    def check_compatible(self, state: TensorDictBase) -> None:  # noqa: B027 - optional hook
+        """Raise :class:`~torchrl_grpo.envs.StateMismatchError` for a foreign state.
+
+        Called before any other check, so that a state captured from another
+        configuration is reported as such rather than as a malformed state.
+        """
+
     def fingerprint(self, env: gym.Env) -> int:
         """A 63-bit identifier of the configuration states of ``env`` belong to.
 
@@ -117,6 +124,54 @@ def _json_default(obj: Any) -> Any:
 
 
 SpecLayout = dict[Any, tuple[torch.Size, torch.dtype]]
+
+# States hold floating-point values as integer bit patterns of the same width:
+# tensordict's clone() copies floats through ``x + 0``, which turns -0.0 into +0.0,
+# and a state must survive every copy bit for bit.
+FLOAT_BITS: dict[torch.dtype, torch.dtype] = {
+    torch.float64: torch.int64,
+    torch.float32: torch.int32,
+    torch.float16: torch.int16,
+    torch.bfloat16: torch.int16,
+}
+
+
+def bits_spec(spec: Composite) -> tuple[Composite, dict[Any, torch.dtype]]:
+    """A copy of ``spec`` whose floating leaves are integers of the same width.
+
+    Returns:
+        The integer spec and ``{key: original float dtype}`` of the converted leaves.
+
+    Example:
+        >>> from torchrl.data import Composite, Unbounded
+        >>> spec, floats = bits_spec(Composite(x=Unbounded((2,), dtype=torch.float64)))
+        >>> spec["x"].dtype, floats
+        (torch.int64, {'x': torch.float64})
+    """
+    out = spec.clone()
+    floats = {}
+    for key in spec.keys(True, True):
+        leaf = spec[key]
+        if leaf.dtype in FLOAT_BITS:
+            floats[key] = leaf.dtype
+            out[key] = Unbounded(leaf.shape, dtype=FLOAT_BITS[leaf.dtype], device=leaf.device)
+    return out, floats
+
+
+def to_bits(tensor: torch.Tensor) -> torch.Tensor:
+    """View a floating tensor as integers of the same width (other tensors pass through).
+
+    Example:
+        >>> to_bits(torch.tensor([-0.0], dtype=torch.float64)).item() == -(2**63)
+        True
+    """
+    bits = FLOAT_BITS.get(tensor.dtype)
+    return tensor if bits is None else tensor.view(bits)
+
+
+def from_bits(tensor: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """Inverse of :func:`to_bits`: view integer bit patterns as ``dtype``."""
+    return tensor if tensor.dtype == dtype else tensor.view(dtype)
 
 
 def spec_layout(spec: Composite) -> SpecLayout:

@@ -150,9 +150,13 @@ class HighwayEnv(SnapshotEnv):
         # another scenario in this process wrote onto them (intersection-v0 does).
         for (cls, name), value in schema.PRISTINE_CLASS_PARAMETERS.items():
             setattr(cls, name, value)
-        result = super()._gym_reset(seed)
+        obs, info = super()._gym_reset(seed)
         self._remember_class_params()
-        return result
+        if "rewards" in info:
+            # highway-env computes reset-time reward components for an action sampled from
+            # an unseeded, freshly rebuilt action space: no action was taken yet, so 0.
+            info = {**info, "rewards": dict.fromkeys(info["rewards"], 0.0)}
+        return obs, info
 
     def _remember_class_params(self) -> None:
         self._class_params = [getattr(c, n) for c, n in self._param_keys]

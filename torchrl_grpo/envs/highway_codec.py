@@ -41,6 +41,7 @@ from torchrl_grpo.envs import highway_schema as schema
 from torchrl_grpo.envs.codec import (
     StateCodec,
     as_numpy,
+    bits_spec,
     check_state_layout,
     spec_layout,
     stable_hash,
@@ -63,6 +64,23 @@ from torchrl_grpo.envs.gym_state import (
 from torchrl_grpo.envs.highway_layout import NONE as _NONE
 from torchrl_grpo.envs.highway_layout import OBJECT, VEHICLE, EntityLayout
 
+# Fields every road object has (RoadObject.__init__ sets them); a restored object
+# without them would fail later, in the middle of a step.
+_REQUIRED_FIELDS = frozenset(
+    {
+        "position",
+        "heading",
+        "speed",
+        "lane_index",
+        "collidable",
+        "solid",
+        "check_collisions",
+        "diagonal",
+        "crashed",
+        "hit",
+    }
+)
+_NOT_NONE = ("position", "heading", "speed")
 _SPAWN_CAPACITY = 32  # vehicle slots of scenarios that spawn traffic (intersection-v0)
 # Name-mangled private attributes of highway-env's action / observation types.
 _ACTION_VEHICLE = "_ActionType__controlled_vehicle"
@@ -197,7 +215,8 @@ class HighwayStateCodec(StateCodec):
                 self.n_controlled,
             ),
         }
-        self._spec = self._build_spec()
+        self._spec, float_keys = bits_spec(self._build_spec())
+        self._float_keys = {_dotted(k) for k in float_keys}
         self._spec_layout = spec_layout(self._spec)
         self._bound = True
 
@@ -267,7 +286,14 @@ class HighwayStateCodec(StateCodec):
             arrays[("fingerprint", key)] = np.asarray(value, dtype=np.int64)
         for key, value in encode_wrappers(env).items():
             arrays[("wrappers", key)] = value
-        return TensorDict({k: torch.from_numpy(v) for k, v in arrays.items()}, batch_size=())
+        # Floats are stored as their int64 bit patterns (see codec.FLOAT_BITS).
+        return TensorDict(
+            {
+                k: torch.from_numpy(v.view(np.int64) if v.dtype == np.float64 else v)
+                for k, v in arrays.items()
+            },
+            batch_size=(),
+        )
 
     def _encode_env(self, env: gym.Env, slot: dict[int, int]) -> dict:
         core = env.unwrapped
@@ -350,25 +376,42 @@ class HighwayStateCodec(StateCodec):
         return out
 
     # ------------------------------------------------------------------ decode
-    def decode(self, env: gym.Env, state: TensorDictBase) -> None:
-        """See :meth:`StateCodec.decode`."""
+    def check_compatible(self, state: TensorDictBase) -> None:
+        """Raise :class:`StateMismatchError` unless ``state`` carries this env's fingerprints."""
         self._check_bound()
-        check_state_layout(state, self._spec_layout)
+        if not isinstance(state, TensorDictBase) or "fingerprint" not in state.keys():
+            raise StateMismatchError(
+                "the state has no highway-env fingerprint: it was not captured by a HighwayEnv"
+            )
         for key, expected in self.fingerprints.items():
-            found = int(state["fingerprint", key])
-            if found != expected:
+            found = state.get(("fingerprint", key), None)
+            if found is None:
+                raise StateCorruptedError(
+                    f"the state is truncated: missing entry fingerprint.{key}"
+                )
+            if not isinstance(found, torch.Tensor) or found.numel() != 1:
+                raise StateCorruptedError(f"the state's fingerprint.{key} is malformed")
+            if int(found) != expected:
                 what = {
                     "config": "another scenario or config",
                     "road": "another road network",
                     "layout": "an env with another state layout (padding or registered classes)",
                 }[key]
                 raise StateMismatchError(
-                    f"the state was captured from {what}: fingerprint.{key} is {found}, "
+                    f"the state was captured from {what}: fingerprint.{key} is {int(found)}, "
                     f"this env's is {expected}"
                 )
+
+    def decode(self, env: gym.Env, state: TensorDictBase) -> None:
+        """See :meth:`StateCodec.decode`."""
+        self.check_compatible(state)
+        check_state_layout(state, self._spec_layout)
         core = env.unwrapped
         arrays = as_numpy(state)
-        vehicles, objects, by_slot = self._decode_entities(core, state["entities"])
+        for key in self._float_keys:
+            arrays[key] = arrays[key].view(np.float64)
+        blocks = {b: arrays[f"entities.{b}"] for b in self.layout.widths}
+        vehicles, objects, by_slot = self._decode_entities(core, blocks)
         plan = self._decode_env(core, arrays, by_slot)
         # Everything is built and validated: from here on nothing can fail.
         road = core.road
@@ -402,8 +445,7 @@ class HighwayStateCodec(StateCodec):
             env, int(arrays["wrappers.elapsed_steps"]), bool(arrays["wrappers.has_reset"])
         )
 
-    def _decode_entities(self, core: Any, entities: TensorDictBase) -> tuple[list, list, dict]:
-        blocks = {k: v.numpy() for k, v in entities.items()}
+    def _decode_entities(self, core: Any, blocks: dict[str, np.ndarray]) -> tuple[list, list, dict]:
         decoded = self.layout.decode(blocks, self.classes)
         by_slot = {slot: obj for slot, _, obj, _ in decoded}
         vehicles, objects = [], []
@@ -416,7 +458,16 @@ class HighwayStateCodec(StateCodec):
                         f"entities.{name} of slot {slot} is empty slot {target}"
                     )
                 obj.__dict__[name] = by_slot[target]
-            self._rebuild_derived(core, obj, slot)
+            missing = _REQUIRED_FIELDS - obj.__dict__.keys()
+            if missing or any(obj.__dict__[name] is None for name in _NOT_NONE):
+                raise StateCorruptedError(
+                    f"entity slot {slot} ({type(obj).__qualname__}) lacks required fields "
+                    f"{sorted(missing) or sorted(_NOT_NONE)}: its presence flags are corrupted"
+                )
+            try:
+                self._rebuild_derived(core, obj, slot)
+            except (AttributeError, TypeError, ValueError) as err:
+                raise StateCorruptedError(f"entity slot {slot} cannot be rebuilt: {err}") from err
             (vehicles if kind == VEHICLE else objects).append(obj)
         return vehicles, objects, by_slot
 
@@ -454,6 +505,13 @@ class HighwayStateCodec(StateCodec):
             "seed": None if a["env.seed"] < 0 else int(a["env.seed"]),
             "rng": decode_rng(a["env.rng"]),
             "road_steps": None if a["env.road_steps"] < 0 else int(a["env.road_steps"]),
+        }
+        if (plan["road_steps"] is None) == hasattr(core.road, "steps"):
+            raise StateCorruptedError(
+                f"env.road_steps is {int(a['env.road_steps'])}, but this road "
+                + ("counts steps" if hasattr(core.road, "steps") else "has no step counter")
+            )
+        plan |= {
             "class_params": [float(x) for x in a["env.class_params"]],
             "controlled": [vehicle_at(int(c), "controlled") for c in a["env.controlled"]],
             "action_vehicle": vehicle_at(int(a["env.action_vehicle"]), "action_vehicle"),
@@ -494,6 +552,10 @@ class HighwayStateCodec(StateCodec):
     def _check_bound(self) -> None:
         if not self._bound:
             raise SnapshotError("the codec is not bound to an env: call bind(env) first")
+
+
+def _dotted(key: str | tuple[str, ...]) -> str:
+    return ".".join(key) if isinstance(key, tuple) else key
 
 
 def _road_nodes(network: Any) -> set:

@@ -2,7 +2,8 @@
 
 Each road object occupies one row (a *slot*) of four blocks::
 
-    f64   [M, Nf]  float64: floats, vectors, the action dict, target speeds
+    f64   [M, Nf]  float64 (stored as int64 bit patterns): floats, vectors, the action
+                   dict, target speeds
     i16   [M, Ni]  int16: slot kind, class id, lane codes, routes, enums, colours,
                    references, lengths of variable-size fields
     i64   [M, Nl]  int64: integer fields (speed_index, yield_timer)
@@ -16,6 +17,7 @@ one named field back out of a state for users who want to look inside.
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -145,6 +147,8 @@ class EntityLayout:
         """
         c = self.columns[name]
         values = entities[c.block][..., c.start : c.stop]
+        if c.block == "f64":
+            values = values.view(torch.float64)  # stored as int64 bit patterns
         return values.squeeze(-1) if c.width == 1 else values
 
     # ------------------------------------------------------------------ encode
@@ -160,26 +164,32 @@ class EntityLayout:
         s, e = c.start, c.stop
         kind = field.kind
         lane_code = self.lane_code
+        # Writers convert as they store, so that a value of the wrong kind fails here,
+        # inside encode()'s error handling, and not later in numpy.
         if kind == "float":
 
             def write(v, rows, slot_of):
-                rows["f64"][s] = v
+                rows["f64"][s] = float(v)
         elif kind == "int":
 
             def write(v, rows, slot_of):
-                rows["i64"][s] = v
+                rows["i64"][s] = operator.index(v)
         elif kind == "bool":
 
             def write(v, rows, slot_of):
-                rows["flags"][s] = v
+                if not isinstance(v, (bool, np.bool_)):
+                    raise TypeError(f"expected a bool, got {type(v).__name__}")
+                rows["flags"][s] = bool(v)
         elif kind == "vec2":
 
             def write(v, rows, slot_of):
-                rows["f64"][s], rows["f64"][s + 1] = v
+                x, y = v
+                rows["f64"][s], rows["f64"][s + 1] = float(x), float(y)
         elif kind == "action":
 
             def write(v, rows, slot_of):
-                rows["f64"][s], rows["f64"][s + 1] = v["steering"], v["acceleration"]
+                rows["f64"][s] = float(v["steering"])
+                rows["f64"][s + 1] = float(v["acceleration"])
         elif kind == "array":
             shape = field.shape
 

@@ -20,7 +20,14 @@ from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase
 from torchrl.envs.libs.gym import _gym_to_torchrl_spec_transform
 
-from torchrl_grpo.envs.codec import StateCodec, check_state_layout, spec_layout
+from torchrl_grpo.envs.codec import (
+    StateCodec,
+    bits_spec,
+    check_state_layout,
+    from_bits,
+    spec_layout,
+    to_bits,
+)
 from torchrl_grpo.envs.errors import SnapshotError, StateCorruptedError
 
 logger = logging.getLogger(__name__)
@@ -117,14 +124,11 @@ class SnapshotEnv(EnvBase):
         self.done_spec = Composite(
             done=done.clone(), terminated=done.clone(), truncated=done.clone(), device=self.device
         )
-        self._snapshot_output_spec = obs_spec.clone()
-        self._output_layout = spec_layout(obs_spec)
+        # The stored output holds floats as bit patterns, like the codecs' states.
+        output_spec, self._output_floats = bits_spec(obs_spec)
+        self._output_layout = spec_layout(output_spec)
         self.state_spec = Composite(
-            {
-                STATE_KEY: Composite(
-                    sim=self.codec.state_spec(), output=self._snapshot_output_spec.clone()
-                )
-            },
+            {STATE_KEY: Composite(sim=self.codec.state_spec(), output=output_spec)},
             device=self.device,
         )
 
@@ -142,8 +146,11 @@ class SnapshotEnv(EnvBase):
 
         Restore it with ``env.reset(TensorDict(state=state), set_state=True)``.
         """
+        output = {k: to_bits(v.clone()) for k, v in self._last_output.items(True, True)}
         return TensorDict(
-            sim=self.codec.encode(self._env), output=self._last_output.clone(), device=self.device
+            sim=self.codec.encode(self._env),
+            output=TensorDict(output, batch_size=()),
+            device=self.device,
         )
 
     def set_state(self, state: TensorDictBase) -> TensorDict:
@@ -179,15 +186,32 @@ class SnapshotEnv(EnvBase):
                 "(from env.get_state()); none was given"
             )
         state = tensordict.get(STATE_KEY)
+        if not isinstance(state, TensorDictBase):
+            raise StateCorruptedError(f"the {STATE_KEY!r} entry is not a TensorDict")
         if tuple(state.batch_size) != ():
             raise StateCorruptedError(
                 f"this env is unbatched but the state has batch size {tuple(state.batch_size)}; "
                 "restore batched states through a ParallelEnv / SerialEnv of matching size"
             )
+        for part in ("sim", "output"):
+            if part not in state.keys():
+                raise StateCorruptedError(f"the state is truncated: it has no {part!r} part")
+        # A state from another env must be reported as such, before any shape check.
+        self.codec.check_compatible(state.get("sim"))
         check_state_layout(state.get("output"), self._output_layout)
         self._before_restore(state)
         self.codec.decode(self._env, state.get("sim"))
-        return state.get("output").clone()
+        stored = state.get("output")
+        return TensorDict(
+            {
+                k: from_bits(v, self._output_floats[k]).clone()
+                if k in self._output_floats
+                else v.clone()
+                for k, v in stored.items(True, True)
+            },
+            batch_size=(),
+            device=self.device,
+        )
 
     def _before_restore(self, state: TensorDictBase) -> None:
         """Hook for subclasses: validate more before the simulator is written."""
