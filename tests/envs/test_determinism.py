@@ -254,12 +254,6 @@ def test_rollout_next_state_branches():
         assert_same_run(ref, got, f"branch from rollout step {t}")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="BUG: 'state' is in state_spec only, so step_mdp does not carry ('next', 'state') "
-    "to the root: with return_state=True, rollout()['state'][t] stays the reset state "
-    "instead of the state action t was taken from",
-)
 def test_rollout_root_state_is_the_pre_step_state():
     env = HighwayEnv("highway-fast-v0", seed=0, return_state=True)
     traj = env.rollout(6, _idle_policy, break_when_any_done=False)
@@ -267,11 +261,6 @@ def test_rollout_root_state_is_the_pre_step_state():
         assert_bitwise_equal(traj["state"][t + 1], traj["next", "state"][t], f"root state {t + 1}")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="BUG: a Collector batch of HighwayEnv(return_state=True) has no ('next', 'state') "
-    "and its root 'state' is stale, so its steps cannot be branched from",
-)
 def test_collector_trajectory_steps_can_be_branched():
     make = functools.partial(HighwayEnv, "highway-fast-v0", seed=0, return_state=True)
     collector = Collector(make, _idle_policy, frames_per_batch=6, total_frames=6)

@@ -133,12 +133,6 @@ def test_fresh_episode_after_restore_in_workers(batched):
     check_workers(batched, [probe, probe], references, "fresh episode")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="BUG: 'state' is declared in state_spec only, so SerialEnv / ParallelEnv (which "
-    "route output_spec keys) drop it: return_state=True gives no ('next', 'state') in a "
-    "batched env, and reset outputs carry no 'state' either",
-)
 def test_return_state_in_a_batched_env():
     env = SerialEnv(2, functools.partial(HighwayEnv, SCENARIO, return_state=True))
     try:
@@ -164,7 +158,7 @@ def test_batched_restore_error_leaves_every_worker_untouched():
         before = env.get_state()
         good = snapshot_after(seed=3, warmup=2)
         bad = faithful_copy(good)
-        bad["sim", "env", "time"].fill_(float("nan"))
+        bad["sim", "env", "time"].view(torch.float64).fill_(float("nan"))
         with pytest.raises(SnapshotError):
             batched_restore(env, [good, bad])
         for w, (a, b) in enumerate(zip(before, env.get_state(), strict=True)):
@@ -185,7 +179,7 @@ def test_parallel_worker_survives_a_bad_state():
     try:
         env.reset()
         bad = faithful_copy(snapshot_after(seed=3, warmup=2))
-        bad["sim", "env", "time"].fill_(float("nan"))
+        bad["sim", "env", "time"].view(torch.float64).fill_(float("nan"))
         with pytest.raises(SnapshotError, match="time"):
             env.reset(TensorDict(state=bad.unsqueeze(0), batch_size=[1]), set_state=True)
         env.step(TensorDict(action=torch.ones(1, dtype=torch.int64), batch_size=[1]))

@@ -127,10 +127,13 @@ class SnapshotEnv(EnvBase):
         # The stored output holds floats as bit patterns, like the codecs' states.
         output_spec, self._output_floats = bits_spec(obs_spec)
         self._output_layout = spec_layout(output_spec)
-        self.state_spec = Composite(
-            {STATE_KEY: Composite(sim=self.codec.state_spec(), output=output_spec)},
-            device=self.device,
-        )
+        state = Composite(sim=self.codec.state_spec(), output=output_spec, device=self.device)
+        # In state_spec, so that reset(td, set_state=True) routes a state to every worker of
+        # a batched env; with return_state also an observation, so that step_mdp carries
+        # ("next", "state") to the root and batched envs and collectors return it.
+        self.state_spec = Composite({STATE_KEY: state}, device=self.device)
+        if self.return_state:
+            self.observation_spec[STATE_KEY] = state.clone()
 
     def _info_spec(self, info: dict) -> dict[Any, TensorSpec]:
         """Extra output entries; subclasses override it together with :meth:`_read_info`."""
