@@ -20,6 +20,7 @@ fingerprinted instead and the restoring env's own network is reused.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from typing import Any
 
@@ -34,15 +35,15 @@ from highway_env.envs.common.observation import (
     TupleObservation,
 )
 from highway_env.vehicle.dynamics import BicycleVehicle
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from torchrl.data import Composite, Unbounded
 
 from torchrl_grpo.envs import highway_schema as schema
 from torchrl_grpo.envs.codec import (
     StateCodec,
-    as_numpy,
     bits_spec,
     check_state_layout,
+    nested_tensordict,
     spec_layout,
     stable_hash,
 )
@@ -287,12 +288,11 @@ class HighwayStateCodec(StateCodec):
         for key, value in encode_wrappers(env).items():
             arrays[("wrappers", key)] = value
         # Floats are stored as their int64 bit patterns (see codec.FLOAT_BITS).
-        return TensorDict(
+        return nested_tensordict(
             {
                 k: torch.from_numpy(v.view(np.int64) if v.dtype == np.float64 else v)
                 for k, v in arrays.items()
-            },
-            batch_size=(),
+            }
         )
 
     def _encode_env(self, env: gym.Env, slot: dict[int, int]) -> dict:
@@ -405,9 +405,9 @@ class HighwayStateCodec(StateCodec):
     def decode(self, env: gym.Env, state: TensorDictBase) -> None:
         """See :meth:`StateCodec.decode`."""
         self.check_compatible(state)
-        check_state_layout(state, self._spec_layout)
+        found = check_state_layout(state, self._spec_layout)
         core = env.unwrapped
-        arrays = as_numpy(state)
+        arrays = {".".join(k) if isinstance(k, tuple) else k: v.numpy() for k, v in found.items()}
         for key in self._float_keys:
             arrays[key] = arrays[key].view(np.float64)
         blocks = {b: arrays[f"entities.{b}"] for b in self.layout.widths}
@@ -487,7 +487,8 @@ class HighwayStateCodec(StateCodec):
             d["history"] = deque(maxlen=cls.HISTORY_SIZE)
         if isinstance(obj, BicycleVehicle):
             d["A_lat"], d["B_lat"] = obj.lateral_lpv_dynamics()  # also sets theta
-        if "position" in d and not np.isfinite(d["position"]).all():
+        x, y = d["position"]  # required: checked by the caller
+        if not (math.isfinite(x) and math.isfinite(y)):
             raise StateCorruptedError(f"entity slot {slot}: non-finite position {d['position']}")
 
     def _decode_env(self, core: Any, a: dict[str, np.ndarray], by_slot: dict) -> dict:

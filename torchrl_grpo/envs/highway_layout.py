@@ -25,7 +25,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from torchrl_grpo.envs.errors import StateCapacityError, StateCorruptedError, UnknownFieldError
+from torchrl_grpo.envs.errors import (
+    SnapshotError,
+    StateCapacityError,
+    StateCorruptedError,
+    UnknownFieldError,
+)
 from torchrl_grpo.envs.highway_schema import DERIVED_ATTRIBUTES, MAX_COLOR, Field
 
 NONE = -1  # encodes None in integer slots (lane ids, references)
@@ -93,7 +98,8 @@ class EntityLayout:
         self.is_none = self._allocate("flags", n)
         self._writers = {name: self._make_writer(name, f) for name, f in self.fields.items()}
         self._readers = {name: self._make_reader(name, f) for name, f in self.fields.items()}
-        self._plans: dict[tuple[bool, ...], list] = {}
+        self._plans: dict[tuple[bool, ...], Callable] = {}
+        self._encoders: dict[tuple[str, ...], Callable | None] = {}
 
     # ------------------------------------------------------------------ layout
     def _field_blocks(self, field: Field) -> list[tuple[str, str, int]]:
@@ -257,8 +263,6 @@ class EntityLayout:
         empty["i16"][KIND] = empty["i16"][CLASS_ID] = EMPTY
         blocks = {b: [list(empty[b]) for _ in range(self.capacity)] for b in self.widths}
         slot_of = {id(obj): slot for slot, _, obj in items}
-        writers, index = self._writers, {n: i for i, n in enumerate(self.names)}
-        present0, none0 = self.present.start, self.is_none.start
         for slot, kind, obj in items:
             cls = type(obj)
             class_id = class_index.get(cls)
@@ -269,30 +273,101 @@ class EntityLayout:
                 )
             rows = {b: blocks[b][slot] for b in blocks}
             rows["i16"][KIND], rows["i16"][CLASS_ID] = kind, class_id
-            flags = rows["flags"]
-            for name, value in vars(obj).items():
-                writer = writers.get(name)
-                if writer is None:
-                    if name in DERIVED_ATTRIBUTES:
-                        continue
-                    raise UnknownFieldError(
-                        f"{cls.__qualname__}.{name} is not a field the highway codec knows "
-                        f"(value {value!r}); register it with "
-                        "register_vehicle_class(cls, fields={...})"
-                    )
-                f = index[name]
-                flags[present0 + f] = True
-                if value is None:
-                    flags[none0 + f] = True
-                    continue
-                try:
-                    writer(value, rows, slot_of)
-                except (TypeError, ValueError, KeyError, IndexError, OverflowError) as err:
-                    raise UnknownFieldError(
-                        f"{cls.__qualname__}.{name} holds {value!r}, which does not fit its "
-                        f"registered kind {self.fields[name]}: {err}"
-                    ) from err
+            d = obj.__dict__
+            encoder = self._encoders.get(tuple(d))
+            if encoder is None:
+                encoder = self._encoders[tuple(d)] = self._compile_encoder(tuple(d))
+            try:
+                if encoder is None:
+                    raise KeyError("unknown attribute")
+                encoder(d, rows["f64"], rows["i16"], rows["i64"], rows["flags"], rows, slot_of)
+            except SnapshotError:
+                raise
+            except (TypeError, ValueError, KeyError, IndexError, OverflowError):
+                # The straight-line encoder does not say which attribute failed: the
+                # attribute-by-attribute path does, and raises the error that names it.
+                self._encode_slowly(obj, rows, slot_of)
+                raise
         return {b: np.array(rows, dtype=_DTYPES[b]) for b, rows in blocks.items()}
+
+    def _encode_slowly(self, obj: Any, rows: dict[str, list], slot_of: dict[int, int]) -> None:
+        cls = type(obj)
+        index = {n: i for i, n in enumerate(self.names)}
+        flags = rows["flags"]
+        for name, value in vars(obj).items():
+            writer = self._writers.get(name)
+            if writer is None:
+                if name in DERIVED_ATTRIBUTES:
+                    continue
+                raise UnknownFieldError(
+                    f"{cls.__qualname__}.{name} is not a field the highway codec knows "
+                    f"(value {value!r}); register it with "
+                    "register_vehicle_class(cls, fields={...})"
+                )
+            flags[self.present.start + index[name]] = True
+            if value is None:
+                flags[self.is_none.start + index[name]] = True
+                continue
+            try:
+                writer(value, rows, slot_of)
+            except SnapshotError:
+                raise
+            except (TypeError, ValueError, KeyError, IndexError, OverflowError) as err:
+                raise UnknownFieldError(
+                    f"{cls.__qualname__}.{name} holds {value!r}, which does not fit its "
+                    f"registered kind {self.fields[name]}: {err}"
+                ) from err
+
+    def _compile_encoder(self, keys: tuple[str, ...]) -> Callable | None:
+        """Straight-line code that packs objects whose ``__dict__`` has exactly ``keys``.
+
+        Snapshots are taken on the hot path of branching; a generated function per
+        attribute pattern (one per class, in practice) is several times faster than a
+        loop over attributes. Returns ``None`` when an attribute is unknown.
+        """
+        index = {n: i for i, n in enumerate(self.names)}
+        namespace: dict[str, Any] = {"index": operator.index, "BOOLS": (bool, np.bool_)}
+        lines = ["def encode(d, f, s, l, b, rows, slot_of):"]
+        for name in keys:
+            if name in DERIVED_ATTRIBUTES and name not in self.fields:
+                continue
+            if name not in self.fields:
+                return None
+            c, kind = self.columns[name], self.fields[name].kind
+            i = index[name]
+            lines += [
+                f"    v = d[{name!r}]",
+                f"    b[{self.present.start + i}] = True",
+                "    if v is None:",
+                f"        b[{self.is_none.start + i}] = True",
+                "    else:",
+            ]
+            if kind == "float":
+                lines.append(f"        f[{c.start}] = float(v)")
+            elif kind == "int":
+                lines.append(f"        l[{c.start}] = index(v)")
+            elif kind == "bool":
+                lines += [
+                    "        if not isinstance(v, BOOLS):",
+                    "            raise TypeError('expected a bool')",
+                    f"        b[{c.start}] = bool(v)",
+                ]
+            elif kind == "vec2":
+                lines += [
+                    "        x, y = v",
+                    f"        f[{c.start}] = float(x)",
+                    f"        f[{c.start + 1}] = float(y)",
+                ]
+            elif kind == "action":
+                lines += [
+                    f"        f[{c.start}] = float(v['steering'])",
+                    f"        f[{c.start + 1}] = float(v['acceleration'])",
+                ]
+            else:
+                namespace[f"w_{i}"] = self._writers[name]
+                lines.append(f"        w_{i}(v, rows, slot_of)")
+        exec("\n".join(lines), namespace)  # noqa: S102 - generated from the field table only
+        return namespace["encode"]
 
     # ------------------------------------------------------------------ decode
     def lane_index(self, code: list[int] | tuple[int, ...], where: str) -> tuple:
@@ -393,32 +468,50 @@ class EntityLayout:
         p0, n0, n = self.present.start, self.is_none.start, len(self.names)
         out = []
         for slot in used.tolist():
-            rows = {b: as_lists[b][slot] for b in as_lists}
-            flags = rows["flags"]
-            plan = self._plan(tuple(flags[p0 : p0 + n]), tuple(flags[n0 : n0 + n]))
-            cls = classes[rows["i16"][CLASS_ID]]
+            f, s, ints, b = (as_lists[blk][slot] for blk in ("f64", "i16", "i64", "flags"))
+            decoder = self._decoder(tuple(b[p0 : p0 + n]), tuple(b[n0 : n0 + n]))
+            cls = classes[s[CLASS_ID]]
             obj = cls.__new__(cls)
-            d = obj.__dict__
-            refs: dict[str, int] = {}
-            for name, reader, is_ref in plan:
-                if reader is None:
-                    d[name] = None
-                elif is_ref:
-                    refs[name] = reader(rows)
-                else:
-                    d[name] = reader(rows)
-            out.append((slot, rows["i16"][KIND], obj, refs))
+            values, refs = decoder(f, s, ints, b, {"f64": f, "i16": s, "i64": ints, "flags": b})
+            obj.__dict__.update(values)
+            out.append((slot, s[KIND], obj, refs))
         return out
 
-    def _plan(self, present: tuple[bool, ...], is_none: tuple[bool, ...]) -> list:
-        # Objects of one class share their presence pattern: build its reading plan once.
+    def _decoder(self, present: tuple[bool, ...], is_none: tuple[bool, ...]) -> Callable:
+        # Objects of one class share their presence pattern: generate its decoder once
+        # (straight-line code, like the encoders).
         key = present + is_none
-        plan = self._plans.get(key)
-        if plan is None:
-            plan = [
-                (name, None if none else self._readers[name], self.fields[name].kind == "ref")
-                for name, here, none in zip(self.names, present, is_none, strict=True)
-                if here
-            ]
-            self._plans[key] = plan
-        return plan
+        decoder = self._plans.get(key)
+        if decoder is None:
+            namespace: dict[str, Any] = {"array": np.array}
+            values, refs = [], []
+            for i, (name, here, none) in enumerate(zip(self.names, present, is_none, strict=True)):
+                if not here:
+                    continue
+                c, kind = self.columns[name], self.fields[name].kind
+                if none:
+                    values.append(f"{name!r}: None")
+                elif kind == "float":
+                    values.append(f"{name!r}: f[{c.start}]")
+                elif kind == "int":
+                    values.append(f"{name!r}: l[{c.start}]")
+                elif kind == "bool":
+                    values.append(f"{name!r}: b[{c.start}]")
+                elif kind == "vec2":
+                    values.append(f"{name!r}: array(f[{c.start}:{c.stop}])")
+                elif kind == "action":
+                    values.append(
+                        f"{name!r}: {{'steering': f[{c.start}], 'acceleration': f[{c.start + 1}]}}"
+                    )
+                elif kind == "ref":
+                    refs.append(f"{name!r}: s[{c.start}]")
+                else:
+                    namespace[f"r_{i}"] = self._readers[name]
+                    values.append(f"{name!r}: r_{i}(rows)")
+            source = (
+                "def decode(f, s, l, b, rows):\n"
+                f"    return {{{', '.join(values)}}}, {{{', '.join(refs)}}}"
+            )
+            exec(source, namespace)  # noqa: S102 - generated from the field table only
+            decoder = self._plans[key] = namespace["decode"]
+        return decoder

@@ -25,6 +25,8 @@ from torchrl_grpo.envs.codec import (
     bits_spec,
     check_state_layout,
     from_bits,
+    leaves,
+    nested_tensordict,
     spec_layout,
     to_bits,
 )
@@ -149,12 +151,10 @@ class SnapshotEnv(EnvBase):
 
         Restore it with ``env.reset(TensorDict(state=state), set_state=True)``.
         """
-        output = {k: to_bits(v.clone()) for k, v in self._last_output.items(True, True)}
-        return TensorDict(
-            sim=self.codec.encode(self._env),
-            output=TensorDict(output, batch_size=()),
-            device=self.device,
-        )
+        flat = {("output", *k): to_bits(v.clone()) for k, v in leaves(self._last_output)}
+        state = nested_tensordict(flat)
+        state["sim"] = self.codec.encode(self._env)
+        return state if self.device.type == "cpu" else state.to(self.device)
 
     def set_state(self, state: TensorDictBase) -> TensorDict:
         """Restore a state from :meth:`get_state` and return the reset output.
@@ -204,17 +204,16 @@ class SnapshotEnv(EnvBase):
         check_state_layout(state.get("output"), self._output_layout)
         self._before_restore(state)
         self.codec.decode(self._env, state.get("sim"))
-        stored = state.get("output")
-        return TensorDict(
+        floats = self._output_floats
+        output = nested_tensordict(
             {
-                k: from_bits(v, self._output_floats[k]).clone()
-                if k in self._output_floats
+                k: from_bits(v, floats[key]).clone()
+                if (key := k[0] if len(k) == 1 else k) in floats
                 else v.clone()
-                for k, v in stored.items(True, True)
-            },
-            batch_size=(),
-            device=self.device,
+                for k, v in leaves(state.get("output"))
+            }
         )
+        return output if self.device.type == "cpu" else output.to(self.device)
 
     def _before_restore(self, state: TensorDictBase) -> None:
         """Hook for subclasses: validate more before the simulator is written."""
