@@ -121,6 +121,7 @@ class SnapshotEnv(EnvBase):
         for key, spec in self._info_spec(info).items():
             obs_spec[key] = spec
         self.observation_spec = obs_spec
+        self._obs_dtypes = {key: obs_spec[key].dtype for key in obs_spec.keys()}
         self.reward_spec = Unbounded((1,), dtype=torch.float32, device=self.device)
         done = Categorical(2, (1,), dtype=torch.bool, device=self.device)
         self.done_spec = Composite(
@@ -174,8 +175,8 @@ class SnapshotEnv(EnvBase):
             output = self._read_output(obs, info)
         self._last_output = output
         out = output.clone(False)
-        false = torch.zeros((1,), dtype=torch.bool, device=self.device)
-        out.update({"done": false, "terminated": false.clone(), "truncated": false.clone()})
+        for key in ("done", "terminated", "truncated"):
+            out[key] = torch.zeros((1,), dtype=torch.bool, device=self.device)
         if not restoring:
             # On restore the input tensordict already holds the state, and reset() returns
             # that tensordict updated: decode(encode(x)) is the identity on valid states.
@@ -221,20 +222,16 @@ class SnapshotEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDict:
         action = self._to_gym_action(tensordict.get("action"))
         obs, reward, terminated, truncated, info = self._env.step(action)
-        out = self._read_output(obs, info)
-        self._last_output = out
-        out = out.clone(False)
-        out.update(
-            {
-                "reward": torch.tensor([reward], dtype=torch.float32, device=self.device),
-                "terminated": torch.tensor([bool(terminated)], device=self.device),
-                "truncated": torch.tensor([bool(truncated)], device=self.device),
-                "done": torch.tensor([bool(terminated or truncated)], device=self.device),
-            }
-        )
+        flat = self._output_leaves(obs, info)
+        self._last_output = nested_tensordict(flat)
+        device = self.device
+        flat[("reward",)] = torch.tensor([reward], dtype=torch.float32, device=device)
+        flat[("terminated",)] = torch.tensor([bool(terminated)], device=device)
+        flat[("truncated",)] = torch.tensor([bool(truncated)], device=device)
+        flat[("done",)] = torch.tensor([bool(terminated or truncated)], device=device)
         if self.return_state:
-            out[STATE_KEY] = self.get_state()
-        return out
+            flat[(STATE_KEY,)] = self.get_state()
+        return nested_tensordict(flat)
 
     def _set_seed(self, seed: int | None) -> None:
         # Applied at the next fresh reset, as gymnasium seeds through reset(seed=...).
@@ -257,18 +254,25 @@ class SnapshotEnv(EnvBase):
         return action.detach().cpu().numpy()
 
     def _read_output(self, obs: Any, info: dict) -> TensorDict:
+        return nested_tensordict(self._output_leaves(obs, info))
+
+    def _output_leaves(self, obs: Any, info: dict) -> dict[tuple[str, ...], torch.Tensor]:
+        # Built leaf by leaf, without TensorDict validation: this runs on every step.
         if isinstance(obs, dict):
             entries = {("observation" if k == "state" else k): v for k, v in obs.items()}
         else:
             entries = {"observation": obs}
+        dtypes = self._obs_dtypes
         out = {
-            key: torch.as_tensor(np.array(value), device=self.device).to(
-                self.observation_spec[key].dtype
-            )
+            (key,): torch.as_tensor(np.array(value), dtype=dtypes[key], device=self.device)
             for key, value in entries.items()
         }
-        out.update(self._read_info(info))
-        return TensorDict(out, batch_size=(), device=self.device)
+        for key, value in self._read_info(info).items():
+            if isinstance(value, dict):
+                out.update({(key, name): leaf for name, leaf in value.items()})
+            else:
+                out[(key,)] = value
+        return out
 
     @property
     def gym_env(self) -> gym.Env:
