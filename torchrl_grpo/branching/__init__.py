@@ -1,0 +1,92 @@
+"""Branch groups: G rollouts of a policy from one exact snapshot, run by TorchRL workers.
+
+A group is G branches that all start from bitwise the same simulator state (a
+*root*) and differ only through the policy's samples. Roll out groups from R roots
+at once with :func:`branch_rollout` (one ``[R, G, T]`` tensordict), continue an
+episode from a chosen branch with :func:`multi_turn_rollout`, or stream groups for
+training with :class:`GroupCollector`. Roots come from episode starts
+(:func:`reset_roots`), decision points along a trunk (:func:`trunk_roots`) or
+stored trajectories (:func:`roots_from_trajectories`).
+"""
+
+from torchrl_grpo.branching.collector import GroupCollector, RootKind
+from torchrl_grpo.branching.continuation import (
+    SELECTED,
+    ContinuationRoots,
+    MultiTurnResult,
+    Selection,
+    multi_turn_rollout,
+    select_branches,
+)
+from torchrl_grpo.branching.keys import (
+    BRANCH,
+    BRANCH_RETURN,
+    GROUP_ID,
+    MASK,
+    ROOT_STEP,
+    SNAPSHOT,
+    STATE,
+    STEP_COUNT,
+    TRAJ_IDS,
+)
+from torchrl_grpo.branching.plots import GroupFigure, plot_group
+from torchrl_grpo.branching.rollout import RngMode, branch_rollout, final_states
+from torchrl_grpo.branching.roots import (
+    EpisodeStartRoots,
+    RootSource,
+    StoredRoots,
+    TrunkRoots,
+    as_roots,
+    make_roots,
+    reset_roots,
+    roots_from_trajectories,
+    trunk_roots,
+)
+from torchrl_grpo.branching.seeding import reseed_state
+from torchrl_grpo.branching.workers import (
+    Backend,
+    BranchParallelEnv,
+    SnapshotObservation,
+    make_branch_env,
+    shutdown_env,
+)
+
+__all__ = [
+    "BRANCH",
+    "BRANCH_RETURN",
+    "GROUP_ID",
+    "MASK",
+    "ROOT_STEP",
+    "SELECTED",
+    "SNAPSHOT",
+    "STATE",
+    "STEP_COUNT",
+    "TRAJ_IDS",
+    "Backend",
+    "BranchParallelEnv",
+    "ContinuationRoots",
+    "EpisodeStartRoots",
+    "GroupCollector",
+    "GroupFigure",
+    "MultiTurnResult",
+    "RngMode",
+    "RootKind",
+    "RootSource",
+    "Selection",
+    "SnapshotObservation",
+    "StoredRoots",
+    "TrunkRoots",
+    "as_roots",
+    "branch_rollout",
+    "final_states",
+    "make_branch_env",
+    "make_roots",
+    "multi_turn_rollout",
+    "plot_group",
+    "reseed_state",
+    "reset_roots",
+    "roots_from_trajectories",
+    "select_branches",
+    "shutdown_env",
+    "trunk_roots",
+]

@@ -1,0 +1,137 @@
+"""Root sources: episode starts, decision points along a trunk, stored trajectories."""
+
+from __future__ import annotations
+
+import torch
+from branching_helpers import branch_env, plain_env
+from tensordict import TensorDict
+from torchrl.envs import StepCounter, TransformedEnv
+
+from torchrl_grpo.branching import (
+    SnapshotObservation,
+    StoredRoots,
+    TrunkRoots,
+    as_roots,
+    make_roots,
+    reseed_state,
+    reset_roots,
+    roots_from_trajectories,
+    shutdown_env,
+    trunk_roots,
+)
+from torchrl_grpo.envs import state_differences, states_equal
+from torchrl_grpo.modules import ConstantActionPolicy
+
+
+def test_reset_roots_on_workers_are_distinct_episodes():
+    env = branch_env("highway-fast-v0", "serial")
+    try:
+        env.set_seed(0)
+        roots = reset_roots(env, 3)
+    finally:
+        shutdown_env(env)
+    assert roots.batch_size == (3,) and roots["root_step"].tolist() == [0, 0, 0]
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        assert not states_equal(roots["state"][i], roots["state"][j])
+
+
+def test_reset_roots_are_seeded():
+    a = reset_roots(plain_env("merge-v0"), 2, seed=5)
+    b = reset_roots(plain_env("merge-v0"), 2, seed=5)
+    # Only the simulator: a reset's lane_change_reward output is not seeded (envs issue).
+    assert states_equal(a["state", "sim"], b["state", "sim"])
+    assert not states_equal(a["state", "sim"][0], a["state", "sim"][1])
+
+
+def test_trunk_roots_are_the_trunk_states_at_decision_points():
+    scenario = "highway-fast-v0"
+    env = plain_env(scenario)
+    start = reset_roots(env, 1, seed=0)
+    policy = ConstantActionPolicy("IDLE")
+    roots = trunk_roots(env, policy, every=2, starts=start, max_steps=7)
+    assert roots["root_step"].tolist() == [0, 2, 4, 6]
+    assert roots["trunk"].tolist() == [0, 0, 0, 0]
+    check = plain_env(scenario)
+    check.set_state(start["state"][0])
+    for step in range(7):
+        if step % 2 == 0:
+            assert states_equal(check.get_state(), roots["state"][step // 2]), step
+        check.step(TensorDict(action=torch.tensor(1)))
+
+
+def test_trunk_roots_stop_at_the_episode_end():
+    env = branch_env("highway-fast-v0", "serial", config={"duration": 5})
+    try:
+        env.set_seed(0)
+        roots = trunk_roots(env, ConstantActionPolicy("IDLE"), every=2, num_trunks=3)
+    finally:
+        shutdown_env(env)
+    # 5-step episodes: decision points at 0, 2, 4 of each of the 3 trunks.
+    assert roots["trunk"].tolist() == [0, 0, 0, 1, 1, 1, 2, 2, 2]
+    assert roots["root_step"].tolist() == [0, 2, 4] * 3
+
+
+def test_trunk_root_source_queues_decision_points():
+    env = plain_env("highway-fast-v0")
+    src = TrunkRoots(every=3, max_steps=7)
+    src.set_seed(0)
+    first = src.next_roots(env, ConstantActionPolicy("IDLE"), 2)
+    second = src.next_roots(env, ConstantActionPolicy("IDLE"), 2)
+    assert first["root_step"].tolist() == [0, 3]
+    assert second["root_step"].tolist() == [6, 0]
+    assert src.trunk_steps >= 7
+
+
+def test_roots_from_trajectories_with_return_state():
+    env = plain_env("merge-v0", seed=0, return_state=True)
+    data = env.rollout(5)
+    roots = roots_from_trajectories(data, every=2)
+    assert roots["root_step"].tolist() == [0, 2, 4]
+    assert states_equal(roots["state"][0], data["state"][0])
+    assert states_equal(roots["state"][1], data["next", "state"][1])
+    assert states_equal(roots["state"][2], data["next", "state"][3])
+    # A branch from a stored state replays the stored step exactly.
+    replay = plain_env("merge-v0")
+    replay.set_state(roots["state"][1])
+    out = replay.step(TensorDict(action=data["action"][2]))
+    assert torch.equal(out["next", "observation"], data["next", "observation"][2])
+
+
+def test_roots_from_batched_trajectories_with_step_counter_and_snapshots():
+    env = TransformedEnv(plain_env("highway-fast-v0", seed=0), SnapshotObservation())
+    env.append_transform(StepCounter())
+    data = torch.stack([env.rollout(3), env.rollout(3)])  # [B=2, T=3]
+    data["mask"] = torch.tensor([[True, True, True], [True, True, False]])
+    roots = roots_from_trajectories(data, every=1)
+    assert roots["root_step"].tolist() == [0, 1, 2, 3, 0, 1, 2]
+    assert states_equal(roots["state"][4], data["snapshot"][1, 0])
+    assert states_equal(roots["state"][6], data["next", "snapshot"][1, 1])
+
+
+def test_as_roots_accepts_states_and_roots():
+    state = plain_env("merge-v0", seed=0).get_state()
+    assert as_roots(state).batch_size == (1,)
+    assert as_roots([state, state]).batch_size == (2,)
+    roots = make_roots(state, 4)
+    assert as_roots(roots)["root_step"].tolist() == [4]
+
+
+def test_stored_roots_cycle():
+    roots = reset_roots(plain_env("merge-v0", seed=0), 3)
+    src = StoredRoots(roots, cycle=True)
+    a = src.next_roots(None, None, 2)
+    b = src.next_roots(None, None, 2)
+    assert states_equal(b["state"][0], roots["state"][2])
+    assert states_equal(b["state"][1], a["state"][0])
+
+
+def test_reseed_state_changes_only_the_generator():
+    state = plain_env("intersection-v0", seed=0).get_state()
+    new = reseed_state(state, (1, 2, 3))
+    assert state_differences(state, new) == ["('sim', 'env', 'rng')"]
+    assert states_equal(new, reseed_state(state, [1, 2, 3]))
+    # The reseeded state restores and runs.
+    env = plain_env("intersection-v0")
+    env.set_state(new)
+    assert states_equal(env.get_state()["sim"], new["sim"])
+    assert env.step(TensorDict(action=torch.tensor(1)))["next", "reward"].shape == (1,)
