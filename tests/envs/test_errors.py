@@ -22,7 +22,7 @@ from env_helpers import (
 )
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.objects import Obstacle
-from tensordict import NonTensorData, TensorDict
+from tensordict import NonTensorData, TensorDict, TensorDictBase
 
 from torchrl_grpo.envs import (
     HighwayEnv,
@@ -63,6 +63,11 @@ def assert_untouched(env, before, twin, steps: int = 6) -> None:
 
 def expect_restore_error(env, twin, state, error, match):
     before = env.get_state()
+    if isinstance(state, TensorDictBase) and "sim" in state.keys() and not state.batch_dims:
+        # validate_state runs the same checks in this process, without restoring.
+        with pytest.raises(error, match=match):
+            env.validate_state(state)
+        assert_bitwise_equal(env.get_state(), before, "state after validate_state")
     with pytest.raises(error, match=match):
         restore(env, state)
     assert_untouched(env, before, twin)
@@ -237,9 +242,16 @@ def test_fuzzed_states_fail_only_with_snapshot_errors(scenario):
             broken = faithful_copy(state)
             broken["sim", *_as_tuple(key)] = bad
             try:
+                env.validate_state(broken)
+                valid = True
+            except SnapshotError:
+                valid = False
+            try:
                 restore(env, broken)
+                assert valid, f"validate_state refused corrupted {key}, restore accepted it"
             except SnapshotError:
                 refused += 1
+                assert not valid, f"validate_state accepted corrupted {key}, restore refused it"
                 assert_bitwise_equal(env.get_state(), state, f"after refusing corrupted {key}")
             except Exception as err:  # noqa: BLE001 - the point of the test
                 pytest.fail(f"corrupting {key} raised {type(err).__name__}: {err}")
@@ -394,3 +406,14 @@ def test_set_state_without_a_state(given, env_and_twin):
     with pytest.raises(SnapshotError, match="'state'"):
         env.reset(given, set_state=True)
     assert_untouched(env, before, twin)
+
+
+def test_validate_state_checks_every_state_of_a_batch(env_and_twin):
+    env, _ = env_and_twin
+    good = env.get_state()
+    bad = faithful_copy(good)
+    bad["sim", "env", "time"].view(torch.float64).fill_(float("inf"))
+    env.validate_state(torch.stack([good, good]))
+    with pytest.raises(StateCorruptedError, match="time"):
+        env.validate_state(torch.stack([good, bad]))
+    assert_bitwise_equal(env.get_state(), good, "state after validating a batch")

@@ -58,14 +58,13 @@ class CartPoleStateCodec(StateCodec):
             wrappers=TensorDict({k: torch.from_numpy(v) for k, v in encode_wrappers(env).items()}),
         )
 
+    def validate(self, env: gym.Env, state: TensorDictBase) -> None:
+        """See :meth:`StateCodec.validate`."""
+        self._prepare(state)
+
     def decode(self, env: gym.Env, state: TensorDictBase) -> None:
         """See :meth:`StateCodec.decode`."""
-        check_state_layout(state, self.state_spec())
-        physics = state["physics"].numpy().view(np.float64).copy()
-        if not np.isfinite(physics).all():
-            raise StateCorruptedError(f"CartPole physics holds non-finite values: {physics}")
-        rng_state = decode_rng(state["rng"].numpy())
-        beyond = int(state["steps_beyond_terminated"])
+        physics, rng_state, beyond = self._prepare(state)
         # Everything is validated: only now is the env modified.
         core = env.unwrapped
         core.state = physics
@@ -74,3 +73,12 @@ class CartPoleStateCodec(StateCodec):
         restore_wrappers(
             env, int(state["wrappers", "elapsed_steps"]), bool(state["wrappers", "has_reset"])
         )
+
+    def _prepare(self, state: TensorDictBase) -> tuple[np.ndarray, dict, int]:
+        check_state_layout(state, self.state_spec())
+        physics = state["physics"].numpy().view(np.float64).copy()
+        if not np.isfinite(physics).all():
+            raise StateCorruptedError(f"CartPole physics holds non-finite values: {physics}")
+        rng_state = decode_rng(state["rng"].numpy())
+        beyond = int(state["steps_beyond_terminated"])
+        return physics, rng_state, beyond

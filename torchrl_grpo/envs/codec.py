@@ -80,6 +80,20 @@ class StateCodec(ABC):
             SnapshotError: the state does not fit this env; ``env`` is unchanged.
         """
 
+    def validate(self, env: gym.Env, state: TensorDictBase) -> None:
+        """Run every check :meth:`decode` runs, without modifying ``env``.
+
+        Lets a caller check states in its own process before sending them to the
+        workers of a batched env (an error inside a ``ParallelEnv`` worker kills it).
+        The default checks the fingerprint and the layout; codecs whose ``decode``
+        checks more should override it.
+
+        Raises:
+            SnapshotError: the state does not fit this env.
+        """
+        self.check_compatible(state)
+        check_state_layout(state, self.state_spec())
+
     def check_compatible(self, state: TensorDictBase) -> None:  # noqa: B027 - optional hook
         """Raise :class:`~torchrl_grpo.envs.StateMismatchError` for a foreign state.
 

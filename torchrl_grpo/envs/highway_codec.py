@@ -404,6 +404,14 @@ class HighwayStateCodec(StateCodec):
 
     def decode(self, env: gym.Env, state: TensorDictBase) -> None:
         """See :meth:`StateCodec.decode`."""
+        self._commit(env, self._prepare(env, state))
+
+    def validate(self, env: gym.Env, state: TensorDictBase) -> None:
+        """See :meth:`StateCodec.validate`: the checks of :meth:`decode`, nothing written."""
+        self._prepare(env, state)
+
+    def _prepare(self, env: gym.Env, state: TensorDictBase) -> dict[str, Any]:
+        """Validate ``state`` and build everything a restore writes, without writing it."""
         self.check_compatible(state)
         found = check_state_layout(state, self._spec_layout)
         core = env.unwrapped
@@ -413,10 +421,19 @@ class HighwayStateCodec(StateCodec):
         blocks = {b: arrays[f"entities.{b}"] for b in self.layout.widths}
         vehicles, objects, by_slot = self._decode_entities(core, blocks)
         plan = self._decode_env(core, arrays, by_slot)
+        plan["vehicles"], plan["objects"] = vehicles, objects
+        plan["wrappers"] = (
+            int(arrays["wrappers.elapsed_steps"]),
+            bool(arrays["wrappers.has_reset"]),
+        )
+        return plan
+
+    def _commit(self, env: gym.Env, plan: dict[str, Any]) -> None:
         # Everything is built and validated: from here on nothing can fail.
+        core = env.unwrapped
         road = core.road
-        road.vehicles[:] = vehicles
-        road.objects[:] = objects
+        road.vehicles[:] = plan["vehicles"]
+        road.objects[:] = plan["objects"]
         for (cls, name), value in zip(self.class_parameters, plan["class_params"], strict=True):
             setattr(cls, name, value)
         core.np_random.bit_generator.state = plan["rng"]
@@ -441,9 +458,7 @@ class HighwayStateCodec(StateCodec):
             core.trajectory = plan["trajectory"]
         if self.grayscale_shape is not None:
             core.observation_type.obs = plan["frames"]
-        restore_wrappers(
-            env, int(arrays["wrappers.elapsed_steps"]), bool(arrays["wrappers.has_reset"])
-        )
+        restore_wrappers(env, *plan["wrappers"])
 
     def _decode_entities(self, core: Any, blocks: dict[str, np.ndarray]) -> tuple[list, list, dict]:
         decoded = self.layout.decode(blocks, self.classes)

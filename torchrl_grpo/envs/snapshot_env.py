@@ -197,13 +197,7 @@ class SnapshotEnv(EnvBase):
                 f"this env is unbatched but the state has batch size {tuple(state.batch_size)}; "
                 "restore batched states through a ParallelEnv / SerialEnv of matching size"
             )
-        for part in ("sim", "output"):
-            if part not in state.keys():
-                raise StateCorruptedError(f"the state is truncated: it has no {part!r} part")
-        # A state from another env must be reported as such, before any shape check.
-        self.codec.check_compatible(state.get("sim"))
-        check_state_layout(state.get("output"), self._output_layout)
-        self._before_restore(state)
+        self._check_envelope(state)
         self.codec.decode(self._env, state.get("sim"))
         floats = self._output_floats
         output = nested_tensordict(
@@ -216,8 +210,39 @@ class SnapshotEnv(EnvBase):
         )
         return output if self.device.type == "cpu" else output.to(self.device)
 
-    def _before_restore(self, state: TensorDictBase) -> None:
-        """Hook for subclasses: validate more before the simulator is written."""
+    def validate_state(self, state: TensorDictBase) -> None:
+        """Run every check a restore runs, without modifying this env.
+
+        ``state`` may be batched (each state is checked). Check states in the parent
+        process before restoring them in the workers of a batched env: a worker that
+        raises dies, and a ``SerialEnv`` restores the workers one after the other.
+
+        Raises:
+            SnapshotError: the first state that does not fit, with the reason.
+
+        Example:
+            >>> from torchrl_grpo.envs import HighwayEnv, StateMismatchError
+            >>> env = HighwayEnv("merge-v0", seed=0)
+            >>> env.validate_state(env.get_state().expand(3))
+            >>> try:
+            ...     env.validate_state(HighwayEnv("highway-fast-v0", seed=0).get_state())
+            ... except StateMismatchError as err:
+            ...     print("refused")
+            refused
+        """
+        if not isinstance(state, TensorDictBase):
+            raise StateCorruptedError(f"a state must be a TensorDict, got {type(state).__name__}")
+        for single in state.reshape(-1).unbind(0) if state.batch_dims else (state,):
+            self._check_envelope(single)
+            self.codec.validate(self._env, single.get("sim"))
+
+    def _check_envelope(self, state: TensorDictBase) -> None:
+        for part in ("sim", "output"):
+            if part not in state.keys():
+                raise StateCorruptedError(f"the state is truncated: it has no {part!r} part")
+        # A state from another env must be reported as such, before any shape check.
+        self.codec.check_compatible(state.get("sim"))
+        check_state_layout(state.get("output"), self._output_layout)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDict:
         action = self._to_gym_action(tensordict.get("action"))
