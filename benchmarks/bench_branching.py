@@ -8,7 +8,7 @@ configuration alike), the valid branch steps per second of
 - ``single``: ``branch_rollout`` on that plain env (restores, masking, bookkeeping,
   all in this process);
 - ``W=1`` / ``W=2``: ``branch_rollout`` on a ``BranchParallelEnv`` of 1 / 2 workers
-  (with the ``SnapshotObservation`` transform, as ``make_branch_env`` builds them);
+  (``HighwayEnv(..., return_state=True)`` workers, as ``make_branch_env`` builds them);
 - ``W=2 spin``: the same on TorchRL's own ``ParallelEnv``, whose parent spins on
   the workers' done flags and so keeps a core busy;
 
@@ -34,7 +34,6 @@ import torch
 from torchrl.envs import ParallelEnv
 
 from torchrl_grpo.branching import (
-    SnapshotObservation,
     branch_rollout,
     make_branch_env,
     reset_roots,
@@ -115,12 +114,6 @@ def branch_rate(env, policy, roots, group_size: int, horizon: int, cpu: dict) ->
     return steps / elapsed
 
 
-def snapshot_worker(scenario: str):
-    from torchrl.envs import TransformedEnv
-
-    return TransformedEnv(HighwayEnv(scenario), SnapshotObservation())
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scenario", default="highway-fast-v0")
@@ -147,7 +140,9 @@ def main() -> None:
         "W=1": make_branch_env(args.scenario, 1, mp_start_method=args.start_method),
         "W=2": make_branch_env(args.scenario, 2, mp_start_method=args.start_method),
         "W=2 spin": ParallelEnv(
-            2, functools.partial(snapshot_worker, args.scenario), mp_start_method=args.start_method
+            2,
+            functools.partial(HighwayEnv, args.scenario, return_state=True),
+            mp_start_method=args.start_method,
         ),
     }
     rates: dict[str, list[float]] = {name: [] for name in ("raw", *envs)}
@@ -203,7 +198,7 @@ def main() -> None:
     )
     print(f"  W=2 / raw    = {med['W=2'] / med['raw']:.2f}")
     print(f"  single / raw = {med['single'] / med['raw']:.2f}   (restores + masking, in process)")
-    print(f"  W=1 / raw    = {med['W=1'] / med['raw']:.2f}   (+ worker round trips, snapshots)")
+    print(f"  W=1 / raw    = {med['W=1'] / med['raw']:.2f}   (+ worker round trips, states)")
 
 
 if __name__ == "__main__":

@@ -19,8 +19,6 @@ from torchrl_grpo.envs import HighwayEnv
 warnings.filterwarnings("ignore", message=".*is out of date.*")
 
 SCENARIOS = ("highway-fast-v0", "merge-v0", "intersection-v0")
-# intersection-v0 pads its state from the first reset unless told (see DEFAULT_PADDING).
-PADDING = {"intersection-v0": {"max_vehicles": 32}}
 # Short episodes, so that branches end inside small horizons.
 SHORT = {
     "highway-fast-v0": {"duration": 4},
@@ -41,8 +39,8 @@ def actions(scenario: str, *rows: list[str]) -> torch.Tensor:
 
 
 def plain_env(scenario: str, **kwargs) -> HighwayEnv:
-    """A plain HighwayEnv with the padding branch workers use."""
-    return HighwayEnv(scenario, **{**PADDING.get(scenario, {}), **kwargs})
+    """A plain HighwayEnv (its default padding is the one branch workers use)."""
+    return HighwayEnv(scenario, **kwargs)
 
 
 def branch_env(scenario: str, backend: str, num_workers: int = 2, **kwargs):

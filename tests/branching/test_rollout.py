@@ -6,7 +6,6 @@ import pytest
 import torch
 from branching_helpers import (
     N_ACTIONS,
-    PADDING,
     SCENARIOS,
     SHORT,
     ScheduledPolicy,
@@ -20,6 +19,7 @@ from torchrl.objectives.llm import MCAdvantage
 
 from torchrl_grpo.branching import (
     branch_rollout,
+    branch_seed,
     final_states,
     make_roots,
     reset_roots,
@@ -212,14 +212,36 @@ def test_per_branch_rng_diversifies_intersection_traffic():
     # Same seed, same branch: the reseeded branches are reproducible.
     again = branch_rollout(env, policy, roots, 3, 6, return_states=True, rng="per_branch", seed=7)
     assert bitwise_equal(reseeded, again) == []
-    assert PADDING[scenario]["max_vehicles"] == 32
+    # Each branch starts from its root reseeded by the env with its branch seed.
+    for g in range(3):
+        expected = env.reseed_state(roots["state"][0], branch_seed(7, 0, g))
+        assert states_equal(reseeded["state"][0, g, 0], expected), g
 
 
-def test_states_without_the_snapshot_transform_are_read_from_workers():
-    # snapshots=False: states come back through env.get_state() on every worker.
+@pytest.mark.parametrize("backend", ["serial", "parallel"])
+def test_per_branch_rng_on_workers_matches_the_plain_env(backend):
+    # Batched envs reseed through one call to their first worker: same states as in process.
+    scenario = "intersection-v0"
+    roots = _roots(scenario, 2, seed=1)
+    policy = ScheduledPolicy(torch.full((2, 4), IDLE))
+    kwargs = {"return_states": True, "rng": "per_branch", "seed": 3, "first_group_id": 5}
+    env = branch_env(scenario, backend)
+    try:
+        parallel = branch_rollout(env, policy, roots, 2, 4, **kwargs)
+    finally:
+        shutdown_env(env)
+    single = branch_rollout(plain_env(scenario), policy, roots, 2, 4, **kwargs)
+    assert bitwise_equal(parallel, single) == []
+    assert not states_equal(parallel["state"][0, 0, 0], parallel["state"][0, 1, 0])
+
+
+def test_states_without_state_outputs_are_read_from_workers():
+    # snapshots=False: workers do not return states; they come back through
+    # env.get_state() on every worker.
     roots = _roots("merge-v0", 2)
     table = actions("merge-v0", ["FASTER", "IDLE"], ["LANE_LEFT", "SLOWER"])
     env = branch_env("merge-v0", "parallel", snapshots=False)
+    assert "state" not in env.observation_spec.keys()
     try:
         slow = branch_rollout(env, ScheduledPolicy(table), roots, 2, 2, return_states=True)
     finally:

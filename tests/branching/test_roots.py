@@ -5,21 +5,20 @@ from __future__ import annotations
 import torch
 from branching_helpers import branch_env, plain_env
 from tensordict import TensorDict
+from torchrl.collectors import Collector
 from torchrl.envs import StepCounter, TransformedEnv
 
 from torchrl_grpo.branching import (
-    SnapshotObservation,
     StoredRoots,
     TrunkRoots,
     as_roots,
     make_roots,
-    reseed_state,
     reset_roots,
     roots_from_trajectories,
     shutdown_env,
     trunk_roots,
 )
-from torchrl_grpo.envs import state_differences, states_equal
+from torchrl_grpo.envs import states_equal
 from torchrl_grpo.modules import ConstantActionPolicy
 
 
@@ -38,8 +37,8 @@ def test_reset_roots_on_workers_are_distinct_episodes():
 def test_reset_roots_are_seeded():
     a = reset_roots(plain_env("merge-v0"), 2, seed=5)
     b = reset_roots(plain_env("merge-v0"), 2, seed=5)
-    # Only the simulator: a reset's lane_change_reward output is not seeded (envs issue).
-    assert states_equal(a["state", "sim"], b["state", "sim"])
+    # The whole state, reset output included (its reward components are seed-free).
+    assert states_equal(a["state"], b["state"])
     assert not states_equal(a["state", "sim"][0], a["state", "sim"][1])
 
 
@@ -97,15 +96,37 @@ def test_roots_from_trajectories_with_return_state():
     assert torch.equal(out["next", "observation"], data["next", "observation"][2])
 
 
-def test_roots_from_batched_trajectories_with_step_counter_and_snapshots():
-    env = TransformedEnv(plain_env("highway-fast-v0", seed=0), SnapshotObservation())
-    env.append_transform(StepCounter())
+def test_roots_from_batched_trajectories_with_step_counter():
+    env = TransformedEnv(plain_env("highway-fast-v0", seed=0, return_state=True), StepCounter())
     data = torch.stack([env.rollout(3), env.rollout(3)])  # [B=2, T=3]
     data["mask"] = torch.tensor([[True, True, True], [True, True, False]])
     roots = roots_from_trajectories(data, every=1)
     assert roots["root_step"].tolist() == [0, 1, 2, 3, 0, 1, 2]
-    assert states_equal(roots["state"][4], data["snapshot"][1, 0])
-    assert states_equal(roots["state"][6], data["next", "snapshot"][1, 1])
+    assert states_equal(roots["state"][4], data["state"][1, 0])
+    assert states_equal(roots["state"][6], data["next", "state"][1, 1])
+    # The state is an observation: rollout() carries each step's state to the root.
+    assert states_equal(data["state"][1, 2], data["next", "state"][1, 1])
+
+
+def test_roots_from_collector_trajectories_of_parallel_workers():
+    # Workers built by make_branch_env return "state" through the shared buffers, so
+    # TorchRL's own collector data can seed groups.
+    env = branch_env("merge-v0", "parallel")
+    try:
+        env.set_seed(0)
+        collector = Collector(env, ConstantActionPolicy("IDLE"), frames_per_batch=6,
+                              total_frames=6)
+        data = next(iter(collector))
+        collector.shutdown()
+    finally:
+        shutdown_env(env)
+    assert data.batch_size == (2, 3)
+    roots = roots_from_trajectories(data, every=1)
+    assert roots["root_step"].tolist() == [0, 1, 2, 3, 0, 1, 2, 3]
+    check = plain_env("merge-v0")
+    check.set_state(roots["state"][5])
+    out = check.step(TensorDict(action=data["action"][1, 1]))
+    assert torch.equal(out["next", "observation"], data["next", "observation"][1, 1])
 
 
 def test_as_roots_accepts_states_and_roots():
@@ -123,15 +144,3 @@ def test_stored_roots_cycle():
     b = src.next_roots(None, None, 2)
     assert states_equal(b["state"][0], roots["state"][2])
     assert states_equal(b["state"][1], a["state"][0])
-
-
-def test_reseed_state_changes_only_the_generator():
-    state = plain_env("intersection-v0", seed=0).get_state()
-    new = reseed_state(state, (1, 2, 3))
-    assert state_differences(state, new) == ["('sim', 'env', 'rng')"]
-    assert states_equal(new, reseed_state(state, [1, 2, 3]))
-    # The reseeded state restores and runs.
-    env = plain_env("intersection-v0")
-    env.set_state(new)
-    assert states_equal(env.get_state()["sim"], new["sim"])
-    assert env.step(TensorDict(action=torch.tensor(1)))["next", "reward"].shape == (1,)

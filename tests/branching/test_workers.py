@@ -1,4 +1,4 @@
-"""Worker envs: the SnapshotObservation transform and make_branch_env."""
+"""Worker envs: make_branch_env, states through shared buffers, BranchParallelEnv."""
 
 from __future__ import annotations
 
@@ -8,34 +8,23 @@ import pytest
 import torch
 from branching_helpers import plain_env
 from tensordict import TensorDict
-from torchrl.envs import TransformedEnv
+from torchrl.envs import ParallelEnv, TransformedEnv
 from torchrl.envs.transforms import Transform
-from torchrl.envs.utils import check_env_specs
 
-from torchrl_grpo.branching import (
-    BranchParallelEnv,
-    SnapshotObservation,
-    make_branch_env,
-    shutdown_env,
-)
+from torchrl_grpo.branching import BranchParallelEnv, make_branch_env, shutdown_env
 from torchrl_grpo.envs import states_equal
 
 
-def test_snapshot_observation_specs_and_values():
-    env = TransformedEnv(plain_env("merge-v0", seed=0), SnapshotObservation())
-    check_env_specs(env)
-    env.reset()
-    out = env.step(TensorDict(action=torch.tensor(1)))
-    assert states_equal(out["next", "snapshot"], env.base_env.get_state())
-    assert ("next", "state") not in out.keys(True)
-
-
-def test_snapshot_observation_crosses_parallel_workers(highway_parallel):
+def test_workers_return_their_state_through_the_shared_buffers(highway_parallel):
     highway_parallel.set_seed(11)
     out = highway_parallel.reset()
-    assert out["snapshot"].batch_size == (2,)
+    assert out["state"].batch_size == (2,)
     # Two workers, two episodes (TorchRL seeds them 11 and the next seed): different states.
-    assert not states_equal(out["snapshot"][0], out["snapshot"][1])
+    assert not states_equal(out["state"][0], out["state"][1])
+    step = highway_parallel.step(out.set("action", torch.tensor([1, 1])))
+    read = highway_parallel.get_state()  # one pipe round trip per worker
+    for i in range(2):
+        assert states_equal(step["next", "state"][i], read[i]), i
 
 
 def test_make_branch_env_arguments():
@@ -47,12 +36,24 @@ def test_make_branch_env_arguments():
         make_branch_env("merge-v0", 2, backend="single")
     env = make_branch_env("intersection-v0", 2, backend="serial")
     try:
-        # Fixed padding: workers seeded differently still share one state layout.
+        # The envs' seed-independent padding: differently seeded workers share a layout.
         env.set_seed(3)
         out = env.reset()
-        assert out["snapshot"].batch_size == (2,)
+        assert out["state"].batch_size == (2,)
+        assert states_equal(out["state"][0], plain_env("intersection-v0", seed=3).get_state())
     finally:
         shutdown_env(env)
+
+
+@pytest.mark.parametrize(
+    ("snapshots", "return_state", "expected"),
+    [(True, None, True), (False, None, False), (False, True, True), (True, False, True)],
+)
+def test_snapshots_builds_workers_with_return_state(snapshots, return_state, expected):
+    extra = {} if return_state is None else {"return_state": return_state}
+    env = make_branch_env("merge-v0", 1, backend="single", snapshots=snapshots, **extra)
+    assert env.return_state is expected
+    assert ("state" in env.observation_spec.keys()) is expected
 
 
 class _SlowStep(Transform):
@@ -79,3 +80,33 @@ def test_branch_parallel_env_parent_sleeps_while_workers_step(no_workers_left):
     assert wall >= 0.3
     assert cpu < 0.3 * wall, f"parent used {cpu:.3f} s of CPU in {wall:.3f} s"
     assert out["next", "observation"].shape[0] == 1
+
+
+def test_branch_parallel_env_falls_back_to_torchrl_wait(no_workers_left, monkeypatch):
+    # Without the attributes it was written against (pipe mode here), or when turned
+    # off, TorchRL's own wait runs: the env still steps.
+    calls = []
+    original = ParallelEnv._wait_for_workers
+
+    def spy(self, workers_range):
+        calls.append(type(self).__name__)
+        return original(self, workers_range)
+
+    monkeypatch.setattr(ParallelEnv, "_wait_for_workers", spy)
+    for kwargs, off in (({"use_buffers": False}, False), ({}, True)):
+        env = BranchParallelEnv(1, _slow_env, mp_start_method="fork", **kwargs)
+        env.sleep_while_waiting = not off
+        try:
+            env.reset()
+            assert not env._sleeping_wait_applies()
+            out = env.step(TensorDict(action=torch.tensor([1]), batch_size=[1]))
+        finally:
+            shutdown_env(env)
+        assert out["next", "observation"].shape[0] == 1
+    assert calls, "TorchRL's own wait was not used"
+
+
+def test_branch_parallel_env_uses_its_wait_on_this_torchrl(highway_parallel):
+    # The attributes the sleeping wait needs are there on the pinned TorchRL version.
+    assert isinstance(highway_parallel, BranchParallelEnv)
+    assert highway_parallel._sleeping_wait_applies()

@@ -1,13 +1,15 @@
-"""The CartPole codec, and a user's own highway-env vehicle class with an extra field."""
+"""The CartPole codec, reseeding states, and a user's own highway-env vehicle class."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from env_helpers import (
     assert_bitwise_equal,
     assert_same_run,
     bit_differences,
+    careful_actions,
     faithful_copy,
     random_actions,
     restore,
@@ -24,11 +26,14 @@ from torchrl_grpo.envs import (
     HighwayEnv,
     SnapshotEnv,
     SnapshotError,
+    StateCodec,
     StateCorruptedError,
+    StateMismatchError,
     UnknownFieldError,
     register_vehicle_class,
 )
 from torchrl_grpo.envs import highway_schema as schema
+from torchrl_grpo.envs.gym_state import encode_rng, seeded_rng_words
 
 
 # ---------------------------------------------------------------- CartPole
@@ -112,6 +117,77 @@ def test_cartpole_bad_states_leave_it_untouched(bad):
     ref, ref_final = run(twin, actions[3:])
     assert_same_run(ref, out, "after the error")
     assert_bitwise_equal(final, ref_final, "final state")
+
+
+# ---------------------------------------------------------------- reseeding
+def test_reseeded_intersection_state_replays_its_own_traffic():
+    """intersection-v0 spawns vehicles from its generator at every step."""
+    env = HighwayEnv("intersection-v0", seed=1)
+    actions = careful_actions(env, 12)
+    run(env, actions[:2])
+    state = env.get_state()
+    original = faithful_copy(state)
+    a, again, other = (env.reseed_state(state, s) for s in (11, 11, 12))
+    assert not bit_differences(state, original), "reseeding modified its input"
+    assert bit_differences(state, a) == [("sim", "env", "rng")]
+    assert_bitwise_equal(a, again, "two reseeds with one seed")
+
+    def replay(start):
+        restore(env, start)
+        return run(env, actions[2:])
+
+    ref, ref_final = replay(state)
+    got, final = replay(a)
+    got_again, final_again = replay(again)
+    _, other_final = replay(other)
+    assert_same_run(got, got_again, "same seed")
+    assert_bitwise_equal(final, final_again, "same seed: final state")
+    # Other spawns: the vehicles differ (the ego's own outputs may well not).
+    assert ("sim", "entities", "f64") in bit_differences(final, ref_final)
+    assert ("sim", "entities", "f64") in bit_differences(final, other_final)
+    # The original still replays as it did.
+    assert_same_run(ref, replay(original)[0], "original after reseeding")
+
+
+def test_reseeded_generator_is_the_seed_stream():
+    env = cartpole()
+    state = env.get_state()
+    new = env.reseed_state(state, 7)
+    assert torch.equal(new["sim", "rng"], seeded_rng_words(7))
+    words = np.zeros(10, dtype=np.int64)
+    encode_rng(np.random.default_rng(7), words)
+    assert words.tolist() == new["sim", "rng"].tolist()
+    # CartPole draws its next episode from the generator: the episode of reset(seed=7).
+    restore(env, new)
+    fresh = cartpole()
+    fresh.set_seed(7)
+    assert_bitwise_equal(env.reset().exclude("state"), fresh.reset().exclude("state"), "episode")
+
+
+def test_reseed_state_batches_and_errors():
+    env = cartpole()
+    state = env.get_state()
+    both = env.reseed_state(torch.stack([state, state]), [1, 2])
+    assert_bitwise_equal(both[1], env.reseed_state(state, 2), "row 1")
+    with pytest.raises(ValueError, match="as many seeds"):
+        env.reseed_state(torch.stack([state, state]), [1])
+    with pytest.raises(ValueError, match="non-negative"):
+        env.reseed_state(state, -1)
+    with pytest.raises(StateCorruptedError, match="truncated"):
+        env.reseed_state(state.exclude("sim"), 1)
+    merge = HighwayEnv("merge-v0", seed=0)
+    with pytest.raises(StateMismatchError):
+        HighwayEnv("intersection-v0", seed=0).reseed_state(merge.get_state(), 1)
+
+
+class _NoReseedCodec(CartPoleStateCodec):
+    reseed = StateCodec.reseed
+
+
+def test_codecs_without_reseed_say_so():
+    env = SnapshotEnv("CartPole-v1", codec=_NoReseedCodec(), seed=0)
+    with pytest.raises(NotImplementedError, match="_NoReseedCodec"):
+        env.reseed_state(env.get_state(), 1)
 
 
 # ---------------------------------------------------------------- a user's vehicle class

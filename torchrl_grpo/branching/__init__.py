@@ -6,7 +6,7 @@ at once with :func:`branch_rollout` (one ``[R, G, T]`` tensordict), continue an
 episode from a chosen branch with :func:`multi_turn_rollout`, or stream groups for
 training with :class:`GroupCollector`. Roots come from episode starts
 (:func:`reset_roots`), decision points along a trunk (:func:`trunk_roots`) or
-stored trajectories (:func:`roots_from_trajectories`).
+stored trajectories (:func:`roots_from_trajectories`). See ``docs/branching.md``.
 """
 
 from torchrl_grpo.branching.collector import GroupCollector, RootKind
@@ -24,7 +24,6 @@ from torchrl_grpo.branching.keys import (
     GROUP_ID,
     MASK,
     ROOT_STEP,
-    SNAPSHOT,
     STATE,
     STEP_COUNT,
     TRAJ_IDS,
@@ -42,11 +41,10 @@ from torchrl_grpo.branching.roots import (
     roots_from_trajectories,
     trunk_roots,
 )
-from torchrl_grpo.branching.seeding import reseed_state
+from torchrl_grpo.branching.seeding import branch_seed
 from torchrl_grpo.branching.workers import (
     Backend,
     BranchParallelEnv,
-    SnapshotObservation,
     make_branch_env,
     shutdown_env,
 )
@@ -58,7 +56,6 @@ __all__ = [
     "MASK",
     "ROOT_STEP",
     "SELECTED",
-    "SNAPSHOT",
     "STATE",
     "STEP_COUNT",
     "TRAJ_IDS",
@@ -73,17 +70,16 @@ __all__ = [
     "RootKind",
     "RootSource",
     "Selection",
-    "SnapshotObservation",
     "StoredRoots",
     "TrunkRoots",
     "as_roots",
     "branch_rollout",
+    "branch_seed",
     "final_states",
     "make_branch_env",
     "make_roots",
     "multi_turn_rollout",
     "plot_group",
-    "reseed_state",
     "reset_roots",
     "roots_from_trajectories",
     "select_branches",

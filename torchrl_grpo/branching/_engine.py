@@ -25,7 +25,6 @@ from torchrl_grpo.branching.keys import (
     BRANCH,
     GROUP_ID,
     ROOT_STEP,
-    SNAPSHOT,
     STATE,
     STEP_COUNT,
 )
@@ -33,7 +32,7 @@ from torchrl_grpo.branching.keys import (
 KeepStates = Literal["none", "final", "all"]
 Policy = Callable[[TensorDictBase], TensorDictBase | None]
 
-_STATE_KEYS = (SNAPSHOT, STATE, ("next", SNAPSHOT), ("next", STATE))
+_STATE_KEYS = (STATE, ("next", STATE))
 
 
 @dataclass

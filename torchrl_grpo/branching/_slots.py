@@ -5,19 +5,23 @@ workers is W slots. A slot is restored to a state with a partial reset
 (``"_reset"`` mask, ``set_state=True``) and stepped with a partial step (``"_step"``
 mask), so a slot whose branch has ended is never stepped again and never
 auto-reset: its simulator stays at the branch's last state until it is restored.
+
+States are read from the env's output when its workers return them
+(``HighwayEnv(..., return_state=True)``: ``"state"`` after a reset,
+``("next", "state")`` after a step), otherwise with ``get_state()``.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.data import TensorSpec
 from torchrl.envs import EnvBase, TransformedEnv
 
-from torchrl_grpo.branching.keys import SNAPSHOT, STATE
+from torchrl_grpo.branching.keys import STATE
 from torchrl_grpo.envs import StateCorruptedError, StateMismatchError
 
 logger = logging.getLogger(__name__)
@@ -42,12 +46,14 @@ class EnvSlots:
         self.batched = len(shape) == 1
         self.num_slots = shape[0] if self.batched else 1
         obs_keys = list(env.observation_spec.keys(True, True))
-        self.has_snapshot = SNAPSHOT in env.observation_spec.keys()
-        self.obs_keys: list[NestedKey] = [k for k in obs_keys if not _under(k, SNAPSHOT)]
+        # Workers built with return_state=True return their state as an observation.
+        self.has_state = STATE in env.observation_spec.keys()
+        self.obs_keys: list[NestedKey] = [k for k in obs_keys if not _under(k, STATE)]
         self.done_keys: list[NestedKey] = list(env.done_keys)
         self.action_keys: list[NestedKey] = list(env.action_keys)
         self.action_spec: TensorSpec = env.full_action_spec
         self._reference: TensorDictBase | None = None
+        self._reseeder: Callable[[TensorDictBase, list[int]], TensorDictBase] | None = None
         self._warned_slow = False
 
     # ------------------------------------------------------------------ specs
@@ -109,11 +115,10 @@ class EnvSlots:
         """
         if not self.batched:
             out = self.env.reset(TensorDict({STATE: states[0]}), set_state=True)
-            snap = out.get(SNAPSHOT, None)
-            if snap is None and want_states:
-                snap = out.get(STATE)
+            # A restore returns the tensordict it was given, state included (the envs
+            # guarantee decode(encode(x)) == x): no read-back needed.
             rows = out.select(*self.obs_keys, *self.done_keys).unsqueeze(0)
-            return rows, None if snap is None else snap.unsqueeze(0)
+            return rows, out.get(STATE).unsqueeze(0) if want_states else None
         n = self.num_slots
         where = torch.zeros(n, dtype=torch.long)
         where[slots] = torch.arange(len(slots))
@@ -127,7 +132,7 @@ class EnvSlots:
         out = self.env.reset(td, set_state=True)
         snap = None
         if want_states:
-            snap = out.get(SNAPSHOT)[slots] if self.has_snapshot else self._read_all_states()[slots]
+            snap = out.get(STATE)[slots] if self.has_state else self._read_all_states()[slots]
         return out.select(*self.obs_keys, *self.done_keys)[slots], snap
 
     def step(self, td: TensorDictBase, active: torch.Tensor) -> TensorDictBase:
@@ -147,12 +152,21 @@ class EnvSlots:
 
     def next_states(self, td: TensorDictBase, slots: torch.Tensor) -> TensorDictBase:
         """The states after the step just taken, for ``slots``."""
-        snap = td.get(("next", SNAPSHOT), None)
-        if snap is None:
-            snap = td.get(("next", STATE), None)
+        snap = td.get(("next", STATE), None)
         if snap is not None:
             return snap[slots]
         return self._read_all_states()[slots]
+
+    def reseed(self, states: TensorDictBase, seeds: list[int]) -> TensorDictBase:
+        """``states`` ``[N]``, each with its simulator generator restarted from its seed.
+
+        Runs :meth:`~torchrl_grpo.envs.SnapshotEnv.reseed_state` of the env, or of its
+        first worker: in one call for the whole batch, as a worker is a pipe round
+        trip away (codecs do not pickle, so the parent cannot hold one).
+        """
+        if self._reseeder is None:
+            self._reseeder = _reseeder(self.env)
+        return self._reseeder(states, seeds)
 
     # ------------------------------------------------------------------ states
     def _read_all_states(self) -> TensorDictBase:
@@ -161,8 +175,8 @@ class EnvSlots:
         if not self._warned_slow and self._reference is not None:
             logger.warning(
                 "reading worker states through env.get_state() (a pipe round trip per "
-                "worker); build the env with make_branch_env(..., snapshots=True) to ship "
-                "them through shared memory"
+                "worker); build the env with make_branch_env(..., snapshots=True) (workers "
+                "with return_state=True) to ship them through shared memory"
             )
             self._warned_slow = True
         states: Sequence[TensorDictBase] = _get_state(self.env)
@@ -171,6 +185,33 @@ class EnvSlots:
 
 def _under(key: NestedKey, root: str) -> bool:
     return key == root or (isinstance(key, tuple) and key[0] == root)
+
+
+def _base(env: EnvBase) -> EnvBase:
+    while isinstance(env, TransformedEnv):
+        env = env.base_env
+    return env
+
+
+def _reseeder(env: EnvBase) -> Callable[[TensorDictBase, list[int]], TensorDictBase]:
+    base = _base(env)
+    if not base.batch_size:
+        return base.reseed_state
+    # A view on the first worker: a batched env would run the call on every worker.
+    first = base[0]
+
+    def reseed(states: TensorDictBase, seeds: list[int]) -> TensorDictBase:
+        try:
+            return first.reseed_state(states, seeds)[0]
+        except (EOFError, ConnectionError) as err:
+            # A ParallelEnv worker that raises dies; the parent only sees its pipe close.
+            raise RuntimeError(
+                "the first worker failed to reseed the branch states and stopped (its "
+                "codec may not implement StateCodec.reseed; run a SerialEnv to see the "
+                "worker's error)"
+            ) from err
+
+    return reseed
 
 
 def _get_state(env: EnvBase) -> TensorDictBase | Sequence[TensorDictBase]:

@@ -27,10 +27,8 @@ TRAJ_IDS = ("collector", "traj_ids")
 """int64: a unique id per branch (``group_id * G + branch``), as TorchRL collectors write."""
 STATE = "state"
 """The simulator state before the step (and ``("next", "state")`` after it), written
-when states are requested; the same key :class:`~torchrl_grpo.envs.SnapshotEnv` uses."""
-SNAPSHOT = "snapshot"
-"""The observation key under which :class:`SnapshotObservation` ships states out of
-``ParallelEnv`` workers."""
+when states are requested: the key :class:`~torchrl_grpo.envs.SnapshotEnv` restores
+from and, built with ``return_state=True``, returns after every reset and step."""
 
 __all__ = [
     "BRANCH",
@@ -38,7 +36,6 @@ __all__ = [
     "GROUP_ID",
     "MASK",
     "ROOT_STEP",
-    "SNAPSHOT",
     "STATE",
     "STEP_COUNT",
     "TRAJ_IDS",

@@ -23,7 +23,7 @@ from torchrl_grpo.branching.keys import (
     TRAJ_IDS,
 )
 from torchrl_grpo.branching.roots import as_roots
-from torchrl_grpo.branching.seeding import reseed_state
+from torchrl_grpo.branching.seeding import branch_seed
 
 RngMode = Literal["shared", "per_branch"]
 
@@ -67,12 +67,9 @@ def run_groups(
     root_step = roots.get(ROOT_STEP).repeat_interleave(g)
     states = roots.get(STATE)[torch.arange(n_roots).repeat_interleave(g)]
     if rng == "per_branch":
-        states = torch.stack(
-            [
-                reseed_state(states[i], (seed, int(group_id[i]), int(branch[i])))
-                for i in range(states.shape[0])
-            ]
-        )
+        pairs = zip(group_id.tolist(), branch.tolist(), strict=True)
+        seeds = [branch_seed(seed, gid, b) for gid, b in pairs]
+        states = slots.reseed(states, seeds)
     run = run_branches(
         slots,
         policy,
@@ -149,16 +146,17 @@ def branch_rollout(
     - ``branch_return`` (``[..., 1]``): the sum of the branch's valid rewards;
     - ``("collector", "traj_ids")``: a unique id per branch;
     - with ``return_states``: ``"state"`` and ``("next", "state")``, the simulator
-      state before and after every step, read from the workers (so ``state[r, g, 0]``
-      is what worker restored, not a copy of the root).
+      state before and after every step (``state[r, g, 0]`` is the state the branch
+      was restored to: the root, or its reseeded copy with ``rng="per_branch"``).
 
     Branches from one state differ only through the policy's samples: highway-env
     draws no random numbers while stepping, except intersection-v0, which spawns
     traffic at random. ``rng="per_branch"`` restarts each branch's simulator
-    generator from ``(seed, group_id, branch)``: use it when the env's own
-    randomness should vary within a group (intersection-v0 traffic); keep
-    ``"shared"`` (the default) when the group should measure the policy's choices
-    only, with the same traffic for every branch.
+    generator from :func:`~torchrl_grpo.branching.branch_seed` ``(seed, group_id,
+    branch)`` (with :meth:`~torchrl_grpo.envs.SnapshotEnv.reseed_state`): use it
+    when the env's own randomness should vary within a group (intersection-v0
+    traffic); keep ``"shared"`` (the default) when the group should measure the
+    policy's choices only, with the same traffic for every branch.
 
     Args:
         env: the env running the branches: ``ParallelEnv`` / ``SerialEnv`` of

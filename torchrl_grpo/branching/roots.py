@@ -21,7 +21,7 @@ from torchrl.envs.utils import ExplorationType
 
 from torchrl_grpo.branching._engine import Policy, run_branches
 from torchrl_grpo.branching._slots import EnvSlots
-from torchrl_grpo.branching.keys import MASK, ROOT_STEP, SNAPSHOT, STATE, STEP_COUNT
+from torchrl_grpo.branching.keys import MASK, ROOT_STEP, STATE, STEP_COUNT
 
 __all__ = [
     "EpisodeStartRoots",
@@ -86,13 +86,12 @@ def as_roots(roots: TensorDictBase | Sequence[TensorDictBase]) -> TensorDict:
 def _fresh_states(slots: EnvSlots) -> TensorDictBase:
     """Reset every slot to a new episode and return the ``[W]`` start states."""
     out = slots.env.reset()
-    if slots.has_snapshot:
-        states = out.get(SNAPSHOT)
-    elif not slots.batched and STATE in out.keys():
+    # A fresh reset of a SnapshotEnv writes its state; a batched env only returns it
+    # from workers built with return_state=True.
+    if slots.has_state or (not slots.batched and STATE in out.keys()):
         states = out.get(STATE)
-    else:
-        return slots._read_all_states()
-    return states if slots.batched else states.unsqueeze(0)
+        return states if slots.batched else states.unsqueeze(0)
+    return slots._read_all_states()
 
 
 def draw_seed() -> int:
@@ -240,16 +239,11 @@ def roots_from_trajectories(
     """Roots from stored trajectories that carry states (source (c)).
 
     The trajectories must carry the state after each step, ``("next", state_key)``:
-    collect them with ``HighwayEnv(..., return_state=True)`` (``"state"``) or with
-    :class:`~torchrl_grpo.branching.SnapshotObservation` in the env
-    (``"snapshot"``, which also crosses ``ParallelEnv`` workers and collectors).
-    Every state whose episode step is a multiple of ``every`` becomes a root: the
-    state after each valid, non-final step, and the episode's start state where a
-    trajectory starts an episode.
-
-    Only ``("next", ...)`` states are read after the first step of an episode: in
-    ``env.rollout`` data, the root-level ``"state"`` of a ``return_state`` env stays
-    the reset's state (TorchRL carries input entries, not outputs, from step to step).
+    collect them with ``HighwayEnv(..., return_state=True)``, whose ``"state"``
+    crosses ``ParallelEnv`` workers and collectors like any observation. Every state
+    whose episode step is a multiple of ``every`` becomes a root: the state after
+    each valid, non-final step, and the episode's start state (the root-level
+    ``"state"``) where a trajectory starts an episode.
 
     The episode step is read from ``"step_count"`` when present (TorchRL's
     :class:`~torchrl.envs.StepCounter`), otherwise counted from the start of each
@@ -260,7 +254,7 @@ def roots_from_trajectories(
     Args:
         data: trajectories with time as the last batch dimension (``[T]``, ``[B, T]``).
         every: keep the states whose episode step is a multiple of this.
-        state_key: the state entry (default: ``"state"``, then ``"snapshot"``).
+        state_key: the state entry (default: ``"state"``).
 
     Returns:
         Roots sorted by trajectory, then step.
@@ -276,12 +270,11 @@ def roots_from_trajectories(
         raise ValueError(f"every must be >= 1, got {every}")
     if data.batch_dims < 1:
         raise ValueError("data must have a time dimension (batch size [..., T])")
-    if state_key is None:
-        state_key = next((k for k in (STATE, SNAPSHOT) if ("next", k) in data.keys(True)), None)
-    if state_key is None or ("next", state_key) not in data.keys(True):
+    state_key = STATE if state_key is None else state_key
+    if ("next", state_key) not in data.keys(True):
         raise KeyError(
-            "the trajectories hold no ('next', state) entries: collect them with "
-            "HighwayEnv(..., return_state=True) or the SnapshotObservation transform"
+            f"the trajectories hold no ('next', {state_key!r}) entries: collect them with "
+            "HighwayEnv(..., return_state=True)"
         )
     flat = data.reshape(-1, data.shape[-1])
     if STEP_COUNT in flat.keys():

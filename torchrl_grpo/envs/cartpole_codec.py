@@ -16,6 +16,7 @@ from torchrl_grpo.envs.gym_state import (
     encode_wrappers,
     restore_wrappers,
     rng_spec,
+    with_seeded_rng,
     wrapper_spec,
 )
 
@@ -61,6 +62,10 @@ class CartPoleStateCodec(StateCodec):
     def validate(self, env: gym.Env, state: TensorDictBase) -> None:
         """See :meth:`StateCodec.validate`."""
         self._prepare(state)
+
+    def reseed(self, state: TensorDictBase, seed: int) -> TensorDictBase:
+        """See :meth:`StateCodec.reseed`: replaces the ``"rng"`` words."""
+        return with_seeded_rng(state, "rng", seed)
 
     def decode(self, env: gym.Env, state: TensorDictBase) -> None:
         """See :meth:`StateCodec.decode`."""

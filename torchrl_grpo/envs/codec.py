@@ -101,6 +101,38 @@ class StateCodec(ABC):
         configuration is reported as such rather than as a malformed state.
         """
 
+    def reseed(self, state: TensorDictBase, seed: int) -> TensorDictBase:
+        """Return a new state whose simulator random generator restarts from ``seed``.
+
+        Everything else in the state (positions, time, counters) is unchanged, so the
+        restored simulator is the same scene with a fresh random stream: the PCG64
+        stream of ``seed``, as ``numpy.random.default_rng(seed)`` and gymnasium's
+        ``reset(seed=seed)`` build it. ``state`` is left untouched.
+
+        Codecs whose simulator keeps a generator in the state override this; the
+        default raises, naming the codec.
+
+        Args:
+            state: an unbatched state from :meth:`encode`.
+            seed: a non-negative int.
+
+        Raises:
+            NotImplementedError: this codec does not know where its generator is.
+
+        Example:
+            >>> from torchrl_grpo.envs import SnapshotEnv
+            >>> env = SnapshotEnv("CartPole-v1", seed=0)
+            >>> sim = env.get_state()["sim"]
+            >>> new = env.codec.reseed(sim, 3)
+            >>> from torchrl_grpo.envs import state_differences
+            >>> state_differences(sim, new)
+            ["'rng'"]
+        """
+        raise NotImplementedError(
+            f"{type(self).__qualname__} cannot reseed states: override "
+            "StateCodec.reseed to write a fresh generator for the seed into the state"
+        )
+
     def fingerprint(self, env: gym.Env) -> int:
         """A 63-bit identifier of the configuration states of ``env`` belong to.
 

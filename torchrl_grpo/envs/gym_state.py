@@ -7,9 +7,12 @@ counters the same way.
 
 from __future__ import annotations
 
+from numbers import Integral
+
 import gymnasium as gym
 import numpy as np
 import torch
+from tensordict import NestedKey, TensorDictBase
 from torchrl.data import Composite, Unbounded
 
 from torchrl_grpo.envs.errors import SnapshotError, StateCorruptedError
@@ -65,6 +68,62 @@ def decode_rng(words: np.ndarray) -> dict:
 def restore_rng(generator: np.random.Generator, words: np.ndarray) -> None:
     """Restore a generator IN PLACE so every holder of the same object sees it."""
     generator.bit_generator.state = decode_rng(words)
+
+
+def seeded_rng_words(seed: int) -> torch.Tensor:
+    """The encoded state (int64[RNG_WORDS]) of a PCG64 generator freshly seeded with ``seed``.
+
+    It is the generator ``numpy.random.default_rng(seed)`` builds, which is also the
+    one gymnasium's ``env.reset(seed=seed)`` installs.
+
+    Args:
+        seed: a non-negative int.
+
+    Example:
+        >>> import numpy as np
+        >>> g = np.random.default_rng()
+        >>> restore_rng(g, seeded_rng_words(7).numpy())
+        >>> g.random() == np.random.default_rng(7).random()
+        True
+    """
+    if not isinstance(seed, Integral) or isinstance(seed, bool) or seed < 0:
+        raise ValueError(f"a seed must be a non-negative int, got {seed!r}")
+    words = np.zeros(RNG_WORDS, dtype=np.int64)
+    encode_rng(np.random.default_rng(int(seed)), words)
+    return torch.from_numpy(words)
+
+
+def with_seeded_rng(state: TensorDictBase, key: NestedKey, seed: int) -> TensorDictBase:
+    """A copy of a codec state whose generator words at ``key`` restart from ``seed``.
+
+    The shared body of the codecs' :meth:`~torchrl_grpo.envs.StateCodec.reseed`.
+
+    Args:
+        state: an unbatched codec state (the ``"sim"`` part of an env state).
+        key: where the codec keeps the encoded generator.
+        seed: a non-negative int.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> state = TensorDict(rng=torch.zeros(RNG_WORDS, dtype=torch.int64))
+        >>> new = with_seeded_rng(state, "rng", 7)
+        >>> torch.equal(new["rng"], seeded_rng_words(7)), bool(state["rng"].any())
+        (True, False)
+    """
+    if not isinstance(state, TensorDictBase):
+        raise StateCorruptedError(f"a state must be a TensorDict, got {type(state).__name__}")
+    if state.batch_dims:
+        raise StateCorruptedError(
+            f"reseed one state at a time, got batch size {tuple(state.batch_size)}"
+        )
+    current = state.get(key, None)
+    if not isinstance(current, torch.Tensor) or current.shape != (RNG_WORDS,):
+        raise StateCorruptedError(f"the state has no encoded generator at {key!r}")
+    words = seeded_rng_words(seed)
+    # States hold integers only (floats as bit patterns), so clone() keeps every bit.
+    out = state.clone()
+    out.set(key, words.to(current.device))
+    return out
 
 
 def wrapper_spec() -> Composite:

@@ -60,6 +60,7 @@ from torchrl_grpo.envs.gym_state import (
     encode_rng,
     encode_wrappers,
     restore_wrappers,
+    with_seeded_rng,
     wrapper_spec,
 )
 from torchrl_grpo.envs.highway_layout import NONE as _NONE
@@ -374,6 +375,16 @@ class HighwayStateCodec(StateCodec):
         if self.grayscale_shape is not None:
             out[("env", "frames")] = np.array(core.observation_type.obs, dtype=np.uint8)
         return out
+
+    def reseed(self, state: TensorDictBase, seed: int) -> TensorDictBase:
+        """See :meth:`StateCodec.reseed`: replaces the ``("env", "rng")`` words.
+
+        ``("env", "seed")`` (gymnasium's record of the episode's reset seed) is kept.
+        The new stream shows wherever the simulator draws after the state was taken:
+        intersection-v0 spawns traffic from it at every step, most other scenarios
+        draw at reset only (so a reseeded state changes their next episode).
+        """
+        return with_seeded_rng(state, ("env", "rng"), seed)
 
     # ------------------------------------------------------------------ decode
     def check_compatible(self, state: TensorDictBase) -> None:

@@ -9,7 +9,8 @@ simulator back into exactly that state, in this process or in a worker of a
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from numbers import Integral
 from typing import Any
 
 import gymnasium as gym
@@ -163,6 +164,64 @@ class SnapshotEnv(EnvBase):
         A shortcut for ``env.reset(TensorDict(state=state), set_state=True)``.
         """
         return self.reset(TensorDict({STATE_KEY: state}, batch_size=()), set_state=True)
+
+    def reseed_state(self, state: TensorDictBase, seed: int | Sequence[int]) -> TensorDictBase:
+        """Return a copy of ``state`` whose simulator random generator restarts from ``seed``.
+
+        Only the generator changes (through the codec's
+        :meth:`~torchrl_grpo.envs.StateCodec.reseed`, applied to ``state["sim"]``):
+        restoring the result gives the same scene with the PCG64 stream of ``seed``,
+        the one ``reset(seed=seed)`` would install. Use it to let branches restored
+        from one state draw their own simulator randomness. ``state`` is untouched,
+        and so is the env.
+
+        States stacked to ``[N]`` take N seeds, so that a batched env reseeds a whole
+        batch in one call to one worker (``penv[0].reseed_state(states, seeds)[0]``).
+
+        Args:
+            state: a state from :meth:`get_state` (of this env's config), or ``[N]``.
+            seed: a non-negative int, or N of them for ``[N]`` states.
+
+        Raises:
+            StateMismatchError: the state belongs to another env or config.
+            StateCorruptedError: a truncated state, or a batch of more than one dim.
+            ValueError: a negative seed, or not one seed per state.
+            NotImplementedError: this env's codec cannot reseed.
+
+        Example:
+            >>> from torchrl_grpo.envs import states_equal
+            >>> env = SnapshotEnv("CartPole-v1", seed=0)
+            >>> state = env.get_state()
+            >>> a, b = env.reseed_state(state, 7), env.reseed_state(state, 7)
+            >>> states_equal(a, b), states_equal(a, state)
+            (True, False)
+            >>> _ = env.set_state(a)  # CartPole draws from its generator on reset:
+            >>> other = SnapshotEnv("CartPole-v1")
+            >>> _ = other.set_seed(7)
+            >>> torch.equal(env.reset()["observation"], other.reset()["observation"])
+            True
+            >>> env.reseed_state(torch.stack([state, state]), [1, 2]).batch_size
+            torch.Size([2])
+        """
+        if not isinstance(state, TensorDictBase):
+            raise StateCorruptedError(f"a state must be a TensorDict, got {type(state).__name__}")
+        if state.batch_dims == 0:
+            return self._reseed_one(state, seed)
+        if state.batch_dims > 1:
+            raise StateCorruptedError(
+                f"reseed_state takes one state or states stacked to [N], got batch size "
+                f"{tuple(state.batch_size)}"
+            )
+        seeds = [seed] if isinstance(seed, Integral) else list(seed)
+        if len(seeds) != state.shape[0]:
+            raise ValueError(f"{state.shape[0]} states need as many seeds, got {len(seeds)}")
+        return torch.stack([self._reseed_one(state[i], s) for i, s in enumerate(seeds)])
+
+    def _reseed_one(self, state: TensorDictBase, seed: int) -> TensorDictBase:
+        self._check_envelope(state)
+        out = state.exclude("sim").clone()
+        out.set("sim", self.codec.reseed(state.get("sim"), seed))
+        return out
 
     # ------------------------------------------------------------------ EnvBase
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDict:
