@@ -64,7 +64,7 @@ def test_states_from_another_config(highway_parallel):
     # Same layout (shapes and dtypes), another config: only the fingerprint tells.
     other = plain_env("highway-fast-v0", seed=0, config={"collision_reward": -2.0})
     roots = reset_roots(other, 1)
-    with pytest.raises(StateMismatchError, match="another config"):
+    with pytest.raises(StateMismatchError, match="another scenario or config"):
         branch_rollout(highway_parallel, RandomPolicy(), roots, 2, 2)
 
 

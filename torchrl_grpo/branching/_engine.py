@@ -176,11 +176,15 @@ def _check_actions(td: TensorDictBase, slots: EnvSlots) -> None:
                 f"the policy wrote no {key!r} entry (its output has "
                 f"{sorted(map(str, td.keys(True, True)))}); it must write the env's action"
             )
-        if not isinstance(action, torch.Tensor) or tuple(action.shape) != expected or (
-            action.dtype != leaf.dtype
+        if (
+            not isinstance(action, torch.Tensor)
+            or tuple(action.shape) != expected
+            or (action.dtype != leaf.dtype)
         ):
-            got = (tuple(action.shape), action.dtype) if isinstance(action, torch.Tensor) else (
-                type(action).__name__
+            got = (
+                (tuple(action.shape), action.dtype)
+                if isinstance(action, torch.Tensor)
+                else (type(action).__name__)
             )
             raise ValueError(
                 f"the policy's {key!r} does not match the env's action spec: got {got}, "
@@ -199,4 +203,3 @@ def _spec_range(spec) -> str:
     if n is not None:
         return f" with {n} actions, indices 0..{n - 1}"
     return ""
-

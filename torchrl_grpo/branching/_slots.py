@@ -14,7 +14,7 @@ States are read from the env's output when its workers return them
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
@@ -22,7 +22,7 @@ from torchrl.data import TensorSpec
 from torchrl.envs import EnvBase, TransformedEnv
 
 from torchrl_grpo.branching.keys import STATE
-from torchrl_grpo.envs import StateCorruptedError, StateMismatchError
+from torchrl_grpo.envs import StateCorruptedError
 
 logger = logging.getLogger(__name__)
 
@@ -52,56 +52,22 @@ class EnvSlots:
         self.done_keys: list[NestedKey] = list(env.done_keys)
         self.action_keys: list[NestedKey] = list(env.action_keys)
         self.action_spec: TensorSpec = env.full_action_spec
-        self._reference: TensorDictBase | None = None
-        self._reseeder: Callable[[TensorDictBase, list[int]], TensorDictBase] | None = None
+        self._local: EnvBase | None = None
         self._warned_slow = False
 
     # ------------------------------------------------------------------ specs
-    def reference_state(self) -> TensorDictBase:
-        """A state of this env's config, read once from the first worker."""
-        if self._reference is None:
-            self._reference = self._read_all_states()[0].clone()
-        return self._reference
-
     def check_states(self, states: TensorDictBase) -> None:
         """Raise a clear error unless ``states`` (batch ``[N]``) fit this env.
 
-        Checked here, in the parent, before any worker sees them: a mismatched state
-        would otherwise crash a ``ParallelEnv`` worker or fail on a shared-buffer copy.
+        Checked here, in the parent, before any worker sees them: a bad state would
+        otherwise kill a ``ParallelEnv`` worker, or leave a ``SerialEnv`` half restored.
+        The checks are the env's own (:meth:`~torchrl_grpo.envs.SnapshotEnv.validate_state`),
+        run on a local copy of one worker.
         """
-        reference = self.reference_state()
-        expected = set(reference.keys(True, True))
-        present = set(states.keys(True, True))
-        if present != expected:
-            missing = sorted(map(str, expected - present))[:5]
-            extra = sorted(map(str, present - expected))[:5]
-            raise StateMismatchError(
-                "the root states do not have this env's state layout (captured from another "
-                f"scenario or env?): missing {missing}, unexpected {extra}"
-            )
-        batch = states.batch_dims
-        for key in expected:
-            want, got = reference.get(key), states.get(key)
-            if got.shape[batch:] != want.shape or got.dtype != want.dtype:
-                raise StateMismatchError(
-                    f"root state entry {key!r} has shape {tuple(got.shape[batch:])} and dtype "
-                    f"{got.dtype}; this env's states have {tuple(want.shape)} and {want.dtype} "
-                    "(captured from another scenario, config or padding?)"
-                )
-        for key in expected:
-            if isinstance(key, tuple) and "fingerprint" in key:
-                want = reference.get(key)
-                got = states.get(key)
-                bad = (got != want).reshape(got.shape[:batch].numel(), -1).any(-1)
-                if bad.any():
-                    first = int(bad.nonzero()[0])
-                    raise StateMismatchError(
-                        f"root state {first} was captured from another config: its {key!r} is "
-                        f"{got.reshape(-1)[first].item()}, this env's is {want.item()}"
-                    )
-        device = states.get(next(iter(expected))).device
+        device = next(iter(states.values(True, True))).device
         if device.type != "cpu":
             raise StateCorruptedError(f"root states are on {device}; states live on the CPU")
+        self._local_env().validate_state(states)
 
     # ------------------------------------------------------------------ actions
     def restore(
@@ -126,9 +92,7 @@ class EnvSlots:
         mask[slots] = True
         # Rows of the slots left alone are not sent to their workers; any valid state
         # fills them so the tensordict matches the batched state spec.
-        td = TensorDict(
-            {STATE: states[where], "_reset": mask.unsqueeze(-1)}, batch_size=[n]
-        )
+        td = TensorDict({STATE: states[where], "_reset": mask.unsqueeze(-1)}, batch_size=[n])
         out = self.env.reset(td, set_state=True)
         snap = None
         if want_states:
@@ -158,21 +122,29 @@ class EnvSlots:
         return self._read_all_states()[slots]
 
     def reseed(self, states: TensorDictBase, seeds: list[int]) -> TensorDictBase:
-        """``states`` ``[N]``, each with its simulator generator restarted from its seed.
+        """``states`` ``[N]``, each with its simulator generator restarted from its seed."""
+        return self._local_env().reseed_state(states, seeds)
 
-        Runs :meth:`~torchrl_grpo.envs.SnapshotEnv.reseed_state` of the env, or of its
-        first worker: in one call for the whole batch, as a worker is a pipe round
-        trip away (codecs do not pickle, so the parent cannot hold one).
+    def _local_env(self) -> EnvBase:
+        """The env itself, or a local instance built like a batched env's first worker.
+
+        It holds a codec in this process, for validating and reseeding states.
         """
-        if self._reseeder is None:
-            self._reseeder = _reseeder(self.env)
-        return self._reseeder(states, seeds)
+        if self._local is None:
+            if not self.batched:
+                self._local = _base(self.env)
+            else:
+                batched = _base(self.env)
+                self._local = _base(
+                    batched.create_env_fn[0](**(batched.create_env_kwargs[0] or {}))
+                )
+        return self._local
 
     # ------------------------------------------------------------------ states
     def _read_all_states(self) -> TensorDictBase:
         if not self.batched:
             return _get_state(self.env).unsqueeze(0)
-        if not self._warned_slow and self._reference is not None:
+        if not self._warned_slow:
             logger.warning(
                 "reading worker states through env.get_state() (a pipe round trip per "
                 "worker); build the env with make_branch_env(..., snapshots=True) (workers "
@@ -191,27 +163,6 @@ def _base(env: EnvBase) -> EnvBase:
     while isinstance(env, TransformedEnv):
         env = env.base_env
     return env
-
-
-def _reseeder(env: EnvBase) -> Callable[[TensorDictBase, list[int]], TensorDictBase]:
-    base = _base(env)
-    if not base.batch_size:
-        return base.reseed_state
-    # A view on the first worker: a batched env would run the call on every worker.
-    first = base[0]
-
-    def reseed(states: TensorDictBase, seeds: list[int]) -> TensorDictBase:
-        try:
-            return first.reseed_state(states, seeds)[0]
-        except (EOFError, ConnectionError) as err:
-            # A ParallelEnv worker that raises dies; the parent only sees its pipe close.
-            raise RuntimeError(
-                "the first worker failed to reseed the branch states and stopped (its "
-                "codec may not implement StateCodec.reseed; run a SerialEnv to see the "
-                "worker's error)"
-            ) from err
-
-    return reseed
 
 
 def _get_state(env: EnvBase) -> TensorDictBase | Sequence[TensorDictBase]:

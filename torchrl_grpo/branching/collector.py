@@ -124,9 +124,7 @@ class GroupCollector(BaseCollector):
             if isinstance(create_env_fn, EnvBase):
                 shutdown_env(create_env_fn)
             raise
-        self.env: EnvBase = (
-            create_env_fn if isinstance(create_env_fn, EnvBase) else create_env_fn()
-        )
+        self.env: EnvBase = create_env_fn if isinstance(create_env_fn, EnvBase) else create_env_fn()
         self._closed = False
         self.policy = policy
         self.group_size = group_size

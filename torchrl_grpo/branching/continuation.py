@@ -218,9 +218,7 @@ def multi_turn_rollout(
     )
 
 
-def _advance(
-    data: TensorDict, run: BranchRun, choice: torch.Tensor, group_size: int
-) -> TensorDict:
+def _advance(data: TensorDict, run: BranchRun, choice: torch.Tensor, group_size: int) -> TensorDict:
     """Where each episode goes next: the chosen branch's final state, step and end flag."""
     n_roots = choice.shape[0]
     flat = torch.arange(n_roots) * group_size + choice

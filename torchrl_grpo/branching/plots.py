@@ -111,8 +111,14 @@ def plot_group(
         ax_path.plot(xy[:, 0], xy[:, 1], color=color, lw=width, alpha=0.9)
         # The end of a branch: a cross where the ego crashed, a dot otherwise.
         end_crashed = bool(crashed[g][valid][-1]) if valid.any() else False
-        ax_path.plot(xy[-1, 0], xy[-1, 1], "x" if end_crashed else "o", color=color,
-                     ms=8 if end_crashed else 3, mew=2)
+        ax_path.plot(
+            xy[-1, 0],
+            xy[-1, 1],
+            "x" if end_crashed else "o",
+            color=color,
+            ms=8 if end_crashed else 3,
+            mew=2,
+        )
     ax_path.plot(start[0, 0], start[0, 1], "k*", ms=12, label="shared start")
     ax_path.set_xlabel("x (m)")
     ax_path.set_ylabel("y (m)")
@@ -147,4 +153,3 @@ def plot_group(
         out_path.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(out_path, format="png")
     return GroupFigure(image=image, path=out_path)
-

@@ -293,9 +293,8 @@ def roots_from_trajectories(
     # Sort by (trajectory, time): a start precedes the states after its own steps.
     rows = torch.arange(flat.shape[0]).unsqueeze(-1).expand(flat.shape)
     order = torch.argsort(
-        torch.cat([rows[starts], rows[after]]) * (1 << 32) + torch.cat(
-            [2 * torch.nonzero(starts)[:, 1], 2 * torch.nonzero(after)[:, 1] + 1]
-        )
+        torch.cat([rows[starts], rows[after]]) * (1 << 32)
+        + torch.cat([2 * torch.nonzero(starts)[:, 1], 2 * torch.nonzero(after)[:, 1] + 1])
     )
     return make_roots(states[order].clone(), steps[order])
 

@@ -217,4 +217,3 @@ def shutdown_env(env: EnvBase, timeout: float = 10.0) -> None:
             logger.warning("terminating branch worker pid %s", process.pid)
             process.terminate()
             process.join(timeout)
-
