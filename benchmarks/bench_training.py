@@ -1,0 +1,82 @@
+"""Claim: GRPO with snapshot branching learns highway-fast-v0 at least as well as PPO per env frame.
+
+Aggregates finished training runs (each a folder written by scripts/train.py, holding
+config.yaml and eval_history.jsonl) into learning curves, mean ± std over seeds, one
+PNG per env, and a Markdown table of the last evaluation of every run, beside the
+scripted baselines evaluated on the same seeds.
+
+    # 1. the runs (one per algo and seed; see docs/results.md for the exact commands)
+    python scripts/train.py -m seed=0,1,2 algo=grpo_branch,grpo_episode,ppo \
+        experiment.total_frames=20000 logger=csv
+    # 2. the curves and the table
+    python benchmarks/bench_training.py multirun/<day>/<time>/* --out docs/img
+"""
+import argparse
+import json
+import logging
+from collections import defaultdict
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from torchrl_grpo.training import plot_learning_curve
+from torchrl_grpo.training.evaluation import evaluate_checkpoint
+
+logging.basicConfig(level=logging.INFO, format="%(message)s")
+log = logging.getLogger("bench_training")
+
+p = argparse.ArgumentParser()
+p.add_argument("runs", nargs="+", type=Path, help="run folders (config.yaml + eval_history.jsonl)")
+p.add_argument("--out", type=Path, default=Path("docs/img"))
+p.add_argument("--baseline-episodes", type=int, default=30)
+p.add_argument("--baselines", nargs="*", default=["idle", "slower", "rule"])
+p.add_argument("--max-frames", type=int, default=None,
+               help="cut every curve here (default: the shortest run of each env)")
+args = p.parse_args()
+
+curves = defaultdict(lambda: defaultdict(list))  # env -> algo -> [history]
+rows = []
+envs = {}
+for run in sorted(args.runs):
+    hist_path = run / "eval_history.jsonl"
+    if not (run / "config.yaml").exists() or not hist_path.exists():
+        continue
+    cfg = OmegaConf.load(run / "config.yaml")
+    history = [json.loads(line) for line in hist_path.read_text().splitlines() if line]
+    if not history:
+        continue
+    env, algo = str(cfg.env.name), str(cfg.algo.name)
+    envs[env] = cfg.env
+    curves[env][algo].append(history)
+    last = history[-1]
+    rows.append((env, algo, int(cfg.seed), last))
+
+args.out.mkdir(parents=True, exist_ok=True)
+print("| env | algo | seed | frames | return | crash rate | speed | episodes |")
+print("|---|---|---|---|---|---|---|---|")
+for env, algo, seed, last in rows:
+    print(f"| {env} | {algo} | {seed} | {last['frames']} | {last['return']:.2f} ± "
+          f"{last['return_std']:.2f} | {100 * last['crash_rate']:.1f}% | {last['speed']:.1f} | "
+          f"{int(last['episodes'])} |")
+
+for env, by_algo in curves.items():
+    # Compare at the same frames: cut every run where the shortest one stops.
+    cut = args.max_frames or min(h[-1]["frames"] for hs in by_algo.values() for h in hs)
+    by_algo = {a: [[r for r in h if r["frames"] <= cut] for h in hs] for a, hs in by_algo.items()}
+    hlines = {}
+    if args.baselines:
+        base_cfg = OmegaConf.create({
+            "env": OmegaConf.to_container(envs[env]), "checkpoint": None,
+            "episodes": args.baseline_episodes, "seed": None,
+            "baselines": list(args.baselines), "video": False,
+        })
+        report = evaluate_checkpoint(base_cfg, args.out / f"baselines_{env}")
+        print(f"\nbaselines on {env}:\n{report.table}")
+        hlines = {r.name: r.summary()["return"] for r in report.results}
+    for metric in ("return", "crash_rate"):
+        path = plot_learning_curve(
+            dict(by_algo), args.out / f"curve_{env}_{metric}.png", metric=metric,
+            title=f"{envs[env].scenario}: deterministic evaluation ({metric})",
+            hlines=hlines if metric == "return" else None,
+        )
+        log.info("wrote %s", path)

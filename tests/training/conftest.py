@@ -1,0 +1,63 @@
+"""Fixtures of the training tests: config composition and tiny-budget runs."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig
+
+from torchrl_grpo.training import register_configs
+
+ROOT = Path(__file__).resolve().parents[2]
+CONF = ROOT / "conf"
+
+# Budgets small enough for CI: one in-process env, a tiny network, no media.
+TINY = [
+    "experiment=smoke",
+    "logger=none",
+    "experiment.eval_every=0",
+    "experiment.final_eval_episodes=0",
+    "experiment.plot_every=0",
+]
+
+
+def compose_config(overrides: list[str], config_name: str = "config", conf: Path = CONF
+                   ) -> DictConfig:
+    """Compose ``conf/<config_name>.yaml`` with Hydra's compose API."""
+    register_configs()
+    with initialize_config_dir(str(conf), version_base=None):
+        return compose(config_name, overrides=overrides)
+
+
+def run_script(script: str, args: list[str], timeout: float = 120, **kwargs
+               ) -> subprocess.CompletedProcess:
+    """Run ``scripts/<script>`` in a subprocess, wandb offline, from the repository root."""
+    env = {**os.environ, "WANDB_MODE": "offline", "PYTHONUNBUFFERED": "1"}
+    return subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / script), *args],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout, **kwargs,
+    )
+
+
+@pytest.fixture(scope="session")
+def smoke_run(tmp_path_factory) -> tuple[subprocess.CompletedProcess, Path, float]:
+    """One smoke training run in a subprocess (CSV logger), shared by the tests reading it."""
+    import time
+
+    run_dir = tmp_path_factory.mktemp("smoke") / "run"
+    start = time.monotonic()
+    proc = run_script(
+        "train.py", ["experiment=smoke", "logger=csv", f"experiment.out_dir={run_dir}"]
+    )
+    return proc, run_dir, time.monotonic() - start
+
+
+@pytest.fixture(autouse=True)
+def _seed() -> None:
+    torch.manual_seed(0)

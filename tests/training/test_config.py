@@ -1,0 +1,117 @@
+"""Every config group composes; typos and wrong types fail with the key's name."""
+
+from __future__ import annotations
+
+import shutil
+
+import pytest
+from conftest import CONF, compose_config
+from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf
+from omegaconf.errors import ValidationError
+
+from torchrl_grpo.training.config import (
+    Config,
+    GRPOConfig,
+    PPOConfig,
+    RolloutConfig,
+    check_config,
+)
+
+GROUPS = ["env", "model", "algo", "optim", "logger", "experiment"]
+
+
+def _options(group: str) -> list[str]:
+    return sorted(p.stem for p in (CONF / group).glob("*.yaml"))
+
+
+@pytest.mark.parametrize(
+    "group,option", [(g, o) for g in GROUPS for o in _options(g)], ids=lambda x: str(x)
+)
+def test_every_group_option_composes(group, option):
+    cfg = compose_config([f"{group}={option}"])
+    check_config(cfg)
+    assert OmegaConf.to_container(cfg, resolve=True)  # every interpolation resolves
+    if group == "env":
+        assert cfg.env.name == option
+    if group == "algo":
+        assert str(cfg.algo.name) == option
+        schema = PPOConfig if option == "ppo" else GRPOConfig
+        assert OmegaConf.get_type(cfg.algo) is schema
+
+
+@pytest.mark.parametrize("algo", ["grpo_branch", "grpo_episode", "ppo"])
+def test_rollout_follows_the_algorithm(algo):
+    cfg = compose_config([f"algo={algo}"])
+    expected = OmegaConf.load(CONF / "rollout" / f"{algo}.yaml")
+    assert cfg.rollout.num_workers == expected.num_workers
+    if algo == "grpo_episode":
+        assert cfg.rollout.horizon == cfg.env.max_episode_steps
+    else:
+        assert cfg.rollout.horizon == expected.horizon
+
+
+def test_default_is_grpo_branch_on_highway_fast_with_offline_wandb():
+    cfg = compose_config([])
+    assert (cfg.env.scenario, str(cfg.algo.name), str(cfg.algo.roots)) == (
+        "highway-fast-v0", "grpo_branch", "trunk")
+    assert (str(cfg.logger.backend), str(cfg.logger.mode)) == ("wandb", "offline")
+
+
+def test_issue_example_overrides_compose():
+    cfg = compose_config(["env=merge", "algo.group_size=8", "logger=csv"])
+    assert (cfg.env.scenario, cfg.algo.group_size, str(cfg.logger.backend)) == (
+        "merge-v0", 8, "csv")
+
+
+@pytest.mark.parametrize(
+    "override,key",
+    [
+        ("algo.clip_epsilon=0.3", "algo.clip_epsilon"),  # a PPO key on a GRPO algo
+        ("optim.lrr=1e-3", "optim.lrr"),
+        ("experiment.total_frame=10", "experiment.total_frame"),
+    ],
+)
+def test_misspelt_key_fails_naming_it(override, key):
+    with pytest.raises(ConfigCompositionException, match=key.replace(".", r"\.")):
+        compose_config([override])
+
+
+@pytest.mark.parametrize(
+    "override,key",
+    [("algo.group_size=eight", "group_size"), ("algo.aggregation=mean", "aggregation"),
+     ("model.kind=transformer", "kind"), ("logger=csv", None)],
+)
+def test_wrong_type_or_choice_fails_naming_the_key(override, key):
+    if key is None:  # the control: a valid override composes
+        compose_config([override])
+        return
+    with pytest.raises(ConfigCompositionException) as info:
+        compose_config([override])
+    cause = info.value.__cause__
+    assert isinstance(cause, ValidationError)
+    assert key in str(cause)
+
+
+def test_typo_inside_a_yaml_file_fails_at_load(tmp_path):
+    conf = tmp_path / "conf"
+    shutil.copytree(CONF, conf)
+    path = conf / "algo" / "grpo_branch.yaml"
+    path.write_text(path.read_text().replace("group_size: 8", "grup_size: 8"))
+    with pytest.raises(ConfigCompositionException, match="grup_size") as info:
+        compose_config([], conf=conf)
+    assert "algo.grup_size" in str(info.value)
+
+
+def test_check_config_names_the_key():
+    cfg = OmegaConf.structured(Config(rollout=RolloutConfig(num_workers=2)))
+    with pytest.raises(ValueError, match="rollout.num_workers"):
+        check_config(cfg)
+    cfg = OmegaConf.structured(Config(algo=GRPOConfig(group_size=1)))
+    with pytest.raises(ValueError, match="algo.group_size"):
+        check_config(cfg)
+
+
+def test_evaluate_config_composes():
+    cfg = compose_config(["checkpoint=x.pt", "env=merge"], config_name="evaluate")
+    assert cfg.checkpoint == "x.pt" and cfg.env.scenario == "merge-v0" and cfg.episodes >= 30

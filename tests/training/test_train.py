@@ -1,0 +1,131 @@
+"""End-to-end runs on tiny budgets: the smoke run, exact resume, Ctrl-C."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+from conftest import ROOT, TINY, compose_config
+
+from torchrl_grpo.training import Trainer, load_checkpoint
+
+
+def _csv_scalars(run_dir) -> dict[str, list[float]]:
+    [exp] = list((run_dir / "csv").iterdir())
+    out = {}
+    for path in (exp / "scalars").rglob("*.csv"):
+        with open(path) as f:
+            out[str(path.relative_to(exp / "scalars").with_suffix(""))] = [
+                float(row[1]) for row in csv.reader(f)
+            ]
+    return out
+
+
+def test_smoke_run_writes_finite_metrics_and_checkpoint(smoke_run):
+    proc, run_dir, elapsed = smoke_run
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert elapsed < 60, f"the smoke run took {elapsed:.0f} s"
+    # The script ends by telling where everything is.
+    for label in ("run folder:", "checkpoint:", "logs:", "results:", "curve:"):
+        assert label in proc.stdout, proc.stdout
+    scalars = _csv_scalars(run_dir)
+    for name in ("train/crash_rate", "group/return_mean", "group/return_std",
+                 "advantage/mean", "loss/objective", "loss/entropy", "loss/kl",
+                 "diag/clip_fraction", "diag/ESS", "diag/kl_approx", "diag/entropy",
+                 "time/collect", "time/update", "time/fps", "eval/return", "eval/crash_rate",
+                 "eval/speed", "eval/length", "final/return"):
+        assert scalars.get(name), f"no {name} metric in {sorted(scalars)}"
+        assert all(math.isfinite(v) for v in scalars[name]), (name, scalars[name])
+    assert scalars["frames/total"][-1] >= 300
+    ckpt = load_checkpoint(run_dir / "last.pt")
+    assert ckpt["frames"] >= 300 and ckpt["iteration"] >= 2
+    params = list(ckpt["policy"].values())
+    assert params and all(torch.isfinite(p).all() for p in params)
+    assert (run_dir / "results.md").read_text().count("|") > 10
+    assert list((run_dir / "plots").glob("group_it*.png"))
+
+
+def _train(tmp_path, name: str, overrides: list[str]) -> Trainer:
+    cfg = compose_config([*TINY, *overrides])
+    trainer = Trainer(cfg, run_dir=tmp_path / name)
+    trainer.train()
+    return trainer
+
+
+def _params(trainer: Trainer) -> dict[str, torch.Tensor]:
+    return {k: v.clone() for k, v in trainer.loss.state_dict().items()}
+
+
+@pytest.mark.parametrize(
+    "algo,extra,first,total",
+    [
+        ("grpo_branch", ["algo.group_size=2", "rollout.decision_interval=2"], 40, 110),
+        ("ppo", ["rollout.frames_per_batch=32"], 32, 96),
+    ],
+)
+def test_resume_continues_exactly(tmp_path, algo, extra, first, total):
+    common = [f"algo={algo}", "experiment.checkpoint_every=1", *extra]
+    straight = _train(tmp_path, "straight", [*common, f"experiment.total_frames={total}"])
+    stopped = _train(tmp_path, "stopped", [*common, f"experiment.total_frames={first}"])
+    assert 0 < stopped.frames < straight.frames
+    resumed = _train(
+        tmp_path,
+        "resumed",
+        [*common, f"experiment.total_frames={total}",
+         f"resume={tmp_path / 'stopped' / 'last.pt'}"],
+    )
+    assert (resumed.iteration, resumed.frames) == (straight.iteration, straight.frames)
+    a, b = _params(straight), _params(resumed)
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+    # The control: the stopped run's parameters differ, so the check can fail.
+    c = _params(stopped)
+    assert any(not torch.equal(a[k], c[k]) for k in a)
+
+
+def test_resume_refuses_another_algorithm(tmp_path):
+    _train(tmp_path, "grpo", ["experiment.total_frames=20"])
+    cfg = compose_config([*TINY, "algo=ppo", f"resume={tmp_path / 'grpo' / 'last.pt'}"])
+    with pytest.raises(ValueError, match="algo=grpo_branch"):
+        Trainer(cfg, run_dir=tmp_path / "ppo")
+
+
+def test_ctrl_c_saves_and_leaves_no_worker(tmp_path):
+    run_dir = tmp_path / "run"
+    args = [
+        str(ROOT / "scripts" / "train.py"), *TINY, "rollout.backend=parallel",
+        "rollout.num_workers=1", "experiment.total_frames=100000",
+        "experiment.checkpoint_every=1", f"experiment.out_dir={run_dir}",
+    ]
+    proc = subprocess.Popen(
+        [sys.executable, *args], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True, start_new_session=True,
+        env={**os.environ, "WANDB_MODE": "offline"},
+    )
+    try:
+        deadline = time.monotonic() + 90
+        while not (run_dir / "last.pt").exists():
+            assert proc.poll() is None, proc.communicate()[1][-3000:]
+            assert time.monotonic() < deadline, "no checkpoint within 90 s"
+            time.sleep(0.5)
+        # What a terminal's Ctrl-C does: SIGINT to the whole process group.
+        os.killpg(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=90)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 0, err[-3000:]
+    assert "interrupted" in out
+    ckpt = load_checkpoint(run_dir / "last.pt")
+    assert 0 < ckpt["frames"] < 100000
+    # Every process of the session (the trainer and its env worker) is gone.
+    with pytest.raises(ProcessLookupError):
+        os.killpg(proc.pid, 0)

@@ -1,0 +1,412 @@
+"""Typed schemas of the Hydra config groups, registered in Hydra's ConfigStore.
+
+Every group of ``conf/`` (``env``, ``model``, ``algo``, ``rollout``, ``optim``,
+``logger``, ``experiment``) is backed by a dataclass here, so a misspelt key, a value
+of the wrong type or an unknown choice fails when the config is composed, with
+OmegaConf's message naming the full key (``full_key: algo.clip_epsilon``).
+
+String choices are ``str`` enums (OmegaConf rejects ``typing.Literal`` fields); their
+members compare equal to their names, so ``cfg.algo.name == "ppo"`` works.
+
+Example:
+    >>> from omegaconf import OmegaConf
+    >>> cfg = OmegaConf.structured(GRPOConfig)
+    >>> cfg.kl_to_ref_coeff
+    0.01
+    >>> try:
+    ...     cfg.clip_epsilon_low = "wide"
+    ... except Exception as err:
+    ...     print(type(err).__name__)
+    ValidationError
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING, DictConfig, OmegaConf
+
+__all__ = [
+    "AggregationName",
+    "AlgoConfig",
+    "AlgoName",
+    "Backend",
+    "BaselineName",
+    "BootstrapName",
+    "Config",
+    "EnvConfig",
+    "EvalConfig",
+    "ExperimentConfig",
+    "GRPOConfig",
+    "KLEstimatorName",
+    "LoggerBackend",
+    "LoggerConfig",
+    "ModelConfig",
+    "ModelKind",
+    "OptimConfig",
+    "PPOConfig",
+    "ReturnsName",
+    "RolloutConfig",
+    "RootKindName",
+    "ScaleRewards",
+    "SelectionName",
+    "WandbMode",
+    "check_config",
+    "register_configs",
+    "to_container",
+]
+
+
+class _Choice(StrEnum):
+    """A string choice: equal to its name, printed as its name."""
+
+
+class AlgoName(_Choice):
+    """The training algorithm."""
+
+    grpo_branch = "grpo_branch"
+    grpo_episode = "grpo_episode"
+    ppo = "ppo"
+
+
+class RootKindName(_Choice):
+    """Where GRPO groups start (see :class:`~torchrl_grpo.branching.GroupCollector`)."""
+
+    trunk = "trunk"
+    reset = "reset"
+    # "continue" is a Python keyword, and OmegaConf matches enum members by name.
+    continuation = "continuation"
+
+
+class SelectionName(_Choice):
+    """Branch selection of ``roots=continue``."""
+
+    best = "best"
+    sampled = "sampled"
+    trunk = "trunk"
+
+
+class AggregationName(_Choice):
+    """How :class:`~torchrl_grpo.objectives.GRPOLoss` averages over steps."""
+
+    dapo = "dapo"
+    bnpo = "bnpo"
+    token_mean = "token_mean"
+    grpo = "grpo"
+    prompt_mean = "prompt_mean"
+    dr_grpo = "dr_grpo"
+
+
+class KLEstimatorName(_Choice):
+    """KL estimator of the reference term."""
+
+    k1 = "k1"
+    k2 = "k2"
+    k3 = "k3"
+    analytic = "analytic"
+
+
+class ReturnsName(_Choice):
+    """Per-branch (outcome) or per-step (reward-to-go) group returns."""
+
+    branch = "branch"
+    step = "step"
+
+
+class BaselineName(_Choice):
+    """Group baseline: mean (GRPO) or leave-one-out (RLOO)."""
+
+    mean = "mean"
+    loo = "loo"
+
+
+class ScaleRewards(_Choice):
+    """Division of the centred returns (TRL's ``scale_rewards``)."""
+
+    group = "group"
+    batch = "batch"
+    none = "none"
+
+
+class BootstrapName(_Choice):
+    """Value credited to a GRPO branch cut by the horizon (critic-free)."""
+
+    none = "none"
+    batch_mean = "batch_mean"
+
+
+class ModelKind(_Choice):
+    """Network over the Kinematics table."""
+
+    mlp = "mlp"
+    ego_attention = "ego_attention"
+
+
+class Backend(_Choice):
+    """How the rollout workers run."""
+
+    parallel = "parallel"
+    serial = "serial"
+    single = "single"
+
+
+class LoggerBackend(_Choice):
+    """Where metrics go."""
+
+    wandb = "wandb"
+    csv = "csv"
+    none = "none"
+
+
+class WandbMode(_Choice):
+    """wandb's mode: ``offline`` writes a run folder to ``wandb sync`` later."""
+
+    offline = "offline"
+    online = "online"
+
+
+@dataclass
+class EnvConfig:
+    """``env`` group: a highway-env scenario and its config overrides."""
+
+    name: str = MISSING
+    scenario: str = MISSING
+    config: dict[str, Any] = field(default_factory=dict)
+    max_episode_steps: int = 1000
+
+
+@dataclass
+class ModelConfig:
+    """``model`` group: the policy (and PPO value) network."""
+
+    kind: ModelKind = ModelKind.mlp
+    num_cells: list[int] = field(default_factory=lambda: [256, 256])
+    embed_dim: int = 64
+    num_heads: int = 2
+    encoder_cells: list[int] = field(default_factory=lambda: [64])
+    decoder_cells: list[int] = field(default_factory=lambda: [64, 64])
+
+
+@dataclass
+class AlgoConfig:
+    """``algo`` group: fields every algorithm has."""
+
+    name: AlgoName = MISSING
+    entropy_coeff: float = 0.01
+    epochs: int = 4
+    minibatch_size: int = 256
+
+
+@dataclass
+class GRPOConfig(AlgoConfig):
+    """GRPO (``grpo_branch``, ``grpo_episode``): group-relative advantage, no critic."""
+
+    group_size: int = 8
+    roots: RootKindName = RootKindName.trunk
+    select: SelectionName = SelectionName.best
+    returns: ReturnsName = ReturnsName.branch
+    bootstrap: BootstrapName = BootstrapName.batch_mean
+    baseline: BaselineName = BaselineName.mean
+    scale_rewards: ScaleRewards = ScaleRewards.group
+    gamma: float = 1.0
+    clip_epsilon_low: float = 0.2
+    clip_epsilon_high: float = 0.28
+    dual_clip: float | None = None
+    kl_to_ref_coeff: float | None = 0.01
+    kl_estimator: KLEstimatorName = KLEstimatorName.k3
+    aggregation: AggregationName = AggregationName.dapo
+    ref_model_sync_steps: int = 64
+    ref_model_mixup_alpha: float = 1.0
+
+
+@dataclass
+class PPOConfig(AlgoConfig):
+    """PPO baseline: TorchRL's ``ClipPPOLoss`` with a value network and GAE."""
+
+    gamma: float = 0.9
+    lmbda: float = 0.95
+    clip_epsilon: float = 0.2
+    critic_coeff: float = 0.5
+    normalize_advantage: bool = True
+    loss_critic_type: str = "smooth_l1"
+
+
+@dataclass
+class RolloutConfig:
+    """``rollout`` group: how experience is gathered."""
+
+    horizon: int = 8
+    decision_interval: int = 4
+    groups_per_batch: int = 8
+    frames_per_batch: int = 512
+    num_workers: int = 1
+    backend: Backend = Backend.single
+    mp_start_method: str | None = "fork"
+
+
+@dataclass
+class OptimConfig:
+    """``optim`` group: Adam and gradient clipping."""
+
+    lr: float = 5e-4
+    weight_decay: float = 0.0
+    eps: float = 1e-8
+    max_grad_norm: float = 1.0
+    anneal_lr: bool = False
+
+
+@dataclass
+class LoggerConfig:
+    """``logger`` group: TorchRL logger backend and media."""
+
+    backend: LoggerBackend = LoggerBackend.wandb
+    mode: WandbMode = WandbMode.offline
+    project: str = "torchrl_grpo"
+    group: str | None = None
+    tags: list[str] = field(default_factory=list)
+    video: bool = True
+    group_plots: bool = True
+
+
+@dataclass
+class ExperimentConfig:
+    """``experiment`` group: budgets and how often to evaluate and checkpoint."""
+
+    name: str = "default"
+    total_frames: int = 30_000
+    eval_every: int = 10
+    eval_episodes: int = 10
+    final_eval_episodes: int = 30
+    eval_seed: int = 10_000
+    baselines: list[str] = field(default_factory=lambda: ["random", "idle", "slower", "rule"])
+    checkpoint_every: int = 10
+    plot_every: int = 10
+    progress_bar: bool = True
+    out_dir: str | None = None
+
+
+@dataclass
+class Config:
+    """The whole training config (``conf/config.yaml``)."""
+
+    env: EnvConfig = MISSING
+    model: ModelConfig = MISSING
+    algo: AlgoConfig = MISSING
+    rollout: RolloutConfig = MISSING
+    optim: OptimConfig = MISSING
+    logger: LoggerConfig = MISSING
+    experiment: ExperimentConfig = MISSING
+    seed: int = 0
+    resume: str | None = None
+
+
+@dataclass
+class EvalConfig:
+    """``scripts/evaluate.py``'s config (``conf/evaluate.yaml``)."""
+
+    env: EnvConfig = MISSING
+    checkpoint: str | None = None
+    episodes: int = 30
+    seed: int | None = None
+    baselines: list[str] = field(default_factory=lambda: ["random", "idle", "slower", "rule"])
+    video: bool = True
+    out_dir: str | None = None
+
+
+_GROUP_SCHEMAS: dict[str, dict[str, type]] = {
+    "env": {"base_env": EnvConfig},
+    "model": {"base_model": ModelConfig},
+    "algo": {"base_grpo": GRPOConfig, "base_ppo": PPOConfig},
+    "rollout": {"base_rollout": RolloutConfig},
+    "optim": {"base_optim": OptimConfig},
+    "logger": {"base_logger": LoggerConfig},
+    "experiment": {"base_experiment": ExperimentConfig},
+}
+
+
+def register_configs() -> ConfigStore:
+    """Register the schemas: ``base_config`` and ``base_<group>`` in each group.
+
+    The YAML files of ``conf/`` list their schema first in their defaults, e.g.
+    ``conf/algo/ppo.yaml`` starts from ``base_ppo``. Idempotent.
+
+    Returns:
+        Hydra's ConfigStore.
+
+    Example:
+        >>> cs = register_configs()
+        >>> "base_ppo.yaml" in cs.list("algo")
+        True
+    """
+    cs = ConfigStore.instance()
+    cs.store(name="base_config", node=Config)
+    cs.store(name="base_evaluate", node=EvalConfig)
+    for group, schemas in _GROUP_SCHEMAS.items():
+        for name, node in schemas.items():
+            cs.store(group=group, name=name, node=node)
+    return cs
+
+
+def check_config(cfg: DictConfig) -> None:
+    """Checks the relations between keys that types alone cannot express.
+
+    Raises:
+        ValueError: naming the offending key.
+
+    Example:
+        >>> cfg = OmegaConf.structured(Config(rollout=RolloutConfig(horizon=0)))
+        >>> try:
+        ...     check_config(cfg)
+        ... except ValueError as err:
+        ...     print(err)
+        rollout.horizon must be >= 1, got 0
+    """
+    positive = {
+        "rollout.horizon": 1,
+        "rollout.decision_interval": 1,
+        "rollout.groups_per_batch": 1,
+        "rollout.frames_per_batch": 1,
+        "rollout.num_workers": 1,
+        "experiment.total_frames": 1,
+        "experiment.eval_every": 0,
+        "experiment.eval_episodes": 0,
+        "experiment.final_eval_episodes": 0,
+        "experiment.checkpoint_every": 0,
+        "experiment.plot_every": 0,
+        "algo.epochs": 1,
+        "algo.minibatch_size": 1,
+    }
+    for key, low in positive.items():
+        group, name = key.split(".")
+        if OmegaConf.is_missing(cfg, group) or cfg.get(group) is None:
+            continue
+        node = cfg[group]
+        if name not in node or OmegaConf.is_missing(node, name):
+            continue
+        value = node[name]
+        if value is not None and value < low:
+            raise ValueError(f"{key} must be >= {low}, got {value}")
+    algo = cfg.get("algo")
+    if algo is not None and not OmegaConf.is_missing(cfg, "algo"):
+        if "group_size" in algo and algo.group_size < 2:
+            raise ValueError(f"algo.group_size must be >= 2, got {algo.group_size}")
+    rollout = cfg.get("rollout")
+    if rollout is not None and not OmegaConf.is_missing(cfg, "rollout"):
+        if rollout.backend == Backend.single and rollout.num_workers != 1:
+            raise ValueError(
+                f"rollout.num_workers must be 1 with rollout.backend=single, "
+                f"got {rollout.num_workers}"
+            )
+
+
+def to_container(cfg: DictConfig) -> dict:
+    """The resolved config as plain Python (enums as strings), for logging and checkpoints.
+
+    Example:
+        >>> to_container(OmegaConf.structured(ModelConfig))["kind"]
+        'mlp'
+    """
+    return OmegaConf.to_container(cfg, resolve=True, enum_to_str=True)

@@ -1,0 +1,402 @@
+"""Deterministic evaluation on fixed seeds, scripted baselines, results table and video.
+
+Episode ``i`` of an evaluation starts from ``env.set_seed(eval_seed + i)``: every
+policy, every evaluation of a run and every run with the same ``eval_seed`` drive
+the same traffic. The trained policy acts greedily (the mode of its categorical,
+:class:`~torchrl_grpo.modules.DeterministicActor`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from torchrl_grpo.modules import DeterministicActor, KinematicsLayout, make_scripted_policy
+
+__all__ = [
+    "BASELINE_LABELS",
+    "EvalReport",
+    "EvalResult",
+    "baseline_policy",
+    "evaluate",
+    "evaluate_checkpoint",
+    "format_table",
+    "plot_comparison",
+    "save_gif",
+]
+
+log = logging.getLogger(__name__)
+
+#: Display names of the scripted baselines (keys of ``SCRIPTED_POLICIES``).
+BASELINE_LABELS = {
+    "random": "random",
+    "idle": "always-IDLE",
+    "slower": "always-SLOWER",
+    "rule": "rule policy",
+}
+
+
+@dataclass
+class EvalResult:
+    """Per-episode outcomes of one policy.
+
+    Attributes:
+        name: the policy's label.
+        returns: undiscounted return of each episode.
+        crashed: whether the ego crashed.
+        lengths: steps of each episode.
+        speeds: mean ego speed of each episode (m/s).
+        seeds: the episodes' seeds.
+    """
+
+    name: str
+    returns: list[float] = field(default_factory=list)
+    crashed: list[bool] = field(default_factory=list)
+    lengths: list[int] = field(default_factory=list)
+    speeds: list[float] = field(default_factory=list)
+    seeds: list[int] = field(default_factory=list)
+
+    @property
+    def episodes(self) -> int:
+        """Number of episodes."""
+        return len(self.returns)
+
+    def summary(self) -> dict[str, float]:
+        """Means (and the return's std and standard error) over episodes.
+
+        Example:
+            >>> r = EvalResult("x", [1.0, 3.0], [False, True], [2, 4], [20.0, 30.0], [0, 1])
+            >>> r.summary()["crash_rate"], r.summary()["return"]
+            (0.5, 2.0)
+        """
+        returns = np.asarray(self.returns, dtype=np.float64)
+        n = max(len(returns), 1)
+        std = float(returns.std(ddof=1)) if len(returns) > 1 else 0.0
+        return {
+            "return": float(returns.mean()) if len(returns) else math.nan,
+            "return_std": std,
+            "return_sem": std / math.sqrt(n),
+            "crash_rate": float(np.mean(self.crashed)) if self.crashed else math.nan,
+            "speed": float(np.mean(self.speeds)) if self.speeds else math.nan,
+            "length": float(np.mean(self.lengths)) if self.lengths else math.nan,
+            "episodes": float(len(returns)),
+        }
+
+    def to_dict(self) -> dict:
+        """Plain data for JSON."""
+        return {**asdict(self), "summary": self.summary()}
+
+
+def baseline_policy(
+    name: str, layout: KinematicsLayout | None, n_actions: int, seed: int = 0
+) -> TensorDictModuleBase | None:
+    """A scripted baseline by name, or ``None`` where it does not apply.
+
+    The scripted policies speak highway-env's 5-action DiscreteMetaAction on a
+    Kinematics observation; for other action sets or observations only ``random``
+    applies.
+
+    Example:
+        >>> baseline_policy("slower", None, 5) is not None, baseline_policy("rule", None, 3)
+        (True, None)
+    """
+    if name == "random":
+        return make_scripted_policy("random", n_actions=n_actions, seed=seed)
+    if n_actions != 5 or (name == "rule" and layout is None):
+        return None
+    return make_scripted_policy(name, layout)
+
+
+def evaluate(
+    env: EnvBase,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    *,
+    episodes: int,
+    seed: int,
+    max_steps: int = 1000,
+    name: str = "policy",
+    deterministic: bool = True,
+    record: EnvBase | None = None,
+) -> tuple[EvalResult, torch.Tensor | None]:
+    """Run ``episodes`` episodes from seeds ``seed, seed + 1, ...``.
+
+    Args:
+        env: an unbatched env (a :class:`~torchrl_grpo.envs.HighwayEnv`).
+        policy: the policy; learned actors are wrapped in ``DeterministicActor``
+            when ``deterministic``.
+        episodes: how many episodes.
+        seed: seed of the first episode.
+        max_steps: cap on an episode's length.
+        name: the label in the results.
+        deterministic: act greedily.
+        record: an env built with ``render_mode="rgb_array"``: the first episode is
+            replayed there (same seed, same actions) and returned as a video.
+
+    Returns:
+        The results and, with ``record``, a ``(1, T, 3, H, W)`` uint8 video.
+
+    Example:
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> from torchrl_grpo.modules import ConstantActionPolicy
+        >>> res, _ = evaluate(HighwayEnv("highway-fast-v0"), ConstantActionPolicy("SLOWER"),
+        ...                   episodes=1, seed=0, max_steps=3)
+        >>> res.lengths
+        [3]
+    """
+    if deterministic and isinstance(policy, TensorDictModuleBase) and _is_stochastic(policy):
+        policy = DeterministicActor(policy)
+    result = EvalResult(name)
+    video = None
+    for i in range(episodes):
+        ep_seed = seed + i
+        data = _episode(env, policy, ep_seed, max_steps)
+        reward = data.get(("next", "reward")).reshape(-1)
+        result.returns.append(float(reward.sum()))
+        result.crashed.append(bool(data.get(("next", "crashed")).any()))
+        result.lengths.append(int(reward.numel()))
+        result.speeds.append(float(data.get(("next", "speed")).float().mean()))
+        result.seeds.append(ep_seed)
+        if record is not None and i == 0:
+            video = _replay_video(record, data, ep_seed)
+    return result, video
+
+
+def _is_stochastic(policy: TensorDictModuleBase) -> bool:
+    return hasattr(policy, "get_dist") or any(
+        hasattr(m, "get_dist") for m in policy.modules() if m is not policy
+    )
+
+
+@torch.no_grad()
+def _episode(env: EnvBase, policy: Callable, seed: int, max_steps: int) -> TensorDictBase:
+    env.set_seed(seed)
+    td = env.reset()
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        return env.rollout(
+            max_steps, policy, auto_reset=False, tensordict=td, break_when_any_done=True
+        )
+
+
+@torch.no_grad()
+def _replay_video(env: EnvBase, data: TensorDictBase, seed: int) -> torch.Tensor:
+    # Replaying the recorded actions from the same seed keeps rendering out of the
+    # timed evaluation and gives the same episode bit for bit.
+    env.set_seed(seed)
+    env.reset()
+    frames = [env.render()]
+    for action in data.get("action"):
+        step = env.step(TensorDict(action=action.clone()))
+        frames.append(env.render())
+        if bool(step.get(("next", "done"))):
+            break
+    video = torch.from_numpy(np.stack(frames)).permute(0, 3, 1, 2).contiguous()
+    return video.unsqueeze(0)
+
+
+def save_gif(video: torch.Tensor, path: str | Path, fps: int = 5) -> Path:
+    """Write a ``(1, T, 3, H, W)`` or ``(T, 3, H, W)`` uint8 video as a GIF (Pillow).
+
+    Example:
+        >>> import tempfile, os
+        >>> p = save_gif(torch.zeros(2, 3, 8, 8, dtype=torch.uint8), tempfile.mkdtemp() + "/v.gif")
+        >>> os.path.getsize(p) > 0
+        True
+    """
+    from PIL import Image
+
+    frames = video.reshape(-1, *video.shape[-3:]).permute(0, 2, 3, 1).numpy()
+    images = [Image.fromarray(f) for f in frames]
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    images[0].save(
+        path, save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0
+    )
+    return path
+
+
+def format_table(results: Sequence[EvalResult]) -> str:
+    """A Markdown table: return (mean ± std), crash rate, mean speed, episode length.
+
+    Example:
+        >>> r = EvalResult("slower", [20.0, 22.0], [False, False], [30, 30], [20.0, 20.0])
+        >>> print(format_table([r]).splitlines()[2])
+        | slower | 21.00 ± 1.41 | 0.0% | 20.0 | 30.0 | 2 |
+    """
+    lines = [
+        "| policy | return | crash rate | speed (m/s) | length (steps) | episodes |",
+        "|---|---|---|---|---|---|",
+    ]
+    for res in results:
+        s = res.summary()
+        lines.append(
+            f"| {res.name} | {s['return']:.2f} ± {s['return_std']:.2f} | "
+            f"{100 * s['crash_rate']:.1f}% | {s['speed']:.1f} | {s['length']:.1f} | "
+            f"{int(s['episodes'])} |"
+        )
+    return "\n".join(lines)
+
+
+def plot_comparison(results: Sequence[EvalResult], path: str | Path, title: str = "") -> Path:
+    """Bar charts of return (mean ± std) and crash rate, one bar per policy.
+
+    Example:
+        >>> import tempfile
+        >>> r = EvalResult("a", [1.0, 2.0], [False, True], [3, 3], [20.0, 21.0])
+        >>> plot_comparison([r], tempfile.mkdtemp() + "/bars.png").suffix
+        '.png'
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9, 3.8), dpi=100)
+    FigureCanvasAgg(fig)
+    ax_ret, ax_crash, ax_speed = fig.subplots(1, 3)
+    names = [r.name for r in results]
+    summaries = [r.summary() for r in results]
+    x = np.arange(len(results))
+    ax_ret.bar(x, [s["return"] for s in summaries], yerr=[s["return_std"] for s in summaries],
+               color="tab:blue", capsize=3)
+    ax_ret.set_ylabel("return")
+    ax_crash.bar(x, [100 * s["crash_rate"] for s in summaries], color="tab:red")
+    ax_crash.set_ylabel("crash rate (%)")
+    ax_speed.bar(x, [s["speed"] for s in summaries], color="tab:green")
+    ax_speed.set_ylabel("mean speed (m/s)")
+    for ax in (ax_ret, ax_crash, ax_speed):
+        ax.set_xticks(x)
+        ax.set_xticklabels(names, rotation=30, ha="right", fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    return path
+
+
+@dataclass
+class EvalReport:
+    """What :func:`evaluate_checkpoint` wrote.
+
+    Attributes:
+        results: one :class:`EvalResult` per policy (the trained one first).
+        table: the Markdown table (``results.md``).
+        out_dir: the output folder.
+        files: written files by kind (``table``, ``json``, ``bars``, ``curve``, ``video``).
+    """
+
+    results: list[EvalResult]
+    table: str
+    out_dir: Path
+    files: dict[str, Path] = field(default_factory=dict)
+
+
+def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
+    """``scripts/evaluate.py``: the trained policy of ``cfg.checkpoint`` and the baselines.
+
+    Args:
+        cfg: the ``conf/evaluate.yaml`` config. With ``checkpoint`` set, the env and
+            the network come from the checkpoint's own config; without, only the
+            baselines run on ``cfg.env``.
+        out_dir: where the table, JSON, plots and video go.
+
+    Example:
+        >>> import tempfile
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.create({"env": {"scenario": "highway-fast-v0", "config": {},
+        ...     "max_episode_steps": 2}, "checkpoint": None, "episodes": 1, "seed": 0,
+        ...     "baselines": ["slower"], "video": False})
+        >>> evaluate_checkpoint(cfg, tempfile.mkdtemp()).results[0].name
+        'always-SLOWER'
+    """
+    from omegaconf import OmegaConf
+
+    from torchrl_grpo.training.checkpoint import load_checkpoint
+    from torchrl_grpo.training.env_builder import make_env, make_layout
+    from torchrl_grpo.training.model_builder import make_policy
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    env_cfg = cfg.env
+    seed = cfg.seed
+    history: list[dict] = []
+    run_cfg = None
+    ckpt = None
+    if cfg.checkpoint:
+        ckpt = load_checkpoint(cfg.checkpoint)
+        run_cfg = OmegaConf.create(ckpt["config"])
+        env_cfg = run_cfg.env
+        history = list(ckpt.get("eval_history") or [])
+        if seed is None:
+            seed = int(run_cfg.experiment.eval_seed)
+    seed = 10_000 if seed is None else int(seed)
+    env = make_env(env_cfg, seed=seed)
+    max_steps = int(env_cfg.get("max_episode_steps", 1000))
+    results: list[EvalResult] = []
+    files: dict[str, Path] = {}
+    episodes = int(cfg.episodes)
+    if ckpt is not None:
+        policy = make_policy(run_cfg.model, env)
+        policy.load_state_dict(ckpt["policy"])
+        record = make_env(env_cfg, render_mode="rgb_array") if cfg.video else None
+        res, video = evaluate(
+            env,
+            policy,
+            episodes=episodes,
+            seed=seed,
+            max_steps=max_steps,
+            name=f"{run_cfg.algo.name} ({ckpt['frames']} frames)",
+            record=record,
+        )
+        results.append(res)
+        if video is not None:
+            files["video"] = save_gif(video, out_dir / "eval_episode.gif")
+    layout = make_layout(env)
+    n_actions = int(env.action_spec.n)
+    for name in cfg.baselines:
+        policy = baseline_policy(name, layout, n_actions, seed=0)
+        if policy is None:
+            log.warning("baseline %r does not apply to %s: skipped", name, env_cfg.scenario)
+            continue
+        res, _ = evaluate(
+            env,
+            policy,
+            episodes=episodes,
+            seed=seed,
+            max_steps=max_steps,
+            name=BASELINE_LABELS.get(name, name),
+        )
+        results.append(res)
+    table = format_table(results)
+    header = (
+        f"{env_cfg.scenario}, {episodes} deterministic episodes, "
+        f"seeds {seed}..{seed + episodes - 1}"
+    )
+    files["table"] = out_dir / "results.md"
+    files["table"].write_text(f"{header}\n\n{table}\n")
+    files["json"] = out_dir / "results.json"
+    files["json"].write_text(json.dumps([r.to_dict() for r in results], indent=1))
+    if results:
+        files["bars"] = plot_comparison(results, out_dir / "comparison.png", title=header)
+    if history:
+        from torchrl_grpo.training.trainer import plot_learning_curve
+
+        hlines = {r.name: r.summary()["return"] for r in results[1:]}
+        files["curve"] = plot_learning_curve(
+            {str(run_cfg.algo.name): [history]},
+            out_dir / "learning_curve.png",
+            title=f"{env_cfg.scenario}: deterministic evaluation",
+            hlines=hlines,
+        )
+    return EvalReport(results=results, table=table, out_dir=out_dir, files=files)

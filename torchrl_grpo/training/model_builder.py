@@ -1,0 +1,81 @@
+"""Builders of the ``model`` group: the policy and the PPO value network."""
+
+from __future__ import annotations
+
+from omegaconf import DictConfig
+from torch import nn
+from torchrl.envs import EnvBase
+from torchrl.modules import ProbabilisticActor, ValueOperator
+
+from torchrl_grpo.modules import make_discrete_actor, make_network, make_value_net
+
+__all__ = ["make_net", "make_policy", "make_value"]
+
+
+def _table_shape(env: EnvBase) -> tuple[int, int]:
+    shape = env.observation_spec["observation"].shape
+    if len(shape) < 2:
+        raise ValueError(
+            f"the networks read a [vehicles, features] table; the env's observation has "
+            f"shape {tuple(shape)} (use a Kinematics observation)"
+        )
+    return int(shape[-2]), int(shape[-1])
+
+
+def make_net(model_cfg: DictConfig, env: EnvBase, out_features: int) -> nn.Module:
+    """A network of kind ``model.kind`` from the env's observation table to ``out_features``.
+
+    Example:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_grpo.training.config import ModelConfig
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> net = make_net(OmegaConf.structured(ModelConfig), HighwayEnv(seed=0), 5)
+        >>> type(net).__name__
+        'KinematicsMLP'
+    """
+    n_vehicles, n_features = _table_shape(env)
+    kind = str(model_cfg.kind)
+    if kind == "mlp":
+        kwargs = {"num_cells": list(model_cfg.num_cells)}
+    else:
+        kwargs = {
+            "embed_dim": int(model_cfg.embed_dim),
+            "num_heads": int(model_cfg.num_heads),
+            "encoder_cells": list(model_cfg.encoder_cells),
+            "decoder_cells": list(model_cfg.decoder_cells),
+        }
+    return make_network(
+        kind, n_vehicles=n_vehicles, n_features=n_features, out_features=out_features, **kwargs
+    )
+
+
+def make_policy(model_cfg: DictConfig, env: EnvBase) -> ProbabilisticActor:
+    """The categorical policy: writes ``logits``, ``action`` and ``action_log_prob``.
+
+    Example:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_grpo.training.config import ModelConfig
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> env = HighwayEnv(seed=0)
+        >>> policy = make_policy(OmegaConf.structured(ModelConfig), env)
+        >>> policy(env.reset())["action"].shape
+        torch.Size([])
+    """
+    spec = env.action_spec
+    if not hasattr(spec, "n"):
+        raise ValueError(f"the policies here are discrete; the env's action spec is {spec}")
+    return make_discrete_actor(make_net(model_cfg, env, int(spec.n)), spec)
+
+
+def make_value(model_cfg: DictConfig, env: EnvBase) -> ValueOperator:
+    """The PPO critic (same architecture as the policy, one output).
+
+    Example:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_grpo.training.config import ModelConfig
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> env = HighwayEnv(seed=0)
+        >>> make_value(OmegaConf.structured(ModelConfig), env)(env.reset())["state_value"].shape
+        torch.Size([1])
+    """
+    return make_value_net(make_net(model_cfg, env, 1))
