@@ -679,7 +679,8 @@ def plot_learning_curve(
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
     for label, histories in runs.items():
-        histories = [h for h in histories if h]
+        # At equal frames keep the last row: the final evaluation (more episodes).
+        histories = [list({r["frames"]: r for r in h}.values()) for h in histories if h]
         if not histories:
             continue
         grid = np.unique(np.concatenate([[r["frames"] for r in h] for h in histories]))
