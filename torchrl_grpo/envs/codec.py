@@ -253,12 +253,14 @@ def check_state_layout(
     if not isinstance(state, TensorDictBase):
         raise StateCorruptedError(f"a state must be a TensorDict, got {type(state).__name__}")
     layout = spec_layout(spec) if isinstance(spec, Composite) else spec
-    found = {(k[0] if len(k) == 1 else k): v for k, v in leaves(state)}
-    missing = sorted(map(str, layout.keys() - found.keys()))
-    if missing:
-        raise StateCorruptedError(f"the state is truncated: missing entries {missing}")
-    extra = sorted(map(str, found.keys() - layout.keys()))
-    if extra:
+    found: dict[Any, Any] = {}
+    _collect_leaves(state, (), found)
+    # One comparison of the key sets on the hot path; the differences only on failure.
+    if found.keys() != layout.keys():
+        missing = sorted(map(str, layout.keys() - found.keys()))
+        if missing:
+            raise StateCorruptedError(f"the state is truncated: missing entries {missing}")
+        extra = sorted(map(str, found.keys() - layout.keys()))
         raise StateMismatchError(
             f"the state has entries this env does not know: {extra} "
             "(was it captured from another kind of env?)"
@@ -267,7 +269,7 @@ def check_state_layout(
         value = found[key]
         if not isinstance(value, torch.Tensor):
             raise StateCorruptedError(f"state entry {key!r} is not a tensor")
-        if value.shape != shape or value.dtype != dtype:
+        if value.dtype != dtype or value.shape != shape:
             raise StateCorruptedError(
                 f"state entry {key!r} has shape {tuple(value.shape)} and dtype {value.dtype}, "
                 f"expected {tuple(shape)} and {dtype}"
@@ -338,6 +340,16 @@ def leaves(td: TensorDictBase, prefix: tuple[str, ...] = ()):
             yield from leaves(value, (*prefix, key))
         else:
             yield (*prefix, key), value
+
+
+def _collect_leaves(td: TensorDictBase, prefix: tuple[str, ...], out: dict[Any, Any]) -> None:
+    # The keys of check_state_layout: a top-level leaf by its name, a nested one by its
+    # tuple (as spec_layout names them). A plain recursion: a generator costs more.
+    for key, value in td.items():
+        if isinstance(value, TensorDictBase):
+            _collect_leaves(value, (*prefix, key), out)
+        else:
+            out[(*prefix, key) if prefix else key] = value
 
 
 def as_numpy(state: TensorDictBase) -> dict[str, np.ndarray]:

@@ -14,7 +14,7 @@ from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
 from torchrl_grpo.envs import highway_schema as schema
 from torchrl_grpo.envs.highway_codec import HighwayStateCodec
 from torchrl_grpo.envs.registry import HIGHWAY_SCENARIOS
-from torchrl_grpo.envs.snapshot_env import SnapshotEnv
+from torchrl_grpo.envs.snapshot_env import SnapshotEnv, _flag, _float32
 
 
 class HighwayEnv(SnapshotEnv):
@@ -126,20 +126,19 @@ class HighwayEnv(SnapshotEnv):
     def _read_info(self, info: dict) -> dict[Any, torch.Tensor]:
         # Read from the vehicle, not from info: lane-keeping-v0's step info is empty.
         ego = self._env.unwrapped.vehicle
-        f32 = torch.float32
         out: dict[Any, torch.Tensor] = {
-            "crashed": torch.tensor([bool(ego.crashed)]),
-            "on_road": torch.tensor([bool(ego.on_road)]),
-            "speed": torch.tensor([float(ego.speed)], dtype=f32),
-            "ego_position": torch.tensor(ego.position, dtype=f32),
-            "ego_heading": torch.tensor([float(ego.heading)], dtype=f32),
+            "crashed": _flag(ego.crashed),
+            "on_road": _flag(ego.on_road),
+            "speed": _float32([ego.speed]),
+            "ego_position": _float32(ego.position),
+            "ego_heading": _float32([ego.heading]),
         }
         if self._has_success:
-            out["is_success"] = torch.tensor([bool(info.get("is_success", False))])
+            out["is_success"] = _flag(info.get("is_success", False))
         if self._reward_components:
             rewards = info.get("rewards", {})
             out["reward_components"] = {
-                name: torch.tensor([float(rewards.get(name, float("nan")))], dtype=f32)
+                name: _float32([rewards.get(name, float("nan"))])
                 for name in self._reward_components
             }
         return out

@@ -63,8 +63,8 @@ from torchrl_grpo.envs.gym_state import (
     with_seeded_rng,
     wrapper_spec,
 )
+from torchrl_grpo.envs.highway_layout import KIND, OBJECT, VEHICLE, EntityLayout
 from torchrl_grpo.envs.highway_layout import NONE as _NONE
-from torchrl_grpo.envs.highway_layout import OBJECT, VEHICLE, EntityLayout
 
 # Fields every road object has (RoadObject.__init__ sets them); a restored object
 # without them would fail later, in the middle of a step.
@@ -188,7 +188,12 @@ class HighwayStateCodec(StateCodec):
             # A planned route is a shortest path: it visits each node at most once.
             max_route=min(16, len(nodes)),
             max_speeds=max(speeds, default=0),
+            required=_REQUIRED_FIELDS,
+            not_none=_NOT_NONE,
         )
+        position = self.layout.columns["position"]
+        self._position_columns = slice(position.start, position.stop)
+        self._history_sizes: dict[type, int | None] = {}
         self.has_lane = hasattr(core, "lane")
         self.has_lanes = hasattr(core, "lanes")
         self.has_trajectory = hasattr(core, "trajectory")
@@ -426,16 +431,15 @@ class HighwayStateCodec(StateCodec):
         self.check_compatible(state)
         found = check_state_layout(state, self._spec_layout)
         core = env.unwrapped
-        arrays = {".".join(k) if isinstance(k, tuple) else k: v.numpy() for k, v in found.items()}
-        for key in self._float_keys:
-            arrays[key] = arrays[key].view(np.float64)
-        blocks = {b: arrays[f"entities.{b}"] for b in self.layout.widths}
+        # Entities as numpy views (no copy); f64 holds float64 bit patterns.
+        blocks = {b: found[("entities", b)].numpy() for b in self.layout.widths}
+        blocks["f64"] = blocks["f64"].view(np.float64)
         vehicles, objects, by_slot = self._decode_entities(core, blocks)
-        plan = self._decode_env(core, arrays, by_slot)
+        plan = self._decode_env(core, found, by_slot)
         plan["vehicles"], plan["objects"] = vehicles, objects
         plan["wrappers"] = (
-            int(arrays["wrappers.elapsed_steps"]),
-            bool(arrays["wrappers.has_reset"]),
+            found[("wrappers", "elapsed_steps")].item(),
+            found[("wrappers", "has_reset")].item(),
         )
         return plan
 
@@ -472,24 +476,33 @@ class HighwayStateCodec(StateCodec):
         restore_wrappers(env, *plan["wrappers"])
 
     def _decode_entities(self, core: Any, blocks: dict[str, np.ndarray]) -> tuple[list, list, dict]:
+        # Checks every slot (kind, class, required fields, values) before building lists.
         decoded = self.layout.decode(blocks, self.classes)
         by_slot = {slot: obj for slot, _, obj, _ in decoded}
+        slots = np.fromiter((slot for slot, _, _, _ in decoded), dtype=np.int64, count=len(decoded))
+        kinds = blocks["i16"][slots, KIND]
+        wrong = np.flatnonzero((kinds == VEHICLE) != (slots < self.max_vehicles))
+        if wrong.size:
+            slot = int(slots[wrong[0]])
+            raise StateCorruptedError(
+                f"entities: slot {slot} holds the wrong kind {int(kinds[wrong[0]])}"
+            )
+        # Every slot has a position by now (a required, non-None field): check them at once.
+        positions = blocks["f64"][slots, self._position_columns]
+        finite = np.isfinite(positions).all(axis=1)
+        if not finite.all():
+            bad = int(np.flatnonzero(~finite)[0])
+            raise StateCorruptedError(
+                f"entity slot {int(slots[bad])}: non-finite position {positions[bad]}"
+            )
         vehicles, objects = [], []
         for slot, kind, obj, refs in decoded:
-            if (kind == VEHICLE) != (slot < self.max_vehicles):
-                raise StateCorruptedError(f"entities: slot {slot} holds the wrong kind {kind}")
             for name, target in refs.items():
                 if target not in by_slot:
                     raise StateCorruptedError(
                         f"entities.{name} of slot {slot} is empty slot {target}"
                     )
                 obj.__dict__[name] = by_slot[target]
-            missing = _REQUIRED_FIELDS - obj.__dict__.keys()
-            if missing or any(obj.__dict__[name] is None for name in _NOT_NONE):
-                raise StateCorruptedError(
-                    f"entity slot {slot} ({type(obj).__qualname__}) lacks required fields "
-                    f"{sorted(missing) or sorted(_NOT_NONE)}: its presence flags are corrupted"
-                )
             try:
                 self._rebuild_derived(core, obj, slot)
             except (AttributeError, TypeError, ValueError) as err:
@@ -500,7 +513,7 @@ class HighwayStateCodec(StateCodec):
     def _rebuild_derived(self, core: Any, obj: Any, slot: int) -> None:
         d = obj.__dict__
         d["road"] = core.road
-        lane_index = d.get("lane_index")
+        lane_index = d["lane_index"]  # required: checked by the layout
         try:
             d["lane"] = None if lane_index is None else core.road.network.get_lane(lane_index)
         except (KeyError, IndexError) as err:
@@ -508,16 +521,18 @@ class HighwayStateCodec(StateCodec):
                 f"entity slot {slot}: lane {lane_index} is not on this road"
             ) from err
         cls = type(obj)
-        if hasattr(cls, "HISTORY_SIZE"):
+        if cls not in self._history_sizes:
+            self._history_sizes[cls] = getattr(cls, "HISTORY_SIZE", None)
+        history = self._history_sizes[cls]
+        if history is not None:
             d["log"] = []
-            d["history"] = deque(maxlen=cls.HISTORY_SIZE)
+            d["history"] = deque(maxlen=history)
         if isinstance(obj, BicycleVehicle):
             d["A_lat"], d["B_lat"] = obj.lateral_lpv_dynamics()  # also sets theta
-        x, y = d["position"]  # required: checked by the caller
-        if not (math.isfinite(x) and math.isfinite(y)):
-            raise StateCorruptedError(f"entity slot {slot}: non-finite position {d['position']}")
 
-    def _decode_env(self, core: Any, a: dict[str, np.ndarray], by_slot: dict) -> dict:
+    def _decode_env(self, core: Any, t: dict[Any, torch.Tensor], by_slot: dict) -> dict:
+        # Scalars through .item() and vectors through .tolist(): both give the exact
+        # Python values, for a fraction of the cost of a numpy view per entry.
         def vehicle_at(code: int, what: str) -> Any:
             if code == _NONE:
                 return None
@@ -525,52 +540,66 @@ class HighwayStateCodec(StateCodec):
                 raise StateCorruptedError(f"env.{what} refers to empty slot {code}")
             return by_slot[code]
 
+        def floats(key: str) -> torch.Tensor:
+            return t[("env", key)].view(torch.float64)
+
+        seed = t[("env", "seed")].item()
+        road_steps = t[("env", "road_steps")].item()
         plan: dict[str, Any] = {
-            "time": float(a["env.time"]),
-            "steps": int(a["env.steps"]),
-            "done": bool(a["env.done"]),
-            "seed": None if a["env.seed"] < 0 else int(a["env.seed"]),
-            "rng": decode_rng(a["env.rng"]),
-            "road_steps": None if a["env.road_steps"] < 0 else int(a["env.road_steps"]),
+            "time": floats("time").item(),
+            "steps": t[("env", "steps")].item(),
+            "done": t[("env", "done")].item(),
+            "seed": None if seed < 0 else seed,
+            "rng": decode_rng(t[("env", "rng")].numpy()),
+            "road_steps": None if road_steps < 0 else road_steps,
         }
         if (plan["road_steps"] is None) == hasattr(core.road, "steps"):
             raise StateCorruptedError(
-                f"env.road_steps is {int(a['env.road_steps'])}, but this road "
+                f"env.road_steps is {road_steps}, but this road "
                 + ("counts steps" if hasattr(core.road, "steps") else "has no step counter")
             )
         plan |= {
-            "class_params": [float(x) for x in a["env.class_params"]],
-            "controlled": [vehicle_at(int(c), "controlled") for c in a["env.controlled"]],
-            "action_vehicle": vehicle_at(int(a["env.action_vehicle"]), "action_vehicle"),
-            "observer_vehicle": vehicle_at(int(a["env.observer_vehicle"]), "observer_vehicle"),
-            "last_action": a["env.last_action"].copy(),
+            "class_params": floats("class_params").tolist(),
+            "controlled": [vehicle_at(c, "controlled") for c in t[("env", "controlled")].tolist()],
+            "action_vehicle": vehicle_at(t[("env", "action_vehicle")].item(), "action_vehicle"),
+            "observer_vehicle": vehicle_at(
+                t[("env", "observer_vehicle")].item(), "observer_vehicle"
+            ),
+            "last_action": floats("last_action").numpy().copy(),
         }
         if None in plan["controlled"]:
             raise StateCorruptedError("env.controlled holds an empty slot")
-        if not np.isfinite(plan["time"]):
+        if not math.isfinite(plan["time"]):
             raise StateCorruptedError(f"env.time is {plan['time']}")
         ranges = zip(
-            self.range_keys, a["env.features_range"], a["env.features_range_mask"], strict=True
+            self.range_keys,
+            floats("features_range").tolist(),
+            t[("env", "features_range_mask")].tolist(),
+            strict=True,
         )
-        plan["features_range"] = {k: r.tolist() for k, r, m in ranges if m} or None
-        lane_code = a["env.lane"]
+        plan["features_range"] = {k: r for k, r, m in ranges if m} or None
+        lane_code = t[("env", "lane")].tolist()
         plan["lane"] = (
             None if lane_code[0] == _NONE - 1 else self._lane_object(core, lane_code, "env.lane")
         )
-        n_lanes = int(a["env.lanes_len"])
+        n_lanes = t[("env", "lanes_len")].item()
         if not 0 <= n_lanes <= 4:
             raise StateCorruptedError(f"env.lanes_len is {n_lanes}")
-        plan["lanes"] = [self._lane_object(core, c, "env.lanes") for c in a["env.lanes"][:n_lanes]]
-        n_points = int(a["env.trajectory_len"])
-        if not 0 <= n_points <= len(a["env.trajectory"]):
+        plan["lanes"] = [
+            self._lane_object(core, c, "env.lanes") for c in t[("env", "lanes")].tolist()[:n_lanes]
+        ]
+        n_points = t[("env", "trajectory_len")].item()
+        trajectory = t[("env", "trajectory")]
+        if not 0 <= n_points <= trajectory.shape[0]:
             raise StateCorruptedError(f"env.trajectory_len is {n_points}")
-        plan["trajectory"] = [p.reshape(6, 1).copy() for p in a["env.trajectory"][:n_points]]
+        points = trajectory[:n_points].view(torch.float64).numpy()
+        plan["trajectory"] = [p.reshape(6, 1).copy() for p in points]
         if self.grayscale_shape is not None:
-            plan["frames"] = a["env.frames"].copy()
+            plan["frames"] = t[("env", "frames")].numpy().copy()
         return plan
 
-    def _lane_object(self, core: Any, code: np.ndarray, where: str) -> Any:
-        index = self.layout.lane_index(code.tolist(), where)
+    def _lane_object(self, core: Any, code: list[int], where: str) -> Any:
+        index = self.layout.lane_index(code, where)
         try:
             return core.road.network.get_lane(index)
         except (KeyError, IndexError) as err:

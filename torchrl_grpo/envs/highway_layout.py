@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import operator
+from array import array
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -38,6 +39,10 @@ KIND, CLASS_ID = 0, 1  # the first two i16 columns of every slot
 EMPTY, VEHICLE, OBJECT = -1, 0, 1  # values of the kind column
 
 _DTYPES = {"f64": np.float64, "i16": np.int16, "i64": np.int64, "flags": np.bool_}
+# Rows are built as typed arrays of these codes: they join into one buffer that numpy
+# reads as is, where np.array() of nested lists converts element by element.
+_MAX_LANE_CODES = 4096  # validated lane codes an EntityLayout remembers
+_TYPECODES = {"f64": "d", "i16": "h", "i64": "q", "flags": "B"}
 
 
 @dataclass(frozen=True)
@@ -63,6 +68,9 @@ class EntityLayout:
         nodes: the road network's node names; lane codes index into them.
         max_route: segments a route may hold.
         max_speeds: entries a target-speed array may hold.
+        required: fields every decoded object must have; :meth:`decode` refuses a slot
+            whose presence flags lack one (the object would fail later, mid-step).
+        not_none: required fields that must not be ``None`` either.
 
     Example:
         >>> from torchrl_grpo.envs.highway_schema import Field
@@ -78,6 +86,8 @@ class EntityLayout:
         nodes: list,
         max_route: int = 16,
         max_speeds: int = 8,
+        required: frozenset[str] = frozenset(),
+        not_none: tuple[str, ...] = (),
     ) -> None:
         self.fields = dict(fields)
         self.names = list(self.fields)
@@ -88,6 +98,8 @@ class EntityLayout:
             raise StateCapacityError(f"a road network of {len(self.nodes)} nodes is too large")
         self.max_route = max_route
         self.max_speeds = max_speeds
+        self.required = frozenset(required)
+        self.not_none = tuple(not_none)
         self.widths = {"f64": 0, "i16": 2, "i64": 0, "flags": 0}
         self.columns: dict[str, Columns] = {}
         for name, field in self.fields.items():
@@ -98,8 +110,15 @@ class EntityLayout:
         self.is_none = self._allocate("flags", n)
         self._writers = {name: self._make_writer(name, f) for name, f in self.fields.items()}
         self._readers = {name: self._make_reader(name, f) for name, f in self.fields.items()}
-        self._plans: dict[tuple[bool, ...], Callable] = {}
+        # Per presence pattern: its generated decoder and the required fields it lacks.
+        self._plans: dict[tuple[bool, ...], tuple[Callable, list[str]]] = {}
         self._encoders: dict[tuple[str, ...], Callable | None] = {}
+        empty = {b: array(_TYPECODES[b], [0] * w) for b, w in self.widths.items()}
+        empty["i16"][KIND] = empty["i16"][CLASS_ID] = EMPTY
+        self._empty_rows = empty
+        # Lane codes already validated, with the lane index each stands for: a scene
+        # repeats a few lanes across all its vehicles.
+        self._lane_indices: dict[tuple[int, int, int], tuple] = {}
 
     # ------------------------------------------------------------------ layout
     def _field_blocks(self, field: Field) -> list[tuple[str, str, int]]:
@@ -203,11 +222,11 @@ class EntityLayout:
                 v = np.asarray(v, dtype=np.float64)
                 if v.shape != shape:
                     raise ValueError(f"shape {v.shape}, expected {shape}")
-                rows["f64"][s:e] = v.ravel().tolist()
+                rows["f64"][s:e] = array("d", v.ravel().tolist())
         elif kind == "lane":
 
             def write(v, rows, slot_of):
-                rows["i16"][s:e] = lane_code(v)
+                rows["i16"][s:e] = array("h", lane_code(v))
         elif kind == "route":
             n_len = self.columns[name + "#len"].start
             max_route = self.max_route
@@ -217,7 +236,8 @@ class EntityLayout:
                     raise StateCapacityError(
                         f"a route of {len(v)} segments; this env's state holds {max_route}"
                     )
-                rows["i16"][s : s + 3 * len(v)] = [x for seg in v for x in lane_code(seg)]
+                codes = array("h", [x for seg in v for x in lane_code(seg)])
+                rows["i16"][s : s + 3 * len(v)] = codes
                 rows["i16"][n_len] = len(v)
         elif kind == "speeds":
             n_len = self.columns[name + "#len"].start
@@ -230,14 +250,14 @@ class EntityLayout:
                     raise StateCapacityError(
                         f"target speeds of shape {v.shape}; this env's state holds {max_speeds}"
                     )
-                rows["f64"][s : s + len(v)] = v.tolist()
+                rows["f64"][s : s + len(v)] = array("d", v.tolist())
                 rows["i16"][n_len] = len(v)
                 rows["flags"][is_int] = bool(np.issubdtype(v.dtype, np.integer))
         elif kind == "color":
             n_len = self.columns[name + "#len"].start
 
             def write(v, rows, slot_of):
-                rows["i16"][s : s + len(v)] = v
+                rows["i16"][s : s + len(v)] = array("h", v)
                 rows["i16"][n_len] = len(v)
         elif kind == "ref":
 
@@ -259,9 +279,9 @@ class EntityLayout:
         Raises:
             UnknownFieldError: an object's class or one of its attributes is unknown.
         """
-        empty = {b: [0] * w for b, w in self.widths.items()}
-        empty["i16"][KIND] = empty["i16"][CLASS_ID] = EMPTY
-        blocks = {b: [list(empty[b]) for _ in range(self.capacity)] for b in self.widths}
+        empty = self._empty_rows
+        # Unused slots all point at the one (never written) empty row of each block.
+        blocks = {b: [empty[b]] * self.capacity for b in self.widths}
         slot_of = {id(obj): slot for slot, _, obj in items}
         for slot, kind, obj in items:
             cls = type(obj)
@@ -271,7 +291,9 @@ class EntityLayout:
                     f"road object class {cls.__module__}.{cls.__qualname__} is not registered; "
                     "call torchrl_grpo.envs.register_vehicle_class before building the env"
                 )
-            rows = {b: blocks[b][slot] for b in blocks}
+            rows = {b: empty[b][:] for b in blocks}  # a copy of the empty row
+            for b, row in rows.items():
+                blocks[b][slot] = row
             rows["i16"][KIND], rows["i16"][CLASS_ID] = kind, class_id
             d = obj.__dict__
             encoder = self._encoders.get(tuple(d))
@@ -288,9 +310,14 @@ class EntityLayout:
                 # attribute-by-attribute path does, and raises the error that names it.
                 self._encode_slowly(obj, rows, slot_of)
                 raise
-        return {b: np.array(rows, dtype=_DTYPES[b]) for b, rows in blocks.items()}
+        return {
+            b: np.frombuffer(bytearray().join(rows), dtype=_DTYPES[b]).reshape(
+                self.capacity, self.widths[b]
+            )
+            for b, rows in blocks.items()
+        }
 
-    def _encode_slowly(self, obj: Any, rows: dict[str, list], slot_of: dict[int, int]) -> None:
+    def _encode_slowly(self, obj: Any, rows: dict[str, array], slot_of: dict[int, int]) -> None:
         cls = type(obj)
         index = {n: i for i, n in enumerate(self.names)}
         flags = rows["flags"]
@@ -378,11 +405,21 @@ class EntityLayout:
             raise StateCorruptedError(f"{where}: lane code {list(code)} is not on this road")
         return (self.nodes[a], self.nodes[b], None if lane_id == NONE else lane_id)
 
+    def lane_at(self, a: int, b: int, lane_id: int, where: str) -> tuple:
+        """:meth:`lane_index` of the code ``(a, b, lane_id)``, remembered once validated."""
+        key = (a, b, lane_id)
+        index = self._lane_indices.get(key)
+        if index is None:
+            index = self.lane_index(key, where)
+            if len(self._lane_indices) < _MAX_LANE_CODES:  # bounded: lane ids are not
+                self._lane_indices[key] = index
+        return index
+
     def _make_reader(self, name: str, field: Field) -> Callable:
         c = self.columns[name]
         s, e = c.start, c.stop
         kind = field.kind
-        lane_index = self.lane_index
+        lane_at = self.lane_at
         where = f"entities.{name}"
         if kind == "float":
             return lambda rows: rows["f64"][s]
@@ -398,7 +435,7 @@ class EntityLayout:
             shape = field.shape
             return lambda rows: np.array(rows["f64"][s:e]).reshape(shape)
         if kind == "lane":
-            return lambda rows: lane_index(rows["i16"][s:e], where)
+            return lambda rows: lane_at(*rows["i16"][s:e], where)
         if kind == "route":
             n_len, max_route = self.columns[name + "#len"].start, self.max_route
 
@@ -407,7 +444,9 @@ class EntityLayout:
                 if not 0 <= n <= max_route:
                     raise StateCorruptedError(f"{where}: length {n} outside [0, {max_route}]")
                 codes = rows["i16"][s : s + 3 * n]
-                return [lane_index(codes[j : j + 3], where) for j in range(0, 3 * n, 3)]
+                return [
+                    lane_at(codes[j], codes[j + 1], codes[j + 2], where) for j in range(0, 3 * n, 3)
+                ]
 
             return read
         if kind == "speeds":
@@ -455,7 +494,8 @@ class EntityLayout:
             ``references`` maps ``ref`` fields to the slot they point at.
 
         Raises:
-            StateCorruptedError: a value is out of range; nothing was modified.
+            StateCorruptedError: a value is out of range, or a slot lacks a required
+                field; nothing was modified.
         """
         as_lists = {b: blocks[b].tolist() for b in self.widths}
         kinds = blocks["i16"][:, KIND]
@@ -469,21 +509,32 @@ class EntityLayout:
         out = []
         for slot in used.tolist():
             f, s, ints, b = (as_lists[blk][slot] for blk in ("f64", "i16", "i64", "flags"))
-            decoder = self._decoder(tuple(b[p0 : p0 + n]), tuple(b[n0 : n0 + n]))
+            decoder, lacking = self._decoder(tuple(b[p0 : p0 + n]), tuple(b[n0 : n0 + n]))
             cls = classes[s[CLASS_ID]]
+            if lacking:
+                raise StateCorruptedError(
+                    f"entity slot {slot} ({cls.__qualname__}) lacks required fields "
+                    f"{lacking}: its presence flags are corrupted"
+                )
             obj = cls.__new__(cls)
             values, refs = decoder(f, s, ints, b, {"f64": f, "i16": s, "i64": ints, "flags": b})
             obj.__dict__.update(values)
             out.append((slot, s[KIND], obj, refs))
         return out
 
-    def _decoder(self, present: tuple[bool, ...], is_none: tuple[bool, ...]) -> Callable:
+    def _decoder(
+        self, present: tuple[bool, ...], is_none: tuple[bool, ...]
+    ) -> tuple[Callable, list[str]]:
         # Objects of one class share their presence pattern: generate its decoder once
-        # (straight-line code, like the encoders).
+        # (straight-line code, like the encoders), and check its required fields once.
         key = present + is_none
-        decoder = self._plans.get(key)
-        if decoder is None:
-            namespace: dict[str, Any] = {"array": np.array}
+        plan = self._plans.get(key)
+        if plan is None:
+            here = {n for n, p in zip(self.names, present, strict=True) if p}
+            nones = {n for n, p in zip(self.names, is_none, strict=True) if p}
+            missing = sorted(self.required - here)
+            lacking = missing or (sorted(self.not_none) if nones & set(self.not_none) else [])
+            namespace: dict[str, Any] = {"array": np.array, "LANE": self.lane_at}
             values, refs = [], []
             for i, (name, here, none) in enumerate(zip(self.names, present, is_none, strict=True)):
                 if not here:
@@ -503,6 +554,12 @@ class EntityLayout:
                     values.append(
                         f"{name!r}: {{'steering': f[{c.start}], 'acceleration': f[{c.start + 1}]}}"
                     )
+                elif kind == "lane":
+                    where = f"entities.{name}"
+                    values.append(
+                        f"{name!r}: LANE(s[{c.start}], s[{c.start + 1}], s[{c.start + 2}], "
+                        f"{where!r})"
+                    )
                 elif kind == "ref":
                     refs.append(f"{name!r}: s[{c.start}]")
                 else:
@@ -513,5 +570,5 @@ class EntityLayout:
                 f"    return {{{', '.join(values)}}}, {{{', '.join(refs)}}}"
             )
             exec(source, namespace)  # noqa: S102 - generated from the field table only
-            decoder = self._plans[key] = namespace["decode"]
-        return decoder
+            plan = self._plans[key] = (namespace["decode"], lacking)
+        return plan

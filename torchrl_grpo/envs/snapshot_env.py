@@ -26,7 +26,6 @@ from torchrl_grpo.envs.codec import (
     bits_spec,
     check_state_layout,
     from_bits,
-    leaves,
     nested_tensordict,
     spec_layout,
     to_bits,
@@ -103,7 +102,8 @@ class SnapshotEnv(EnvBase):
         obs, info = self._gym_reset(seed)
         codec.bind(self._env)
         self._make_specs(obs, info)
-        self._last_output = self._read_output(obs, info)
+        # The last output as {key tuple: tensor}: a state stores it, a restore returns it.
+        self._last_output = self._output_leaves(obs, info)
 
     # ------------------------------------------------------------------ specs
     def _env_id(self) -> str:
@@ -131,6 +131,12 @@ class SnapshotEnv(EnvBase):
         # The stored output holds floats as bit patterns, like the codecs' states.
         output_spec, self._output_floats = bits_spec(obs_spec)
         self._output_layout = spec_layout(output_spec)
+        # Per stored output leaf: its key in the layout, its key tuple, its float dtype
+        # (None: not stored as bits), computed once for the restore path.
+        self._output_plan = [
+            (key, key if isinstance(key, tuple) else (key,), self._output_floats.get(key))
+            for key in self._output_layout
+        ]
         state = Composite(sim=self.codec.state_spec(), output=output_spec, device=self.device)
         # In state_spec, so that reset(td, set_state=True) routes a state to every worker of
         # a batched env; with return_state also an observation, so that step_mdp carries
@@ -153,9 +159,10 @@ class SnapshotEnv(EnvBase):
 
         Restore it with ``env.reset(TensorDict(state=state), set_state=True)``.
         """
-        flat = {("output", *k): to_bits(v.clone()) for k, v in leaves(self._last_output)}
-        state = nested_tensordict(flat)
-        state["sim"] = self.codec.encode(self._env)
+        output = nested_tensordict({k: to_bits(v.clone()) for k, v in self._last_output.items()})
+        state = TensorDict._new_unsafe(
+            {"output": output, "sim": self.codec.encode(self._env)}, batch_size=torch.Size([])
+        )
         return state if self.device.type == "cpu" else state.to(self.device)
 
     def set_state(self, state: TensorDictBase) -> TensorDict:
@@ -231,18 +238,19 @@ class SnapshotEnv(EnvBase):
         else:
             obs, info = self._gym_reset(self._pending_seed)
             self._pending_seed = None
-            output = self._read_output(obs, info)
+            output = self._output_leaves(obs, info)
         self._last_output = output
-        out = output.clone(False)
+        out = dict(output)
         for key in ("done", "terminated", "truncated"):
-            out[key] = torch.zeros((1,), dtype=torch.bool, device=self.device)
+            out[(key,)] = torch.zeros((1,), dtype=torch.bool, device=self.device)
         if not restoring:
             # On restore the input tensordict already holds the state, and reset() returns
             # that tensordict updated: decode(encode(x)) is the identity on valid states.
-            out[STATE_KEY] = self.get_state()
-        return out
+            out[(STATE_KEY,)] = self.get_state()
+        return nested_tensordict(out)
 
-    def _restore(self, tensordict: TensorDictBase | None) -> TensorDict:
+    def _restore(self, tensordict: TensorDictBase | None) -> dict[tuple[str, ...], torch.Tensor]:
+        """Check and restore the state in ``tensordict``; return the output it stores."""
         if tensordict is None or STATE_KEY not in tensordict.keys():
             raise SnapshotError(
                 f"reset(set_state=True) needs a tensordict holding a {STATE_KEY!r} entry "
@@ -256,18 +264,16 @@ class SnapshotEnv(EnvBase):
                 f"this env is unbatched but the state has batch size {tuple(state.batch_size)}; "
                 "restore batched states through a ParallelEnv / SerialEnv of matching size"
             )
-        self._check_envelope(state)
+        found = self._check_envelope(state)
         self.codec.decode(self._env, state.get("sim"))
-        floats = self._output_floats
-        output = nested_tensordict(
-            {
-                k: from_bits(v, floats[key]).clone()
-                if (key := k[0] if len(k) == 1 else k) in floats
-                else v.clone()
-                for k, v in leaves(state.get("output"))
-            }
-        )
-        return output if self.device.type == "cpu" else output.to(self.device)
+        # Copies: the returned output must not share memory with the caller's state.
+        output = {}
+        for key, path, dtype in self._output_plan:
+            value = found[key]
+            output[path] = (value if dtype is None else from_bits(value, dtype)).clone()
+        if self.device.type != "cpu":
+            output = {k: v.to(self.device) for k, v in output.items()}
+        return output
 
     def validate_state(self, state: TensorDictBase) -> None:
         """Run every check a restore runs, without modifying this env.
@@ -295,24 +301,31 @@ class SnapshotEnv(EnvBase):
             self._check_envelope(single)
             self.codec.validate(self._env, single.get("sim"))
 
-    def _check_envelope(self, state: TensorDictBase) -> None:
+    def _check_envelope(self, state: TensorDictBase) -> dict[Any, torch.Tensor]:
+        """Check the parts of a state this class owns; return the output's leaves by key."""
+        keys = state.keys()
         for part in ("sim", "output"):
-            if part not in state.keys():
+            if part not in keys:
                 raise StateCorruptedError(f"the state is truncated: it has no {part!r} part")
         # A state from another env must be reported as such, before any shape check.
         self.codec.check_compatible(state.get("sim"))
-        check_state_layout(state.get("output"), self._output_layout)
+        return check_state_layout(state.get("output"), self._output_layout)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDict:
         action = self._to_gym_action(tensordict.get("action"))
         obs, reward, terminated, truncated, info = self._env.step(action)
-        flat = self._output_leaves(obs, info)
-        self._last_output = nested_tensordict(flat)
-        device = self.device
-        flat[("reward",)] = torch.tensor([reward], dtype=torch.float32, device=device)
-        flat[("terminated",)] = torch.tensor([bool(terminated)], device=device)
-        flat[("truncated",)] = torch.tensor([bool(truncated)], device=device)
-        flat[("done",)] = torch.tensor([bool(terminated or truncated)], device=device)
+        self._last_output = self._output_leaves(obs, info)
+        flat = dict(self._last_output)
+        # Through numpy: torch.tensor() of a Python scalar costs twice as much.
+        step = {
+            ("reward",): torch.from_numpy(np.array([reward], dtype=np.float32)),
+            ("terminated",): _flag(terminated),
+            ("truncated",): _flag(truncated),
+            ("done",): _flag(terminated or truncated),
+        }
+        if self.device.type != "cpu":
+            step = {k: v.to(self.device) for k, v in step.items()}
+        flat.update(step)
         if self.return_state:
             flat[(STATE_KEY,)] = self.get_state()
         return nested_tensordict(flat)
@@ -336,9 +349,6 @@ class SnapshotEnv(EnvBase):
                 action = action.argmax(-1)
             return int(action)
         return action.detach().cpu().numpy()
-
-    def _read_output(self, obs: Any, info: dict) -> TensorDict:
-        return nested_tensordict(self._output_leaves(obs, info))
 
     def _output_leaves(self, obs: Any, info: dict) -> dict[tuple[str, ...], torch.Tensor]:
         # Built leaf by leaf, without TensorDict validation: this runs on every step.
@@ -371,3 +381,13 @@ class SnapshotEnv(EnvBase):
         """Close the gymnasium env and the TorchRL env."""
         self._env.close()
         super().close(raise_if_closed=raise_if_closed)
+
+
+def _flag(value: Any) -> torch.Tensor:
+    """A new bool[1] tensor (through numpy: twice as fast as ``torch.tensor([value])``)."""
+    return torch.from_numpy(np.array([bool(value)], dtype=np.bool_))
+
+
+def _float32(values: Any) -> torch.Tensor:
+    """A new float32 tensor of ``values`` (rounded as ``torch.tensor(..., dtype=float32)``)."""
+    return torch.from_numpy(np.array(values, dtype=np.float32))
