@@ -7,6 +7,7 @@ from torchrl_grpo.modules.actors import (
     make_discrete_actor,
     make_value_net,
 )
+from torchrl_grpo.modules.greedy_tail import EXPLORED, GreedyTail
 from torchrl_grpo.modules.kinematics import (
     DEFAULT_FEATURES,
     LANE_WIDTH,
@@ -42,6 +43,7 @@ from torchrl_grpo.modules.scripted import (
 
 __all__ = [
     "DEFAULT_FEATURES",
+    "EXPLORED",
     "FASTER",
     "IDLE",
     "LANE_LEFT",
@@ -59,6 +61,7 @@ __all__ = [
     "ContinuousDistribution",
     "DeterministicActor",
     "EgoAttentionNet",
+    "GreedyTail",
     "KinematicsLayout",
     "KinematicsMLP",
     "LaneChangePolicy",

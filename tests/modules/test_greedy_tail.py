@@ -1,0 +1,84 @@
+"""GreedyTail: sampled actions at the start of each branch, greedy actions after."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.data import Categorical
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from torchrl_grpo.branching import branch_rollout, reset_roots
+from torchrl_grpo.envs import HighwayEnv
+from torchrl_grpo.modules import EXPLORED, GreedyTail, make_discrete_actor
+
+N_ACTIONS = 5
+
+
+def _actor(seed: int = 0) -> torch.nn.Module:
+    torch.manual_seed(seed)
+    return make_discrete_actor(torch.nn.Linear(4, N_ACTIONS), Categorical(N_ACTIONS))
+
+
+def _rows(n: int, t: list[int]) -> TensorDict:
+    return TensorDict(
+        observation=torch.randn(n, 4),
+        root_step=torch.full((n,), 10),
+        step_count=torch.tensor(t).unsqueeze(-1) + 10,
+        batch_size=[n],
+    )
+
+
+def test_rows_past_explore_steps_take_the_argmax_and_are_not_explored():
+    actor = _actor()
+    td = _rows(6, [0, 1, 2, 3, 4, 5])
+    out = GreedyTail(actor, explore_steps=2)(td.clone())
+    assert out[EXPLORED].tolist() == [True, True, False, False, False, False]
+    argmax = actor.module[0](td)["logits"].argmax(-1)  # the logits network, independently
+    assert torch.equal(out["action"][2:], argmax[2:])
+
+
+def test_explored_rows_are_sampled_like_the_policy_itself():
+    # Same generator state, same rows: the explored rows equal the wrapped policy's samples.
+    actor = _actor()
+    td = _rows(64, [0] * 32 + [9] * 32)
+    torch.manual_seed(3)
+    ours = GreedyTail(actor, explore_steps=1)(td.clone())
+    torch.manual_seed(3)
+    plain = actor(td.clone())
+    assert torch.equal(ours["action"][:32], plain["action"][:32])
+    assert torch.equal(ours["action_log_prob"][:32], plain["action_log_prob"][:32])
+    # The sampled half is not all greedy (a random linear layer is far from peaked).
+    assert not torch.equal(ours["action"][:32], actor.module[0](td)["logits"][:32].argmax(-1))
+
+
+def test_deterministic_mode_is_greedy_everywhere():
+    actor = _actor()
+    td = _rows(4, [0, 0, 1, 2])
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        out = GreedyTail(actor, explore_steps=5)(td.clone())
+    assert not out[EXPLORED].any()
+    assert torch.equal(out["action"], actor.module[0](td)["logits"].argmax(-1))
+
+
+def test_needs_branch_steps_and_a_positive_int():
+    actor = _actor()
+    with pytest.raises(KeyError, match="root_step"):
+        GreedyTail(actor, 1)(TensorDict(observation=torch.randn(2, 4), batch_size=[2]))
+    with pytest.raises(ValueError, match="explore_steps must be >= 1"):
+        GreedyTail(actor, 0)
+    with pytest.raises(TypeError, match="explore_steps must be an int"):
+        GreedyTail(actor, 1.5)
+
+
+def test_branch_rollout_marks_the_first_steps_of_every_branch():
+    env = HighwayEnv("merge-v0", seed=0)
+    obs_dim = env.observation_spec["observation"].shape.numel()
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Flatten(-2), torch.nn.Linear(obs_dim, N_ACTIONS))
+    actor = make_discrete_actor(net, env.action_spec)
+    roots = reset_roots(env, 1, seed=0)
+    out = branch_rollout(env, GreedyTail(actor, explore_steps=2), roots, group_size=3, horizon=4)
+    explored = out[EXPLORED] & out["mask"]
+    assert explored[..., :2].all() and not explored[..., 2:].any()
+    env.close()
