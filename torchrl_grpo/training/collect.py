@@ -8,10 +8,13 @@ Also saves and restores a collector's exact position for checkpoints:
   worker) and every worker's simulator state, read from the carrier: PPO workers
   write their state after each step (``return_state=True``), so a resumed run
   continues the same episodes, mid-episode.
+- GRPO on Ray (``rollout.backend=ray``): the learner's counters and every actor's
+  snapshot (see :class:`~torchrl_grpo.distributed.RayGroupCollector`).
 """
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 from omegaconf import DictConfig
@@ -19,10 +22,20 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import BaseCollector, Collector
 from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType
 
-from torchrl_grpo.branching import STATE, GroupCollector
+from torchrl_grpo.branching import STATE, GroupCollector, TrunkRoots, make_branch_env
+from torchrl_grpo.distributed import RayGroupCollector
+from torchrl_grpo.modules import GreedyTail
+from torchrl_grpo.training.env_builder import env_overrides
 
-__all__ = ["collector_state", "env_frames", "load_collector_state", "make_collector"]
+__all__ = [
+    "collector_state",
+    "env_frames",
+    "load_collector_state",
+    "make_collector",
+    "make_ray_collector",
+]
 
 # Root-source attributes that the branching package's state_dict() does not cover yet
 # (seed chain, pending trunk roots, live continuation episodes); read defensively.
@@ -30,12 +43,13 @@ _SOURCE_EXTRA = ("seed", "trunk_steps", "_queue", "_live", "episodes_finished")
 
 
 def make_collector(
-    cfg: DictConfig, env: EnvBase, policy: TensorDictModuleBase, seed: int
+    cfg: DictConfig, env: EnvBase | None, policy: TensorDictModuleBase, seed: int
 ) -> BaseCollector:
     """The collector of ``cfg.algo.name`` over ``env`` (which it owns and closes).
 
     The collector runs without a frame budget: the trainer stops it, counting trunk
-    steps too.
+    steps too. With ``rollout.backend=ray`` the envs are built in the Ray actors:
+    pass ``env=None`` (a given env is closed).
 
     Example:
         >>> from omegaconf import OmegaConf
@@ -54,6 +68,19 @@ def make_collector(
     name = str(algo.name)
     if name in ("grpo_branch", "grpo_episode"):
         roots = str(algo.roots)
+        explore_steps = algo.get("explore_steps")
+        if explore_steps is not None:
+            policy = GreedyTail(policy, int(explore_steps))
+        source = "continue" if roots == "continuation" else roots
+        if roots == "trunk" and str(algo.get("trunk", "sample")) == "greedy":
+            # Decision points on the states the evaluated (greedy) policy visits.
+            source = TrunkRoots(
+                int(rollout.decision_interval), exploration_type=ExplorationType.DETERMINISTIC
+            )
+        if str(rollout.get("backend")) == "ray":
+            if env is not None:
+                env.close()
+            return make_ray_collector(cfg, policy, source, seed)
         return GroupCollector(
             env,
             policy,
@@ -61,7 +88,7 @@ def make_collector(
             horizon=int(rollout.horizon),
             groups_per_batch=int(rollout.groups_per_batch),
             total_frames=-1,
-            roots="continue" if roots == "continuation" else roots,
+            roots=source,
             decision_interval=int(rollout.decision_interval),
             select=str(algo.select),
             seed=seed,
@@ -76,6 +103,61 @@ def make_collector(
     )
 
 
+def make_ray_collector(
+    cfg: DictConfig, policy: TensorDictModuleBase, roots: Any, seed: int
+) -> RayGroupCollector:
+    """The GRPO collector on Ray actors (``rollout.backend=ray``, settings in ``rollout.ray``).
+
+    Each actor builds ``rollout.ray.workers_per_actor`` env workers with
+    ``rollout.ray.env_backend``.
+    Ray is started on this machine (``num_cpus``, ``object_store_mb``) unless
+    ``rollout.ray.address`` names a cluster (``auto``) or Ray already runs.
+
+    Example:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.create({"algo": {"group_size": 2, "select": "best"},
+        ...     "env": {"scenario": "merge-v0", "config": {}},
+        ...     "rollout": {"horizon": 2, "groups_per_batch": 2, "decision_interval": 2,
+        ...     "num_workers": 1, "ray": {"num_actors": 2, "env_backend": "single",
+        ...     "num_cpus_per_actor": 0.5, "num_cpus": 2}}})
+        >>> collector = make_ray_collector(cfg, None, "reset", seed=0)  # doctest: +SKIP
+    """
+    algo, rollout = cfg.algo, cfg.rollout
+    ray_cfg = rollout.ray
+    env_factory = functools.partial(
+        make_branch_env,
+        str(cfg.env.scenario),
+        int(ray_cfg.get("workers_per_actor", 1)),
+        config=env_overrides(cfg.env),
+        backend=str(ray_cfg.get("env_backend", "single")),
+        snapshots=True,
+        mp_start_method=rollout.get("mp_start_method"),
+    )
+    memory_mb = ray_cfg.get("memory_per_actor_mb")
+    object_store_mb = ray_cfg.get("object_store_mb")
+    return RayGroupCollector(
+        env_factory,
+        policy,
+        num_actors=int(ray_cfg.num_actors),
+        group_size=int(algo.group_size),
+        horizon=int(rollout.horizon),
+        groups_per_batch=int(rollout.groups_per_batch),
+        total_frames=-1,
+        roots=roots,
+        decision_interval=int(rollout.decision_interval),
+        select=str(algo.select),
+        seed=seed,
+        num_cpus_per_actor=float(ray_cfg.get("num_cpus_per_actor", 1.0)),
+        memory_per_actor=None if memory_mb is None else int(memory_mb) * 1024**2,
+        max_restarts=int(ray_cfg.get("max_restarts", 3)),
+        ray_init={
+            "address": ray_cfg.get("address"),
+            "num_cpus": ray_cfg.get("num_cpus"),
+            "object_store_memory": None if object_store_mb is None else object_store_mb * 1024**2,
+        },
+    )
+
+
 def env_frames(collector: BaseCollector) -> int:
     """Env steps simulated so far: collected frames plus GRPO trunk steps."""
     frames = int(getattr(collector, "frames", getattr(collector, "_frames", 0)))
@@ -84,6 +166,8 @@ def env_frames(collector: BaseCollector) -> int:
 
 def collector_state(collector: BaseCollector) -> dict[str, Any]:
     """The collector's exact position (see the module docstring)."""
+    if isinstance(collector, RayGroupCollector):
+        return {"kind": "ray", "state": collector.state_dict()}
     if isinstance(collector, GroupCollector):
         source = collector.root_source
         extra = {k: getattr(source, k) for k in _SOURCE_EXTRA if hasattr(source, k)}
@@ -101,6 +185,11 @@ def collector_state(collector: BaseCollector) -> dict[str, Any]:
 
 def load_collector_state(collector: BaseCollector, state: dict[str, Any]) -> None:
     """Put a freshly built collector back where :func:`collector_state` was taken."""
+    if isinstance(collector, RayGroupCollector):
+        if state["kind"] != "ray":
+            raise ValueError("this checkpoint was not written with rollout.backend=ray")
+        collector.load_state_dict(state["state"])
+        return
     if isinstance(collector, GroupCollector):
         if state["kind"] != "group":
             raise ValueError("this checkpoint was written by a PPO run")

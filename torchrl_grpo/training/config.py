@@ -48,12 +48,15 @@ __all__ = [
     "ModelKind",
     "OptimConfig",
     "PPOConfig",
+    "RayConfig",
     "ReturnsName",
     "RolloutConfig",
     "RootKindName",
     "ScaleRewards",
     "SelectionName",
+    "TrunkPolicyName",
     "WandbMode",
+    "WorkerBackend",
     "check_config",
     "register_configs",
     "to_container",
@@ -123,6 +126,13 @@ class BaselineName(_Choice):
     loo = "loo"
 
 
+class TrunkPolicyName(_Choice):
+    """How the policy acts on the trunks that decision points are taken from."""
+
+    sample = "sample"
+    greedy = "greedy"
+
+
 class ScaleRewards(_Choice):
     """Division of the centred returns (TRL's ``scale_rewards``)."""
 
@@ -146,7 +156,16 @@ class ModelKind(_Choice):
 
 
 class Backend(_Choice):
-    """How the rollout workers run."""
+    """How the rollout workers run (``ray``: GRPO groups on Ray actors, see ``rollout.ray``)."""
+
+    parallel = "parallel"
+    serial = "serial"
+    single = "single"
+    ray = "ray"
+
+
+class WorkerBackend(_Choice):
+    """How each Ray actor runs its env workers."""
 
     parallel = "parallel"
     serial = "serial"
@@ -220,6 +239,8 @@ class GRPOConfig(AlgoConfig):
     aggregation: AggregationName = AggregationName.dapo
     ref_model_sync_steps: int = 64
     ref_model_mixup_alpha: float = 1.0
+    explore_steps: int | None = None
+    trunk: TrunkPolicyName = TrunkPolicyName.sample
 
 
 @dataclass
@@ -235,6 +256,26 @@ class PPOConfig(AlgoConfig):
 
 
 @dataclass
+class RayConfig:
+    """``rollout.ray``: the Ray backend (``rollout.backend=ray``, GRPO only).
+
+    ``groups_per_batch`` groups are split over ``num_actors`` actors, each running
+    ``workers_per_actor`` env workers with ``env_backend`` (``rollout.num_workers`` and
+    ``rollout.backend`` describe the local collector only).
+    """
+
+    num_actors: int = 2
+    workers_per_actor: int = 1
+    env_backend: WorkerBackend = WorkerBackend.single
+    num_cpus_per_actor: float = 1.0
+    memory_per_actor_mb: int | None = 1024
+    address: str | None = None
+    num_cpus: int | None = None
+    object_store_mb: int = 512
+    max_restarts: int = 3
+
+
+@dataclass
 class RolloutConfig:
     """``rollout`` group: how experience is gathered."""
 
@@ -245,6 +286,7 @@ class RolloutConfig:
     num_workers: int = 1
     backend: Backend = Backend.single
     mp_start_method: str | None = "fork"
+    ray: RayConfig = field(default_factory=RayConfig)
 
 
 @dataclass
@@ -400,6 +442,36 @@ def check_config(cfg: DictConfig) -> None:
                 f"rollout.num_workers must be 1 with rollout.backend=single, "
                 f"got {rollout.num_workers}"
             )
+        if rollout.backend == Backend.ray:
+            _check_ray(cfg, rollout)
+
+
+def _check_ray(cfg: DictConfig, rollout: DictConfig) -> None:
+    """The ``rollout.ray`` keys (only read with ``rollout.backend=ray``)."""
+    algo = cfg.get("algo")
+    if algo is not None and not OmegaConf.is_missing(cfg, "algo") and "group_size" not in algo:
+        raise ValueError(f"rollout.backend=ray collects GRPO groups; algo={algo.name} is not GRPO")
+    ray = rollout.get("ray")
+    if ray is None:
+        return
+    if ray.num_actors < 1:
+        raise ValueError(f"rollout.ray.num_actors must be >= 1, got {ray.num_actors}")
+    if ray.num_actors > rollout.groups_per_batch:
+        raise ValueError(
+            f"rollout.ray.num_actors ({ray.num_actors}) must be <= rollout.groups_per_batch "
+            f"({rollout.groups_per_batch}): every actor collects at least one group"
+        )
+    if ray.num_cpus_per_actor <= 0:
+        raise ValueError(
+            f"rollout.ray.num_cpus_per_actor must be > 0, got {ray.num_cpus_per_actor}"
+        )
+    if ray.workers_per_actor < 1:
+        raise ValueError(f"rollout.ray.workers_per_actor must be >= 1, got {ray.workers_per_actor}")
+    if ray.env_backend == WorkerBackend.single and ray.workers_per_actor != 1:
+        raise ValueError(
+            f"rollout.ray.workers_per_actor must be 1 with rollout.ray.env_backend=single, "
+            f"got {ray.workers_per_actor}"
+        )
 
 
 def to_container(cfg: DictConfig) -> dict:

@@ -220,9 +220,7 @@ def save_gif(video: torch.Tensor, path: str | Path, fps: int = 5) -> Path:
     images = [Image.fromarray(f) for f in frames]
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    images[0].save(
-        path, save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0
-    )
+    images[0].save(path, save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
     return path
 
 
@@ -266,8 +264,13 @@ def plot_comparison(results: Sequence[EvalResult], path: str | Path, title: str 
     names = [r.name for r in results]
     summaries = [r.summary() for r in results]
     x = np.arange(len(results))
-    ax_ret.bar(x, [s["return"] for s in summaries], yerr=[s["return_std"] for s in summaries],
-               color="tab:blue", capsize=3)
+    ax_ret.bar(
+        x,
+        [s["return"] for s in summaries],
+        yerr=[s["return_std"] for s in summaries],
+        color="tab:blue",
+        capsize=3,
+    )
     ax_ret.set_ylabel("return")
     ax_crash.bar(x, [100 * s["crash_rate"] for s in summaries], color="tab:red")
     ax_crash.set_ylabel("crash rate (%)")

@@ -25,8 +25,9 @@ __all__ = ["log_hparams", "log_metrics", "log_video", "make_logger"]
 log = logging.getLogger(__name__)
 
 
-def make_logger(logger_cfg: DictConfig, run_dir: str | Path, exp_name: str, config: dict
-                ) -> Logger | None:
+def make_logger(
+    logger_cfg: DictConfig, run_dir: str | Path, exp_name: str, config: dict
+) -> Logger | None:
     """The TorchRL logger of ``logger.backend``; ``None`` for ``none``.
 
     ``wandb`` with ``mode: offline`` sets ``WANDB_MODE=offline`` and needs no

@@ -32,6 +32,7 @@ from tensordict import TensorDictBase
 from torchrl.collectors import BaseCollector
 
 from torchrl_grpo.branching import BRANCH_RETURN, GROUP_ID, MASK, plot_group
+from torchrl_grpo.modules import EXPLORED
 from torchrl_grpo.training.checkpoint import (
     get_rng_state,
     load_checkpoint,
@@ -262,7 +263,10 @@ class Trainer:
             # PPO workers write their state after each step, so that a checkpoint can
             # restore them mid-episode (GRPO workers always ship states).
             extra = {} if self.grpo else {"return_state": True}
-            env = make_rollout_env(cfg.env, cfg.rollout, snapshots=self.grpo, **extra)
+            env = None
+            if str(cfg.rollout.backend) != "ray":
+                # With the Ray backend every actor builds its own env workers.
+                env = make_rollout_env(cfg.env, cfg.rollout, snapshots=self.grpo, **extra)
             collector = make_collector(cfg, env, self.policy, seed=self.seed)
             if self._collector_state is not None:
                 load_collector_state(collector, self._collector_state)
@@ -375,8 +379,12 @@ class Trainer:
         with timer("advantage"):
             bonus = self._bootstrap(batch)
             self.advantage(batch)
-            data = batch.select(*_GRPO_KEYS).reshape(-1)
-            data = data[data.get(MASK)]
+            data = batch.select(*_GRPO_KEYS, EXPLORED, strict=False).reshape(-1)
+            train = data.get(MASK)
+            if EXPLORED in data.keys():
+                # Greedy-tail steps score the sampled ones; their actions were not sampled.
+                train = train & data.get(EXPLORED)
+            data = data[train]
         adv = data.get("advantage")
         stats = {
             "advantage/mean": float(adv.mean()),
@@ -500,9 +508,7 @@ class Trainer:
         log_video(self.logger, "media/branch_group", fig.video, step=self.frames)
 
     # ------------------------------------------------------------------ evaluation
-    def _evaluate(
-        self, episodes: int, record: bool = False
-    ) -> tuple[dict[str, float], EvalResult]:
+    def _evaluate(self, episodes: int, record: bool = False) -> tuple[dict[str, float], EvalResult]:
         exp = self.cfg.experiment
         res, video = evaluate(
             self.eval_env,
@@ -514,9 +520,7 @@ class Trainer:
             record=self._render_env() if record else None,
         )
         summary = res.summary()
-        self.eval_history.append(
-            {"iteration": self.iteration, "frames": self.frames, **summary}
-        )
+        self.eval_history.append({"iteration": self.iteration, "frames": self.frames, **summary})
         with open(self.run_dir / "eval_history.jsonl", "a") as f:
             f.write(json.dumps(self.eval_history[-1]) + "\n")
         if video is not None:
@@ -538,8 +542,9 @@ class Trainer:
         if episodes > 0:
             metrics, trained = self._evaluate(episodes, record=record)
             trained.name = f"{self.cfg.algo.name} (trained)"
-            log_metrics(self.logger, {f"final/{k[5:]}": v for k, v in metrics.items()},
-                        step=self.frames)
+            log_metrics(
+                self.logger, {f"final/{k[5:]}": v for k, v in metrics.items()}, step=self.frames
+            )
             summary = self.eval_history[-1]
             result.final = {k: v for k, v in summary.items() if k not in ("iteration",)}
             results.append(trained)
@@ -550,7 +555,10 @@ class Trainer:
                     log.warning("baseline %r does not apply to %s", name, self.cfg.env.scenario)
                     continue
                 res, _ = evaluate(
-                    self.eval_env, policy, episodes=episodes, seed=int(exp.eval_seed),
+                    self.eval_env,
+                    policy,
+                    episodes=episodes,
+                    seed=int(exp.eval_seed),
                     max_steps=int(self.cfg.env.max_episode_steps),
                     name=BASELINE_LABELS.get(name, name),
                 )
@@ -563,8 +571,9 @@ class Trainer:
             )
             result.results_json = self.run_dir / "results.json"
             result.results_json.write_text(
-                json.dumps({"frames": self.frames, "results": [r.to_dict() for r in results]},
-                           indent=1)
+                json.dumps(
+                    {"frames": self.frames, "results": [r.to_dict() for r in results]}, indent=1
+                )
             )
             log.info("final evaluation:\n%s", table)
         if self._last_video is not None:
@@ -572,7 +581,8 @@ class Trainer:
             log_video(self.logger, "media/eval_episode", self._last_video, step=self.frames)
         if self.eval_history:
             result.curve = plot_learning_curve(
-                {str(self.cfg.algo.name): [self.eval_history]}, self.run_dir / "learning_curve.png",
+                {str(self.cfg.algo.name): [self.eval_history]},
+                self.run_dir / "learning_curve.png",
                 title=f"{self.cfg.env.scenario}: deterministic evaluation",
             )
 
@@ -635,9 +645,7 @@ def _group_metrics(batch: TensorDictBase) -> dict[str, float]:
         "group/return_std": float(std.mean()),
         "group/zero_std_fraction": float((std == 0).double().mean()),
         "group/best_minus_mean": float((returns.max(1).values - returns.mean(1)).mean()),
-        "group/crash_spread": float(
-            (crashed.any(1) & ~crashed.all(1)).double().mean()
-        ),
+        "group/crash_spread": float((crashed.any(1) & ~crashed.all(1)).double().mean()),
         "train/branch_return": float(returns.mean()),
         "train/branch_length": float(lengths.mean()),
         "train/crash_rate": float(crashed.double().mean()),
@@ -685,14 +693,12 @@ def plot_learning_curve(
             continue
         grid = np.unique(np.concatenate([[r["frames"] for r in h] for h in histories]))
         curves = np.stack(
-            [
-                np.interp(grid, [r["frames"] for r in h], [r[metric] for r in h])
-                for h in histories
-            ]
+            [np.interp(grid, [r["frames"] for r in h], [r[metric] for r in h]) for h in histories]
         )
         mean, std = curves.mean(0), curves.std(0)
-        line = ax.plot(grid, mean, label=f"{label} ({len(histories)} run"
-                       f"{'s' if len(histories) > 1 else ''})")[0]
+        line = ax.plot(
+            grid, mean, label=f"{label} ({len(histories)} run{'s' if len(histories) > 1 else ''})"
+        )[0]
         if len(histories) > 1:
             ax.fill_between(grid, mean - std, mean + std, color=line.get_color(), alpha=0.2)
     for label, value in (hlines or {}).items():

@@ -1,0 +1,233 @@
+"""The Ray backend: equivalence with the local collector, faults, training (needs Ray)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+from pathlib import Path
+
+import pytest
+import torch
+
+ray = pytest.importorskip("ray")
+
+import distributed_helpers  # noqa: E402
+from distributed_helpers import (  # noqa: E402
+    ENV_FACTORY,
+    SMALL,
+    SlowPolicy,
+    assert_bitwise_equal,
+    local_reference,
+    make_policy,
+)
+
+from torchrl_grpo.branching import GROUP_ID, MASK, TRAJ_IDS  # noqa: E402
+from torchrl_grpo.distributed import RayGroupCollector, init_ray  # noqa: E402
+
+
+@pytest.fixture(scope="module", autouse=True)
+def ray_session():
+    """One small local Ray for the module (2 CPUs, 128 MiB object store, no dashboard)."""
+    started = init_ray(num_cpus=2, object_store_memory=128 * 1024**2)
+    # Actors unpickle the helpers' classes: ship them by value (tests/ is no package).
+    ray.cloudpickle.register_pickle_by_value(distributed_helpers)
+    yield
+    if started:
+        ray.shutdown()
+
+
+def collect(collector: RayGroupCollector, batches: int) -> list:
+    out = []
+    with collector:
+        for batch in collector:
+            out.append(batch)
+            if len(out) == batches:
+                break
+    return out
+
+
+def check_structure(batches, groups_per_batch: int, group_size: int) -> None:
+    """Group ids 0, 1, 2, ... once each; traj ids follow them; branches 0..G-1."""
+    ids = torch.cat([b[GROUP_ID][:, 0, 0] for b in batches])
+    assert ids.tolist() == list(range(len(batches) * groups_per_batch))
+    for b in batches:
+        assert (b[GROUP_ID] == b[GROUP_ID][:, :1, :1]).all()
+        assert (b["branch"][:, :, 0] == torch.arange(group_size)).all()
+        assert (b[TRAJ_IDS] == b[GROUP_ID] * group_size + b["branch"]).all()
+
+
+def test_one_actor_matches_local_collector():
+    policy = make_policy()
+    kwargs = dict(SMALL, roots="trunk", decision_interval=2)
+    got = collect(
+        RayGroupCollector(
+            ENV_FACTORY,
+            policy,
+            num_actors=1,
+            groups_per_batch=2,
+            seed=3,
+            num_cpus_per_actor=0.5,
+            **kwargs,
+        ),
+        3,
+    )
+    want = local_reference(policy, seed=3, num_actors=1, groups_per_batch=2, batches=3, **kwargs)
+    for g, w in zip(got, want, strict=True):
+        assert_bitwise_equal(g, w)
+    check_structure(got, 2, 2)
+
+
+def test_actors_match_local_runs_of_their_seeds():
+    policy = make_policy()
+    kwargs = dict(SMALL, roots="reset", rng="per_branch")
+    collector = RayGroupCollector(
+        ENV_FACTORY,
+        policy,
+        num_actors=2,
+        groups_per_batch=3,
+        seed=0,
+        num_cpus_per_actor=0.5,
+        **kwargs,
+    )
+    got = collect(collector, 2)
+    want = local_reference(policy, seed=0, num_actors=2, groups_per_batch=3, batches=2, **kwargs)
+    for g, w in zip(got, want, strict=True):
+        assert g.batch_size == (3, 2, 2)
+        assert_bitwise_equal(g, w)
+    check_structure(got, 3, 2)
+    assert collector.frames == sum(int(b[MASK].sum()) for b in got)
+
+
+def test_killed_actor_is_replaced_and_its_batch_redone():
+    policy = SlowPolicy(make_policy(), delay=0.1)
+    kwargs = dict(SMALL, roots="trunk", decision_interval=2)
+    collector = RayGroupCollector(
+        ENV_FACTORY,
+        policy,
+        num_actors=2,
+        groups_per_batch=2,
+        seed=1,
+        num_cpus_per_actor=0.5,
+        **kwargs,
+    )
+    got = []
+    with collector:
+        it = iter(collector)
+        got.append(next(it))  # the actors are up
+        pid = ray.get(collector.actors[0].pid.remote())
+        # SIGKILL actor 0 while its second batch runs (each batch takes >= 0.4 s).
+        killer = threading.Timer(0.15, os.kill, (pid, signal.SIGKILL))
+        killer.start()
+        got.append(next(it))
+        killer.join()
+        got.append(next(it))
+        frames, trunk_frames, restarts = (
+            collector.frames,
+            collector.trunk_frames,
+            collector.restarts,
+        )
+        assert ray.get(collector.actors[0].pid.remote()) != pid
+    assert restarts == 1
+    want = local_reference(
+        policy.policy, seed=1, num_actors=2, groups_per_batch=2, batches=3, **kwargs
+    )
+    for g, w in zip(got, want, strict=True):
+        assert_bitwise_equal(g, w)
+    check_structure(got, 2, 2)
+    # Exact counts: the dead actor's partial work is neither lost nor counted.
+    assert frames == sum(int(b[MASK].sum()) for b in got)
+    assert trunk_frames > 0
+
+
+def test_actor_killed_between_batches_is_replaced():
+    policy = make_policy()
+    collector = RayGroupCollector(
+        ENV_FACTORY,
+        policy,
+        num_actors=2,
+        groups_per_batch=2,
+        seed=2,
+        num_cpus_per_actor=0.5,
+        roots="reset",
+        **SMALL,
+    )
+    got = []
+    with collector:
+        it = iter(collector)
+        got.append(next(it))
+        ray.kill(collector.actors[1], no_restart=True)
+        got.append(next(it))
+        assert collector.restarts == 1
+    want = local_reference(
+        policy, seed=2, num_actors=2, groups_per_batch=2, batches=2, roots="reset", **SMALL
+    )
+    for g, w in zip(got, want, strict=True):
+        assert_bitwise_equal(g, w)
+
+
+def test_weights_reach_the_actors():
+    policy = make_policy()
+    with RayGroupCollector(
+        ENV_FACTORY,
+        policy,
+        num_actors=1,
+        groups_per_batch=1,
+        seed=0,
+        num_cpus_per_actor=0.5,
+        roots="reset",
+        **SMALL,
+    ) as collector:
+        it = iter(collector)
+        next(it)
+        # The learner's update: logits that make action 3 certain.
+        with torch.no_grad():
+            last = [m for m in policy.modules() if isinstance(m, torch.nn.Linear)][-1]
+            last.weight.zero_()
+            last.bias.copy_(torch.tensor([0.0, 0.0, 0.0, 100.0, 0.0]))
+        batch = next(it)
+    assert (batch["action"][batch[MASK]] == 3).all()
+
+
+def _compose(overrides: list[str]):
+    from hydra import compose, initialize_config_dir
+
+    from torchrl_grpo.training import register_configs
+
+    register_configs()
+    conf = Path(__file__).resolve().parents[2] / "conf"
+    with initialize_config_dir(str(conf), version_base=None):
+        return compose("config", overrides=overrides)
+
+
+TINY_RAY = [
+    "experiment=smoke",
+    "logger=none",
+    "experiment.eval_every=0",
+    "experiment.final_eval_episodes=0",
+    "experiment.plot_every=0",
+    "experiment.checkpoint_every=1",
+    "rollout.backend=ray",
+    "rollout.ray.num_actors=2",
+    "rollout.ray.num_cpus_per_actor=0.5",
+]
+
+
+def test_training_on_ray_resumes_exactly(tmp_path):
+    from torchrl_grpo.training import Trainer
+
+    straight = Trainer(
+        _compose([*TINY_RAY, "experiment.total_frames=150"]), run_dir=tmp_path / "straight"
+    )
+    result = straight.train()
+    assert result.frames >= 150 and result.iterations >= 2
+    first = Trainer(_compose([*TINY_RAY, "experiment.total_frames=20"]), run_dir=tmp_path / "a")
+    half = first.train()
+    resumed = Trainer(
+        _compose([*TINY_RAY, "experiment.total_frames=150", f"resume={half.checkpoint}"]),
+        run_dir=tmp_path / "b",
+    )
+    end = resumed.train()
+    assert (end.frames, end.iterations) == (result.frames, result.iterations)
+    for key, value in straight.policy.state_dict().items():
+        assert torch.equal(value, resumed.policy.state_dict()[key]), key

@@ -1,0 +1,173 @@
+"""The Ray actor of the Ray backend: one :class:`GroupCollector` and its env workers.
+
+:class:`GroupWorker` is a plain class: :class:`~torchrl_grpo.distributed.RayGroupCollector`
+turns it into a Ray actor at run time (``ray.remote(GroupWorker)``), so importing this
+module does not need Ray.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs import EnvBase
+
+from torchrl_grpo.branching import GroupCollector
+from torchrl_grpo.branching.roots import RootSource
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["GroupResult", "GroupWorker", "WorkerSnapshot", "actor_seed"]
+
+_SEED_MOD = 2**31 - 1  # torch, numpy and TorchRL's env seeding all take it
+
+
+def actor_seed(seed: int, actor: int) -> int:
+    """The seed of actor ``actor`` of a Ray collection seeded with ``seed``.
+
+    Actor 0 gets ``seed`` itself, so one actor reproduces a local
+    :class:`~torchrl_grpo.branching.GroupCollector` seeded with ``seed``; the others get
+    a seed mixed from ``(seed, actor)`` by numpy's ``SeedSequence`` (unrelated streams).
+
+    Example:
+        >>> actor_seed(7, 0), actor_seed(7, 1) == actor_seed(7, 1), actor_seed(7, 1) == 7
+        (7, True, False)
+    """
+    if actor == 0:
+        return int(seed)
+    words = np.random.SeedSequence([int(seed), int(actor), 0x7261_79]).generate_state(1)
+    return int(words[0]) % _SEED_MOD
+
+
+@dataclass
+class WorkerSnapshot:
+    """Everything a fresh actor needs to continue exactly where another one stood.
+
+    Attributes:
+        collector: ``GroupCollector.state_dict()`` (frames, batches, next group id,
+            selection generator, the root source's counters).
+        root_source: a copy of the root source (its seed chain, pending trunk decision
+            points or live episodes; a copy is exact where its ``state_dict`` may not be).
+        torch_rng: the actor's global torch generator, from which the policy samples.
+    """
+
+    collector: dict[str, Any]
+    root_source: RootSource
+    torch_rng: torch.Tensor
+
+
+@dataclass
+class GroupResult:
+    """What an actor returns for one batch.
+
+    Attributes:
+        data: the ``[R_a, G, T]`` groups (``None`` when the roots ran out).
+        snapshot: the actor's state after this batch (where a replacement restarts).
+        trunk_frames: trunk steps the actor simulated so far (``roots="trunk"``).
+    """
+
+    data: TensorDictBase | None
+    snapshot: WorkerSnapshot
+    trunk_frames: int
+
+
+class GroupWorker:
+    """Owns one :class:`~torchrl_grpo.branching.GroupCollector` inside a Ray actor.
+
+    The actor seeds torch's global generator with ``seed`` right after building its
+    collector (also seeded with ``seed``): the policy samples from that generator. So a
+    local ``GroupCollector(env, policy, seed=s, ...)`` followed by ``torch.manual_seed(s)``
+    yields bitwise the same batches as an actor built with seed ``s``.
+
+    Args:
+        env_factory: a picklable callable building the branch env, e.g.
+            ``functools.partial(make_branch_env, "merge-v0", 2)``.
+        policy: the policy (a copy is shipped to the actor).
+        collector_kwargs: the other :class:`GroupCollector` arguments.
+        seed: this actor's seed (see :func:`actor_seed`).
+        num_threads: torch threads of the actor (1: the env workers need the cores).
+
+    Example:
+        >>> import functools
+        >>> from torchrl_grpo.branching import make_branch_env
+        >>> from torchrl_grpo.modules import RandomPolicy
+        >>> worker = GroupWorker(functools.partial(make_branch_env, "merge-v0", 1,
+        ...                      backend="single"), RandomPolicy(seed=0),
+        ...                      dict(group_size=2, horizon=2, groups_per_batch=1), seed=0)
+        >>> worker.collect(None, first_group_id=5).data["group_id"][0, 0, 0].item()
+        5
+        >>> worker.close()
+    """
+
+    def __init__(
+        self,
+        env_factory: Callable[[], EnvBase],
+        policy: Any,
+        collector_kwargs: dict[str, Any],
+        seed: int,
+        num_threads: int | None = 1,
+    ) -> None:
+        if num_threads is not None:
+            torch.set_num_threads(int(num_threads))
+        self.collector = GroupCollector(
+            env_factory, policy, total_frames=-1, seed=int(seed), **collector_kwargs
+        )
+        torch.manual_seed(int(seed))
+        self._iterator = None
+
+    def pid(self) -> int:
+        """The actor's process id (tests kill it)."""
+        return os.getpid()
+
+    def snapshot(self) -> WorkerSnapshot:
+        """The actor's current state (see :class:`WorkerSnapshot`)."""
+        return WorkerSnapshot(
+            collector=self.collector.state_dict(),
+            root_source=self.collector.root_source,
+            torch_rng=torch.get_rng_state(),
+        )
+
+    def restore(self, snapshot: WorkerSnapshot) -> None:
+        """Continue from ``snapshot`` (taken in another actor, usually a dead one)."""
+        # The snapshot was unpickled in this process: its root source is this actor's own.
+        self.collector.root_source = snapshot.root_source
+        self.collector.load_state_dict(snapshot.collector)
+        torch.set_rng_state(snapshot.torch_rng)
+
+    def set_seed(self, seed: int) -> WorkerSnapshot:
+        """Reseed the collector and torch's generator as a fresh actor would be."""
+        self.collector.set_seed(int(seed))
+        torch.manual_seed(int(seed))
+        return self.snapshot()
+
+    def collect(
+        self, weights: TensorDictBase | None, first_group_id: int, keep_snapshot: bool = True
+    ) -> GroupResult:
+        """Load ``weights``, collect one batch whose group ids start at ``first_group_id``.
+
+        The ids are assigned by the learner, so that they are unique over all actors,
+        and set before the batch because ``rng="per_branch"`` seeds depend on them.
+        """
+        if weights is not None:
+            self.collector.update_policy_weights_(weights)
+        state = self.collector.state_dict()
+        state["next_group_id"] = int(first_group_id)
+        self.collector.load_state_dict(state)
+        if self._iterator is None:
+            self._iterator = iter(self.collector)
+        try:
+            data = next(self._iterator)
+        except StopIteration:
+            data = None
+        snapshot = self.snapshot() if keep_snapshot else None
+        return GroupResult(data=data, snapshot=snapshot, trunk_frames=self.collector.trunk_frames)
+
+    def close(self) -> None:
+        """Shut the collector and its env workers down."""
+        self.collector.shutdown()
