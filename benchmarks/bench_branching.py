@@ -122,7 +122,9 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, default=10, help="H steps per branch")
     parser.add_argument("--repeats", type=int, default=5, help="timed rounds (medians)")
     parser.add_argument(
-        "--start-method", default="fork", choices=["fork", "spawn", "forkserver"],
+        "--start-method",
+        default="fork",
+        choices=["fork", "spawn", "forkserver"],
         help="ParallelEnv start method (startup is not timed)",
     )
     args = parser.parse_args()

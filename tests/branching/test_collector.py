@@ -16,8 +16,13 @@ from torchrl_grpo.modules import KinematicsMLP, RandomPolicy, make_discrete_acto
 def test_batches_frames_and_unique_group_ids(no_workers_left):
     env = branch_env("highway-fast-v0", "parallel", config={"duration": 3})
     collector = GroupCollector(
-        env, RandomPolicy(seed=0), group_size=2, horizon=4, groups_per_batch=2,
-        total_frames=30, seed=0,
+        env,
+        RandomPolicy(seed=0),
+        group_size=2,
+        horizon=4,
+        groups_per_batch=2,
+        total_frames=30,
+        seed=0,
     )
     assert isinstance(collector, BaseCollector)
     batches = list(collector)
@@ -36,8 +41,15 @@ def test_batches_frames_and_unique_group_ids(no_workers_left):
 def test_trunk_roots_in_collector():
     env = branch_env("merge-v0", "serial")
     with GroupCollector(
-        env, ScheduledPolicy(torch.ones(2, 2)), group_size=2, horizon=2, groups_per_batch=3,
-        total_frames=12, roots="trunk", decision_interval=2, seed=0,
+        env,
+        ScheduledPolicy(torch.ones(2, 2)),
+        group_size=2,
+        horizon=2,
+        groups_per_batch=3,
+        total_frames=12,
+        roots="trunk",
+        decision_interval=2,
+        seed=0,
     ) as collector:
         batch = next(iter(collector))
         steps = batch["root_step"][:, 0, 0].tolist()
@@ -49,8 +61,15 @@ def test_trunk_roots_in_collector():
 def test_continue_roots_follow_the_selected_branch():
     env = branch_env("highway-fast-v0", "serial")
     with GroupCollector(
-        env, RandomPolicy(seed=0), group_size=3, horizon=2, groups_per_batch=2,
-        roots="continue", select="best", return_states=True, seed=0,
+        env,
+        RandomPolicy(seed=0),
+        group_size=3,
+        horizon=2,
+        groups_per_batch=2,
+        roots="continue",
+        select="best",
+        return_states=True,
+        seed=0,
     ) as collector:
         it = iter(collector)
         first, second = next(it), next(it)
@@ -68,8 +87,14 @@ def test_reset_roots_never_repeat_an_episode_after_branching():
     # Restores overwrite the workers' generators; unseeded resets would replay episodes.
     env = branch_env("highway-fast-v0", "serial")
     with GroupCollector(
-        env, RandomPolicy(seed=0), group_size=2, horizon=1, groups_per_batch=2,
-        total_frames=12, return_states=True, seed=0,
+        env,
+        RandomPolicy(seed=0),
+        group_size=2,
+        horizon=1,
+        groups_per_batch=2,
+        total_frames=12,
+        return_states=True,
+        seed=0,
     ) as collector:
         starts = torch.cat([b["state", "sim"][:, 0, 0] for b in collector])
     assert starts.shape[0] == 6
@@ -82,7 +107,11 @@ def test_stored_roots_run_out():
     roots = reset_roots(plain_env("merge-v0", seed=0), 3)
     env = plain_env("merge-v0")
     with GroupCollector(
-        env, RandomPolicy(seed=0), group_size=2, horizon=2, groups_per_batch=2,
+        env,
+        RandomPolicy(seed=0),
+        group_size=2,
+        horizon=2,
+        groups_per_batch=2,
         roots=StoredRoots(roots),
     ) as collector:
         sizes = [b.shape[0] for b in collector]
@@ -143,8 +172,9 @@ def test_break_keeps_the_collector_usable_and_shutdown_closes(no_workers_left):
 def test_default_spawn_workers(no_workers_left):
     # TorchRL's default start method (spawn): slow to start, checked once.
     env = make_branch_env("merge-v0", 2)
-    with GroupCollector(env, RandomPolicy(), group_size=2, horizon=2, groups_per_batch=2,
-                        total_frames=8) as collector:
+    with GroupCollector(
+        env, RandomPolicy(), group_size=2, horizon=2, groups_per_batch=2, total_frames=8
+    ) as collector:
         assert [int(b["mask"].sum()) for b in collector] == [8]
 
 
@@ -157,8 +187,9 @@ def test_policy_sees_branch_metadata():
             return super().__call__(td)
 
     env = plain_env("merge-v0", seed=0)
-    with GroupCollector(env, Spy(torch.ones(2, 2)), group_size=2, horizon=2,
-                        groups_per_batch=1) as collector:
+    with GroupCollector(
+        env, Spy(torch.ones(2, 2)), group_size=2, horizon=2, groups_per_batch=1
+    ) as collector:
         next(iter(collector))
     assert [int(s["branch"][0]) for s in seen] == [0, 0, 1, 1]
     assert [int(s["step_count"][0, 0]) for s in seen] == [0, 1, 0, 1]

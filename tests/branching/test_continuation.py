@@ -54,9 +54,15 @@ def test_continuation_is_bitwise_the_chosen_branch_final_state(scenario):
     env = branch_env(scenario, "serial", config=config)
     try:
         out = multi_turn_rollout(
-            env, RandomPolicy(N_ACTIONS[scenario], seed=0), roots, 2, 2,
-            select="sampled", generator=torch.Generator().manual_seed(1),
-            return_states=True, max_turns=3,
+            env,
+            RandomPolicy(N_ACTIONS[scenario], seed=0),
+            roots,
+            2,
+            2,
+            select="sampled",
+            generator=torch.Generator().manual_seed(1),
+            return_states=True,
+            max_turns=3,
         )
     finally:
         shutdown_env(env)

@@ -114,8 +114,7 @@ def test_roots_from_collector_trajectories_of_parallel_workers():
     env = branch_env("merge-v0", "parallel")
     try:
         env.set_seed(0)
-        collector = Collector(env, ConstantActionPolicy("IDLE"), frames_per_batch=6,
-                              total_frames=6)
+        collector = Collector(env, ConstantActionPolicy("IDLE"), frames_per_batch=6, total_frames=6)
         data = next(iter(collector))
         collector.shutdown()
     finally:

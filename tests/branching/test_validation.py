@@ -97,8 +97,9 @@ def test_policy_output_that_does_not_fit_the_action_spec(highway_parallel, fast_
 
 def test_plain_env_policy_check(fast_roots):
     with pytest.raises(ValueError, match="outside"):
-        branch_rollout(plain_env("highway-fast-v0"), _BadPolicy(lambda b: torch.full(b, -1)),
-                       fast_roots, 2, 1)
+        branch_rollout(
+            plain_env("highway-fast-v0"), _BadPolicy(lambda b: torch.full(b, -1)), fast_roots, 2, 1
+        )
 
 
 def test_collector_error_shuts_workers_down(no_workers_left):

@@ -6,12 +6,19 @@ import time
 
 import pytest
 import torch
-from branching_helpers import plain_env
+from branching_helpers import SHORT, ScheduledPolicy, actions, bitwise_equal, plain_env
 from tensordict import TensorDict
 from torchrl.envs import ParallelEnv, TransformedEnv
 from torchrl.envs.transforms import Transform
 
-from torchrl_grpo.branching import BranchParallelEnv, make_branch_env, shutdown_env
+from torchrl_grpo.branching import (
+    BranchParallelEnv,
+    branch_rollout,
+    make_branch_env,
+    reset_roots,
+    shutdown_env,
+)
+from torchrl_grpo.branching._slots import EnvSlots
 from torchrl_grpo.envs import states_equal
 
 
@@ -110,3 +117,42 @@ def test_branch_parallel_env_uses_its_wait_on_this_torchrl(highway_parallel):
     # The attributes the sleeping wait needs are there on the pinned TorchRL version.
     assert isinstance(highway_parallel, BranchParallelEnv)
     assert highway_parallel._sleeping_wait_applies()
+
+
+@pytest.mark.parametrize("return_states", [False, True])
+def test_branch_fast_paths_match_torchrl_reset_and_step(highway_parallel, return_states):
+    # branch_restore / branch_step move only what a rollout reads; TorchRL's reset and
+    # step move everything. 5 branches on 2 workers: partial steps in the last wave;
+    # short episodes: branches end early, slots refill mid-rollout.
+    assert EnvSlots(highway_parallel)._fast
+    roots = reset_roots(plain_env("highway-fast-v0", config=SHORT["highway-fast-v0"]), 1, seed=0)
+    table = actions(
+        "highway-fast-v0",
+        ["FASTER"] * 6,
+        ["LANE_LEFT", "SLOWER"] * 3,
+        ["IDLE"] * 6,
+        ["LANE_RIGHT", "FASTER"] * 3,
+        ["SLOWER"] * 6,
+    )
+    env = make_branch_env(
+        "highway-fast-v0", 2, config=SHORT["highway-fast-v0"], mp_start_method="fork"
+    )
+    try:
+        fast = branch_rollout(env, ScheduledPolicy(table), roots, 5, 6, return_states=return_states)
+        env.branch_fast_paths = False
+        assert not EnvSlots(env)._fast
+        slow = branch_rollout(env, ScheduledPolicy(table), roots, 5, 6, return_states=return_states)
+    finally:
+        shutdown_env(env)
+    assert not fast["mask"].all()
+    assert bitwise_equal(fast, slow) == []
+
+
+def test_sleeping_wait_learns_the_wait_lengths(highway_parallel):
+    # After a few steps, a step's wait starts with one long sleep: a handful of
+    # wake-ups per wait instead of one every 0.5 ms.
+    roots = reset_roots(plain_env("highway-fast-v0"), 1, seed=0)
+    branch_rollout(highway_parallel, ScheduledPolicy(torch.ones(2, 4)), roots, 2, 4)
+    recent = highway_parallel.__dict__["_recent_waits"]
+    assert recent["step"] > 0 and recent["restore"] > 0
+    assert highway_parallel.__dict__.get("_wait_kind") is None

@@ -8,16 +8,22 @@ policy runs once per iteration on the batched ``[W]`` tensordict.
 
 Nothing here resets an env to a new episode: a slot's steps after its branch's end
 never happen, so no auto-reset data can leak into a branch.
+
+The parent process shares the cores with the workers, and every millisecond it
+spends per step is taken from them. So the per-step bookkeeping works leaf by leaf
+on tensors: each step's rows are written by index into preallocated ``[N * H]``
+leaves (no per-step tensordict clone, exclude, stack or cat), and states are only
+copied when they are kept.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Literal
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_grpo.branching._slots import EnvSlots
@@ -31,8 +37,6 @@ from torchrl_grpo.branching.keys import (
 
 KeepStates = Literal["none", "final", "all"]
 Policy = Callable[[TensorDictBase], TensorDictBase | None]
-
-_STATE_KEYS = (STATE, ("next", STATE))
 
 
 @dataclass
@@ -52,6 +56,43 @@ class BranchRun:
     lengths: torch.Tensor
     ended: torch.Tensor
     final_states: TensorDictBase | None
+
+
+class _Rows:
+    """Preallocated ``[size, ...]`` leaves, filled by index from ``[W, ...]`` tensordicts.
+
+    The first tensordict written fixes the keys, shapes and dtypes (its leaves minus
+    ``skip``); rows never written stay zero.
+    """
+
+    def __init__(self, size: int, skip: Iterable[NestedKey] = ()) -> None:
+        self.size = size
+        self.skip = {k if isinstance(k, tuple) else (k,) for k in skip}
+        self.keys: list[NestedKey] = []
+        self.leaves: list[torch.Tensor] = []
+
+    def _allocate(self, td: TensorDictBase) -> None:
+        for key, value in td.items(True, True):
+            path = key if isinstance(key, tuple) else (key,)
+            if any(path[: len(s)] == s for s in self.skip):
+                continue
+            self.keys.append(key)
+            self.leaves.append(value.new_zeros((self.size, *value.shape[1:])))
+
+    def write(self, where: torch.Tensor, td: TensorDictBase, rows: torch.Tensor | None) -> None:
+        """``self[where[i]] = td[rows[i]]`` for every leaf (``rows=None``: all rows of ``td``)."""
+        if not self.keys:
+            self._allocate(td)
+        for key, leaf in zip(self.keys, self.leaves, strict=True):
+            value = td.get(key)
+            leaf.index_copy_(0, where, value if rows is None else value[rows])
+
+    def tensordict(self, *shape: int) -> TensorDict:
+        """The leaves as a tensordict of batch size ``shape`` (``prod(shape) == size``)."""
+        out = TensorDict(batch_size=shape)
+        for key, leaf in zip(self.keys, self.leaves, strict=True):
+            out.set(key, leaf.view(*shape, *leaf.shape[1:]))
+        return out
 
 
 def run_branches(
@@ -74,94 +115,110 @@ def run_branches(
     """
     n_branches = states.shape[0]
     width = slots.num_slots
+    size = n_branches * horizon
     slot_branch = torch.full((width,), -1, dtype=torch.long)
     slot_t = torch.zeros(width, dtype=torch.long)
     lengths = torch.zeros(n_branches, dtype=torch.long)
     ended = torch.zeros(n_branches, dtype=torch.bool)
-    final = states.clone() if keep != "none" else None
-    records: list[tuple[torch.Tensor, torch.Tensor, TensorDictBase]] = []
-    cur: TensorDictBase | None = None
-    slot_state: TensorDictBase | None = None
-    next_branch = 0
-    while True:
-        free = (slot_branch < 0).nonzero().squeeze(-1)
-        n_new = min(len(free), n_branches - next_branch)
-        if n_new > 0:
-            fill = free[:n_new]
-            new = torch.arange(next_branch, next_branch + n_new)
-            next_branch += n_new
-            rows, snaps = slots.restore(fill, states[new], want_states=keep == "all")
-            if cur is None:
-                cur = rows[:1].expand(width).clone()
-            cur[fill] = rows
-            if keep == "all":
-                if slot_state is None:
-                    slot_state = snaps[:1].expand(width).clone()
-                slot_state[fill] = snaps
-            slot_branch[fill] = new
-            slot_t[fill] = 0
-        active = slot_branch >= 0
-        if not bool(active.any()):
-            break
-        td = cur.clone(False)
-        idx = slot_branch.clamp(min=0)
-        td.set(GROUP_ID, group_id[idx])
-        td.set(BRANCH, branch[idx])
-        td.set(ROOT_STEP, root_step[idx])
-        td.set(STEP_COUNT, (root_step[idx] + slot_t).unsqueeze(-1))
-        with torch.no_grad(), set_exploration_type(exploration_type):
-            out = policy(td)
-        td = td if out is None else out
-        _check_actions(td, slots)
-        td = slots.step(td, active)
-        rows_idx = active.nonzero().squeeze(-1)
-        b = slot_branch[rows_idx]
-        t = slot_t[rows_idx]
-        done = td.get(("next", "done"))[rows_idx].reshape(len(rows_idx))
-        slot_t[rows_idx] += 1
-        finished = done | (slot_t[rows_idx] >= horizon)
-        lengths[b] = slot_t[rows_idx]
-        ended[b] = done
-        next_snap = None
-        if keep == "all" or (keep == "final" and bool(finished.any())):
-            next_snap = slots.next_states(td, rows_idx)
-        rec = td.exclude(*_STATE_KEYS)[rows_idx]
-        if keep == "all":
-            rec.set(STATE, slot_state[rows_idx])
-            rec.set(("next", STATE), next_snap)
-            slot_state[rows_idx] = next_snap
-        if final is not None and bool(finished.any()):
-            final[b[finished]] = next_snap[finished]
-        records.append((b, t, rec))
-        cur[rows_idx] = td.get("next").select(*cur.keys(True, True))[rows_idx]
-        slot_branch[rows_idx[finished]] = -1
-    return _assemble(records, n_branches, horizon, lengths, ended, final)
-
-
-def _assemble(
-    records: list[tuple[torch.Tensor, torch.Tensor, TensorDictBase]],
-    n_branches: int,
-    horizon: int,
-    lengths: torch.Tensor,
-    ended: torch.Tensor,
-    final: TensorDictBase | None,
-) -> BranchRun:
-    b = torch.cat([r[0] for r in records])
-    t = torch.cat([r[1] for r in records])
-    flat = torch.cat([r[2] for r in records])
-    size = n_branches * horizon
-    data = flat[:1].clone().zero_().expand(size).clone()
-    where = b * horizon + t
-    data[where] = flat
     mask = torch.zeros(size, dtype=torch.bool)
-    mask[where] = True
+    final = states.clone() if keep != "none" else None
+    want_states = keep != "none"
+    # The policy's input and output (minus what a step adds), and the step's "next".
+    root_rows = _Rows(size, skip=(STATE, "next", "_step"))
+    next_rows = _Rows(size, skip=(STATE,))
+    state_rows = (_Rows(size), _Rows(size)) if keep == "all" else None
+    slot_state: TensorDictBase | None = None
+    cur: TensorDictBase | None = None
+    next_branch = 0
+    with torch.no_grad(), set_exploration_type(exploration_type):
+        while True:
+            free = (slot_branch < 0).nonzero().squeeze(-1)
+            n_new = min(len(free), n_branches - next_branch)
+            if n_new > 0:
+                fill = free[:n_new]
+                new = torch.arange(next_branch, next_branch + n_new)
+                next_branch += n_new
+                rows, snaps = slots.restore(fill, states[new], want_states=keep == "all")
+                if cur is None:
+                    cur = rows[:1].expand(width).clone()
+                cur[fill] = rows
+                if snaps is not None:
+                    if slot_state is None:
+                        slot_state = snaps[:1].expand(width).clone()
+                    slot_state[fill] = snaps
+                slot_branch[fill] = new
+                slot_t[fill] = 0
+            active = slot_branch >= 0
+            n_active = int(active.sum())
+            if n_active == 0:
+                break
+            # With every slot active (all steps but a rollout's tail), rows need no indexing.
+            rows_idx = None if n_active == width else active.nonzero().squeeze(-1)
+            td = cur.clone(False)
+            idx = slot_branch.clamp(min=0)
+            td.set(GROUP_ID, group_id[idx])
+            td.set(BRANCH, branch[idx])
+            td.set(ROOT_STEP, root_step[idx])
+            td.set(STEP_COUNT, (root_step[idx] + slot_t).unsqueeze(-1))
+            out = policy(td)
+            td = td if out is None else out
+            _check_actions(td, slots)
+            b = slot_branch if rows_idx is None else slot_branch[rows_idx]
+            t = slot_t if rows_idx is None else slot_t[rows_idx]
+            where = b * horizon + t
+            root_rows.write(where, td, rows_idx)
+            nxt = slots.step(td, active, want_states=want_states)
+            next_rows.write(where, nxt, rows_idx)
+            mask[where] = True
+            done = nxt.get("done")
+            done = (done if rows_idx is None else done[rows_idx]).reshape(n_active)
+            t = t + 1
+            finished = done | (t >= horizon)
+            any_finished = bool(finished.any())
+            lengths[b] = t
+            ended[b] = done
+            next_snap = None
+            if keep == "all" or (keep == "final" and any_finished):
+                next_snap = slots.next_states(nxt, rows_idx)
+            if state_rows is not None:
+                state_rows[0].write(where, slot_state, rows_idx)
+                state_rows[1].write(where, next_snap, None)
+                if rows_idx is None:
+                    slot_state.update_(next_snap)
+                else:
+                    slot_state[rows_idx] = next_snap
+            if final is not None and any_finished:
+                final[b[finished]] = next_snap[finished]
+            _advance(cur, nxt, rows_idx)
+            if rows_idx is None:
+                slot_t += 1
+            else:
+                slot_t[rows_idx] = t
+            if any_finished:
+                stepped = active.nonzero().squeeze(-1) if rows_idx is None else rows_idx
+                slot_branch[stepped[finished]] = -1
+    data = root_rows.tensordict(n_branches, horizon)
+    data.set("next", next_rows.tensordict(n_branches, horizon))
+    if state_rows is not None:
+        data.set(STATE, state_rows[0].tensordict(n_branches, horizon))
+        data.set(("next", STATE), state_rows[1].tensordict(n_branches, horizon))
     return BranchRun(
-        data=data.reshape(n_branches, horizon),
-        mask=mask.reshape(n_branches, horizon),
+        data=data,
+        mask=mask.view(n_branches, horizon),
         lengths=lengths,
         ended=ended,
         final_states=final,
     )
+
+
+def _advance(cur: TensorDictBase, nxt: TensorDictBase, rows: torch.Tensor | None) -> None:
+    """Copy the stepped slots' new observations and done flags into ``cur``, in place."""
+    for key, leaf in cur.items(True, True):
+        value = nxt.get(key)
+        if rows is None:
+            leaf.copy_(value)
+        else:
+            leaf[rows] = value[rows]
 
 
 def _check_actions(td: TensorDictBase, slots: EnvSlots) -> None:

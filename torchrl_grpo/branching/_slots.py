@@ -14,6 +14,7 @@ States are read from the env's output when its workers return them
 from __future__ import annotations
 
 import logging
+import weakref
 from collections.abc import Sequence
 
 import torch
@@ -22,6 +23,7 @@ from torchrl.data import TensorSpec
 from torchrl.envs import EnvBase, TransformedEnv
 
 from torchrl_grpo.branching.keys import STATE
+from torchrl_grpo.branching.workers import BranchParallelEnv
 from torchrl_grpo.envs import StateCorruptedError
 
 logger = logging.getLogger(__name__)
@@ -52,6 +54,11 @@ class EnvSlots:
         self.done_keys: list[NestedKey] = list(env.done_keys)
         self.action_keys: list[NestedKey] = list(env.action_keys)
         self.action_spec: TensorSpec = env.full_action_spec
+        # What a step returns under "next" (the state apart: only when it is kept).
+        self.next_keys: list[NestedKey] = [*self.obs_keys, *env.reward_keys, *self.done_keys]
+        # A BranchParallelEnv, untransformed, restores and steps its workers directly
+        # (transforms would be skipped otherwise).
+        self._fast = isinstance(env, BranchParallelEnv) and env.branch_fast_paths_apply()
         self._local: EnvBase | None = None
         self._warned_slow = False
 
@@ -85,6 +92,15 @@ class EnvSlots:
             # guarantee decode(encode(x)) == x): no read-back needed.
             rows = out.select(*self.obs_keys, *self.done_keys).unsqueeze(0)
             return rows, out.get(STATE).unsqueeze(0) if want_states else None
+        if self._fast:
+            keys = [*self.obs_keys, *self.done_keys]
+            if want_states and self.has_state:
+                keys.append(STATE)
+            out = self.env.branch_restore(slots.tolist(), states, keys)
+            snap = None
+            if want_states:
+                snap = out.pop(STATE) if self.has_state else self._read_all_states()[slots]
+            return out, snap
         n = self.num_slots
         where = torch.zeros(n, dtype=torch.long)
         where[slots] = torch.arange(len(slots))
@@ -99,27 +115,39 @@ class EnvSlots:
             snap = out.get(STATE)[slots] if self.has_state else self._read_all_states()[slots]
         return out.select(*self.obs_keys, *self.done_keys)[slots], snap
 
-    def step(self, td: TensorDictBase, active: torch.Tensor) -> TensorDictBase:
+    def step(
+        self, td: TensorDictBase, active: torch.Tensor, *, want_states: bool = True
+    ) -> TensorDictBase:
         """Step the ``active`` slots with the actions in ``td`` (batch ``[W]``).
 
-        Returns ``td`` with its ``"next"`` entry; rows of inactive slots are garbage.
+        Returns:
+            The step's ``"next"`` entries, batch ``[W]``: observations, reward and done
+            flags, and, when ``want_states`` and the workers return them, ``"state"``.
+            Rows of inactive slots are garbage.
         """
         if not self.batched:
             out = self.env.step(td[0].exclude("_step"))
-            return out.unsqueeze(0)
+            return out.get("next").unsqueeze(0)
+        if self._fast:
+            keys = self.next_keys + [STATE] if want_states and self.has_state else self.next_keys
+            workers = active.nonzero().squeeze(-1).tolist()
+            return self.env.branch_step(td, workers, keys)
         if bool(active.all()):
-            return self.env.step(td)
+            return self.env.step(td).get("next")
         td.set("_step", active)
         out = self.env.step(td)
         out.pop("_step", None)
-        return out
+        return out.get("next")
 
-    def next_states(self, td: TensorDictBase, slots: torch.Tensor) -> TensorDictBase:
-        """The states after the step just taken, for ``slots``."""
-        snap = td.get(("next", STATE), None)
-        if snap is not None:
-            return snap[slots]
-        return self._read_all_states()[slots]
+    def next_states(self, nxt: TensorDictBase, rows: torch.Tensor | None) -> TensorDictBase:
+        """The states after the step just taken, for the slots ``rows`` (``None``: all).
+
+        ``nxt`` is what :meth:`step` returned, asked with ``want_states=True``.
+        """
+        snap = nxt.get(STATE, None)
+        if snap is None:
+            snap = self._read_all_states()
+        return snap if rows is None else snap[rows]
 
     def reseed(self, states: TensorDictBase, seeds: list[int]) -> TensorDictBase:
         """``states`` ``[N]``, each with its simulator generator restarted from its seed."""
@@ -135,9 +163,13 @@ class EnvSlots:
                 self._local = _base(self.env)
             else:
                 batched = _base(self.env)
-                self._local = _base(
-                    batched.create_env_fn[0](**(batched.create_env_kwargs[0] or {}))
-                )
+                # Building one takes ~0.2 s (a gym.make and a reset): every rollout on
+                # this env (a new EnvSlots each) reuses the first.
+                local = _LOCAL_ENVS.get(batched)
+                if local is None:
+                    local = _base(batched.create_env_fn[0](**(batched.create_env_kwargs[0] or {})))
+                    _LOCAL_ENVS[batched] = local
+                self._local = local
         return self._local
 
     # ------------------------------------------------------------------ states
@@ -153,6 +185,10 @@ class EnvSlots:
             self._warned_slow = True
         states: Sequence[TensorDictBase] = _get_state(self.env)
         return torch.stack(list(states))
+
+
+# The local env of each batched env, for as long as the batched env lives.
+_LOCAL_ENVS: weakref.WeakKeyDictionary[EnvBase, EnvBase] = weakref.WeakKeyDictionary()
 
 
 def _under(key: NestedKey, root: str) -> bool:

@@ -12,11 +12,14 @@ from __future__ import annotations
 import functools
 import logging
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from typing import Any, Literal
 
+import torch
+from tensordict import NestedKey, TensorDict, TensorDictBase, unravel_key
 from torchrl.envs import EnvBase, ParallelEnv, SerialEnv, TransformedEnv
 
+from torchrl_grpo.branching.keys import STATE
 from torchrl_grpo.envs import HighwayEnv
 
 logger = logging.getLogger(__name__)
@@ -38,18 +41,34 @@ class BranchParallelEnv(ParallelEnv):
     flags, which keeps one core busy in the parent. With W workers on W cores the
     workers then share W - 1 cores: on 2 cores, 2 workers ran no faster than 1 (the
     benchmark's ``W=2 spin`` row). This subclass polls the same flags with short
-    sleeps (10 to 500 us, against steps of 10+ ms), leaving the cores to the workers.
-    Everything else is ``ParallelEnv``.
+    sleeps (10 us to 2 ms, against steps of 10+ ms), leaving the cores to the workers.
+    Each sleep costs the parent CPU (a wake-up, 15 to 50 us), so a wait of
+    :meth:`branch_restore` / :meth:`branch_step` starts with one sleep of 60 % of the
+    recent waits of its kind and then polls every 1/24th of them: about 10 wake-ups
+    per step instead of 60+.
 
-    The override replaces a private method: it is written against torchrl 0.14.1,
+    Branch rollouts also restore and step workers through :meth:`branch_restore`
+    and :meth:`branch_step`, which move only what a branch rollout reads between
+    the parent and the workers: the actions and, on a restore, the state in; the
+    observations, reward, done flags and (only when asked) the state out. TorchRL's
+    ``reset`` and ``step`` walk every entry of the shared buffers, simulator states
+    included, on every call, which cost the parent milliseconds per step.
+
+    The overrides replace private parts: they are written against torchrl 0.14.1,
     whose ``ParallelEnv._wait_for_workers(workers_range)`` waits, in shared-buffer
     mode, until the byte ``_shm_done_flags[_worker_indices[i]]`` of every worker
-    ``i`` is set, then clears them. When those attributes are not there as expected
+    ``i`` is set, then clears them, and whose workers answer ``("step", {})`` and
+    ``("reset", (keys, kwargs))`` by stepping or resetting from the shared buffers
+    (``shared_tensordict_parent``). When those attributes are not there as expected
     (another TorchRL version, pipe mode with ``use_buffers=False``) or
-    :attr:`sleep_while_waiting` is ``False``, TorchRL's own wait runs instead.
+    :attr:`sleep_while_waiting` is ``False``, TorchRL's own wait runs instead; when
+    :meth:`branch_fast_paths_apply` is ``False``, branch rollouts use ``reset`` and
+    ``step``.
 
     Attributes:
         sleep_while_waiting: set to ``False`` to use TorchRL's spinning wait.
+        branch_fast_paths: set to ``False`` to make branch rollouts use TorchRL's
+            ``reset`` and ``step``.
 
     Example:
         >>> import functools
@@ -62,8 +81,14 @@ class BranchParallelEnv(ParallelEnv):
     """
 
     sleep_while_waiting: bool = True
+    branch_fast_paths: bool = True
     _MIN_SLEEP = 1e-5
     _MAX_SLEEP = 5e-4
+    # Waits of branch_restore / branch_step: a first sleep of this share of the
+    # recent waits of that kind (a moving average), then polls every 1/24th of it.
+    _FIRST_SLEEP_SHARE = 0.6
+    _POLLS_PER_WAIT = 24
+    _MAX_POLL_SLEEP = 2e-3
 
     def _sleeping_wait_applies(self) -> bool:
         # Read the instance dict: ParallelEnv.__getattr__ forwards unknown attributes
@@ -88,9 +113,19 @@ class BranchParallelEnv(ParallelEnv):
         flags, indices = self._shm_done_flags, self._worker_indices
         workers = list(workers_range)
         timeout = self.BATCHED_PIPE_TIMEOUT
-        deadline = time.monotonic() + timeout
+        start = time.monotonic()
+        deadline = start + timeout
         delay = self._MIN_SLEEP
         polls = 0
+        kind = self.__dict__.get("_wait_kind")
+        recent = self.__dict__.setdefault("_recent_waits", {}).get(kind, 0.0)
+        max_delay = self._MAX_SLEEP
+        if kind is not None and recent > 0 and not all(flags[indices[i]] for i in workers):
+            time.sleep(self._FIRST_SLEEP_SHARE * recent)
+            # Polls spaced by a small share of the wait: few wake-ups, little overshoot.
+            delay = max_delay = min(
+                max(self._MIN_SLEEP, recent / self._POLLS_PER_WAIT), self._MAX_POLL_SLEEP
+            )
         while not all(flags[indices[i]] for i in workers):
             polls += 1
             if polls % 64 == 0:
@@ -109,10 +144,124 @@ class BranchParallelEnv(ParallelEnv):
                     finally:
                         raise RuntimeError(f"Cannot proceed, worker {dead[0]} dead.")
             time.sleep(delay)
-            delay = min(2 * delay, self._MAX_SLEEP)
+            delay = min(2 * delay, max_delay)
+        if kind is not None:
+            waited = time.monotonic() - start
+            self._recent_waits[kind] = 0.8 * recent + 0.2 * waited if recent else waited
         for i in workers:
             flags[indices[i]] = 0
         return None
+
+    def _wait_as(self, kind: str, workers: list[int]) -> None:
+        """Wait for ``workers``, timing the wait with the other waits of ``kind``."""
+        self._wait_kind = kind
+        try:
+            self._wait_for_workers(workers)
+        finally:
+            self._wait_kind = None
+
+    # ------------------------------------------------------------ branch rollouts
+    def branch_fast_paths_apply(self) -> bool:
+        """Whether :meth:`branch_restore` and :meth:`branch_step` may run on this env.
+
+        They need the worker protocol and shared buffers of torchrl 0.14.1, on CPU,
+        with tensor-only entries, and workers whose step reads nothing but the action
+        (and whose reset nothing but the state) from the buffers.
+        """
+        if not self.branch_fast_paths:
+            return False
+        if self.is_closed:
+            self.start()
+        d = self.__dict__
+        shared = d.get("shared_tensordict_parent")
+        channels = d.get("parent_channels")
+        inputs = d.get("_env_input_keys")
+        if not (
+            bool(d.get("_use_buffers", False))
+            and not d.get("_non_tensor_keys")
+            and d.get("event") is None
+            and self.device is not None
+            and self.device.type == "cpu"
+            and isinstance(shared, TensorDict)
+            and tuple(shared.batch_size) == (self.num_workers,)
+            and tuple(self.batch_size) == (self.num_workers,)
+            and isinstance(channels, list)
+            and len(channels) == self.num_workers
+            and isinstance(inputs, list)
+        ):
+            return False
+        actions = {unravel_key(k) for k in self.action_keys}
+        return all(
+            unravel_key(k) in actions or _under_state(unravel_key(k)) for k in inputs
+        ) and all(k in shared.keys(True, True) for k in actions)
+
+    def branch_restore(
+        self, workers: list[int], states: TensorDictBase, keys: Sequence[NestedKey]
+    ) -> TensorDict:
+        """Restore ``states[i]`` in worker ``workers[i]``; return their ``keys`` entries.
+
+        What ``reset(TensorDict(state=..., _reset=mask), set_state=True)`` does for
+        these workers, without touching the others' buffers.
+
+        Args:
+            workers: the workers to restore, each once.
+            states: their states, batch ``[len(workers)]``.
+            keys: the reset output entries to return (e.g. observations, ``"state"``).
+
+        Returns:
+            A new tensordict of batch ``[len(workers)]``.
+        """
+        shared = self.shared_tensordict_parent
+        index = torch.tensor(workers, dtype=torch.long)
+        buffers = self.__dict__.get("_branch_state_buffers")
+        if buffers is None:
+            buffers = list(shared.get(STATE).items(True, True))
+            self._branch_state_buffers = buffers
+            # The entries a worker's reset reads from its buffer (TorchRL sends the
+            # keys of the reset's input).
+            self._branch_reset_keys = [(STATE, *_as_tuple(k)) for k, _ in buffers]
+        # Leaf by leaf: a tensordict __setitem__ costs ~1 ms for the ~40 state leaves.
+        for key, buffer in buffers:
+            buffer.index_copy_(0, index, states.get(key))
+        reset_keys = self._branch_reset_keys
+        for i in workers:
+            self.parent_channels[i].send(("reset", (reset_keys, {"set_state": True})))
+        self._wait_as("restore", workers)
+        return shared.select(*keys)[index]
+
+    def branch_step(
+        self, actions: TensorDictBase, workers: list[int], keys: Sequence[NestedKey]
+    ) -> TensorDict:
+        """Step ``workers`` with their rows of ``actions``; return the ``("next", key)`` entries.
+
+        What ``step`` with a ``"_step"`` mask does for these workers, without copying
+        anything but the actions in and ``keys`` out.
+
+        Args:
+            actions: batch ``[W]``, holding the env's action entries.
+            workers: the workers to step.
+            keys: the ``"next"`` entries to return.
+
+        Returns:
+            A new tensordict of batch ``[W]``; the rows of the workers not stepped are
+            whatever their buffers held.
+        """
+        shared = self.shared_tensordict_parent
+        for key in self.action_keys:
+            # Rows of the workers not stepped are written too, and never read.
+            shared.get(key).copy_(actions.get(key))
+        for i in workers:
+            self.parent_channels[i].send(("step", {}))
+        self._wait_as("step", workers)
+        return shared.get("next").select(*keys).clone()
+
+
+def _as_tuple(key: NestedKey) -> tuple[str, ...]:
+    return key if isinstance(key, tuple) else (key,)
+
+
+def _under_state(key: NestedKey) -> bool:
+    return _as_tuple(key)[0] == STATE
 
 
 def make_branch_env(
@@ -139,7 +288,9 @@ def make_branch_env(
             return their state after every reset and step (``"state"``,
             ``("next", "state")``) and branch rollouts read states (final states,
             ``return_states=True``) from shared memory. It costs every worker step
-            an encode and a copy (about 2.5 ms of a 20 ms highway-fast-v0 step).
+            an encode (~0.2 ms) and TorchRL's copies of the state's ~40 leaves in
+            the worker (together ~1.5 ms of a ~20 ms highway-fast-v0 step), even
+            in rollouts that keep no states: the workers' buffers follow their specs.
             Without it, states are read with ``env.get_state()``, one pipe round
             trip to all workers per read (about 18 ms for 2 workers): fine for
             final states (one read per wave), slow for ``return_states=True`` (one
