@@ -23,7 +23,14 @@ from env_helpers import (
 from tensordict import TensorDict
 from torchrl.envs import ParallelEnv, SerialEnv
 
-from torchrl_grpo.envs import HIGHWAY_SCENARIOS, HighwayEnv, SnapshotError
+from torchrl_grpo.envs import (
+    HIGHWAY_SCENARIOS,
+    HighwayEnv,
+    SnapshotError,
+    SnapshotParallelEnv,
+    SnapshotSerialEnv,
+    StateMismatchError,
+)
 
 SCENARIO = "highway-fast-v0"  # IDM traffic: sensitive to intersection-v0's constants
 STEPS = 30
@@ -148,8 +155,9 @@ def test_return_state_in_a_batched_env():
 
 @pytest.mark.xfail(
     strict=True,
-    reason="LIMITATION: a batched restore is not atomic: SerialEnv restores worker 0 before "
-    "worker 1 refuses its corrupted state, so the error leaves worker 0 modified",
+    reason="LIMITATION of TorchRL's plain SerialEnv: it restores worker 0 before worker 1 "
+    "refuses its corrupted state, so the error leaves worker 0 modified (SnapshotSerialEnv "
+    "checks every state first: test_snapshot_batched_env_refuses_bad_states)",
 )
 def test_batched_restore_error_leaves_every_worker_untouched():
     env = SerialEnv(2, functools.partial(HighwayEnv, SCENARIO, seed=0))
@@ -170,9 +178,10 @@ def test_batched_restore_error_leaves_every_worker_untouched():
 @pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
-    reason="LIMITATION: a SnapshotError raised inside a ParallelEnv worker kills the worker: "
-    "the caller gets RuntimeError('Cannot proceed, worker 0 dead') instead of the error "
-    "naming the problem, and the ParallelEnv is unusable afterwards",
+    reason="LIMITATION of TorchRL's plain ParallelEnv: a SnapshotError raised inside a worker "
+    "kills it: the caller gets RuntimeError('Cannot proceed, worker 0 dead') instead of the "
+    "error naming the problem (SnapshotParallelEnv checks states in the parent: "
+    "test_snapshot_batched_env_refuses_bad_states)",
 )
 def test_parallel_worker_survives_a_bad_state():
     env = ParallelEnv(1, functools.partial(HighwayEnv, SCENARIO, seed=0))
@@ -188,6 +197,51 @@ def test_parallel_worker_survives_a_bad_state():
             env.close(raise_if_closed=False)
         except RuntimeError:
             pass  # the dead worker makes close() raise as well
+
+
+def _nan_time(state):
+    bad = faithful_copy(state)
+    bad["sim", "env", "time"].view(torch.float64).fill_(float("nan"))
+    return bad
+
+
+@pytest.mark.parametrize("cls", [SnapshotSerialEnv, SnapshotParallelEnv])
+def test_snapshot_batched_env_refuses_bad_states(cls):
+    """A refused state names itself and its worker; no worker is modified, none dies."""
+    kwargs = {"mp_start_method": "fork"} if cls is SnapshotParallelEnv else {}
+    env = cls(2, functools.partial(HighwayEnv, SCENARIO, seed=0), **kwargs)
+    try:
+        env.reset()
+        before = env.get_state()
+        good = snapshot_after(seed=3, warmup=2)
+        other = HighwayEnv("merge-v0", seed=0).get_state()
+        for states, error, match in [
+            ([good, _nan_time(good)], SnapshotError, "worker 1: .*time"),
+            ([other, other], StateMismatchError, "worker 0"),
+        ]:
+            with pytest.raises(error, match=match):
+                batched_restore(env, states)
+            for w, (a, b) in enumerate(zip(before, env.get_state(), strict=True)):
+                assert_bitwise_equal(b, a, f"worker {w}")
+        # A "_reset" mask restores only its workers: only theirs are checked.
+        masked = TensorDict(
+            state=torch.stack([good, _nan_time(good)]),
+            _reset=torch.tensor([[True], [False]]),
+            batch_size=[2],
+        )
+        env.reset(masked, set_state=True)
+        assert_bitwise_equal(env.get_state()[0], good, "the restored worker")
+        assert_bitwise_equal(env.get_state()[1], before[1], "the worker not reset")
+        # Every worker lives on: a good restore and steps work, bitwise as in this process.
+        batched_restore(env, [good, good])
+        actions = careful_actions(HighwayEnv(SCENARIO, seed=0), 5)
+        _, ref_state = replay(good, actions)
+        for action in actions:
+            env.step(TensorDict(action=action.expand(2).clone(), batch_size=[2]))
+        for w, state in enumerate(env.get_state()):
+            assert_bitwise_equal(state, ref_state, f"worker {w} after 5 steps")
+    finally:
+        env.close(raise_if_closed=False)
 
 
 @pytest.mark.slow

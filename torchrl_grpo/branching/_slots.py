@@ -14,7 +14,6 @@ States are read from the env's output when its workers return them
 from __future__ import annotations
 
 import logging
-import weakref
 from collections.abc import Sequence
 
 import torch
@@ -24,7 +23,7 @@ from torchrl.envs import EnvBase, TransformedEnv
 
 from torchrl_grpo.branching.keys import STATE
 from torchrl_grpo.branching.workers import BranchParallelEnv
-from torchrl_grpo.envs import StateCorruptedError
+from torchrl_grpo.envs import StateCorruptedError, local_worker_env
 
 logger = logging.getLogger(__name__)
 
@@ -154,22 +153,12 @@ class EnvSlots:
         return self._local_env().reseed_state(states, seeds)
 
     def _local_env(self) -> EnvBase:
-        """The env itself, or a local instance built like a batched env's first worker.
+        """The env itself, or a local copy of a batched env's first worker (cached).
 
         It holds a codec in this process, for validating and reseeding states.
         """
         if self._local is None:
-            if not self.batched:
-                self._local = _base(self.env)
-            else:
-                batched = _base(self.env)
-                # Building one takes ~0.2 s (a gym.make and a reset): every rollout on
-                # this env (a new EnvSlots each) reuses the first.
-                local = _LOCAL_ENVS.get(batched)
-                if local is None:
-                    local = _base(batched.create_env_fn[0](**(batched.create_env_kwargs[0] or {})))
-                    _LOCAL_ENVS[batched] = local
-                self._local = local
+            self._local = local_worker_env(self.env)
         return self._local
 
     # ------------------------------------------------------------------ states
@@ -187,18 +176,8 @@ class EnvSlots:
         return torch.stack(list(states))
 
 
-# The local env of each batched env, for as long as the batched env lives.
-_LOCAL_ENVS: weakref.WeakKeyDictionary[EnvBase, EnvBase] = weakref.WeakKeyDictionary()
-
-
 def _under(key: NestedKey, root: str) -> bool:
     return key == root or (isinstance(key, tuple) and key[0] == root)
-
-
-def _base(env: EnvBase) -> EnvBase:
-    while isinstance(env, TransformedEnv):
-        env = env.base_env
-    return env
 
 
 def _get_state(env: EnvBase) -> TensorDictBase | Sequence[TensorDictBase]:

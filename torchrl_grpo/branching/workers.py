@@ -17,10 +17,10 @@ from typing import Any, Literal
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase, unravel_key
-from torchrl.envs import EnvBase, ParallelEnv, SerialEnv, TransformedEnv
+from torchrl.envs import EnvBase, TransformedEnv
 
 from torchrl_grpo.branching.keys import STATE
-from torchrl_grpo.envs import HighwayEnv
+from torchrl_grpo.envs import HighwayEnv, SnapshotParallelEnv, SnapshotSerialEnv
 
 logger = logging.getLogger(__name__)
 
@@ -34,8 +34,11 @@ __all__ = [
 ]
 
 
-class BranchParallelEnv(ParallelEnv):
+class BranchParallelEnv(SnapshotParallelEnv):
     """A ``ParallelEnv`` whose parent process sleeps while its workers step.
+
+    As a :class:`~torchrl_grpo.envs.SnapshotParallelEnv`, it checks states in the
+    parent before a ``reset(..., set_state=True)`` sends them to its workers.
 
     TorchRL's ``ParallelEnv`` waits for its workers by spinning on shared-memory
     flags, which keeps one core busy in the parent. With W workers on W cores the
@@ -282,8 +285,8 @@ def make_branch_env(
             with ``backend="parallel"``). ``1`` with ``"single"``.
         config: scenario config overrides, the same in every worker.
         backend: ``"parallel"`` (a :class:`BranchParallelEnv`: one process per worker),
-            ``"serial"`` (a ``SerialEnv``: the same API in this process, for
-            debugging) or ``"single"`` (one plain env, no batch dimension).
+            ``"serial"`` (a :class:`~torchrl_grpo.envs.SnapshotSerialEnv`: the same
+            API in this process, for debugging) or ``"single"`` (one plain env, no batch dimension).
         snapshots: build the workers with ``return_state=True``, so that they
             return their state after every reset and step (``"state"``,
             ``("next", "state")``) and branch rollouts read states (final states,
@@ -326,7 +329,7 @@ def make_branch_env(
             raise ValueError(f"backend='single' runs one env, got num_workers={num_workers}")
         return make()
     if backend == "serial":
-        return SerialEnv(num_workers, make)
+        return SnapshotSerialEnv(num_workers, make)
     kwargs: dict[str, Any] = {}
     if mp_start_method is not None:
         kwargs["mp_start_method"] = mp_start_method

@@ -1,5 +1,11 @@
 """TorchRL environments whose complete simulator state is a TensorDict of tensors."""
 
+from torchrl_grpo.envs.batched import (
+    SnapshotParallelEnv,
+    SnapshotSerialEnv,
+    check_worker_states,
+    local_worker_env,
+)
 from torchrl_grpo.envs.cartpole_codec import CartPoleStateCodec
 from torchrl_grpo.envs.codec import (
     StateCodec,
@@ -34,13 +40,17 @@ __all__ = [
     "HighwayStateCodec",
     "SnapshotEnv",
     "SnapshotError",
+    "SnapshotParallelEnv",
+    "SnapshotSerialEnv",
     "StateCapacityError",
     "StateCodec",
     "StateCorruptedError",
     "StateMismatchError",
     "UnknownFieldError",
     "check_state_layout",
+    "check_worker_states",
     "codec_for",
+    "local_worker_env",
     "register_class_parameter",
     "register_codec",
     "register_vehicle_class",

@@ -278,9 +278,11 @@ class SnapshotEnv(EnvBase):
     def validate_state(self, state: TensorDictBase) -> None:
         """Run every check a restore runs, without modifying this env.
 
-        ``state`` may be batched (each state is checked). Check states in the parent
-        process before restoring them in the workers of a batched env: a worker that
-        raises dies, and a ``SerialEnv`` restores the workers one after the other.
+        ``state`` may be batched (each state is checked). Batched envs of snapshot
+        envs should check states in the parent process before their workers restore
+        them (a ``ParallelEnv`` worker that raises dies, and a ``SerialEnv`` restores
+        the workers one after the other): :class:`~torchrl_grpo.envs.SnapshotParallelEnv`
+        and :class:`~torchrl_grpo.envs.SnapshotSerialEnv` do.
 
         Raises:
             SnapshotError: the first state that does not fit, with the reason.
