@@ -61,7 +61,8 @@ for env, algo, seed, last in rows:
 
 for env, by_algo in curves.items():
     # Compare at the same frames: cut every run where the shortest one stops.
-    cut = args.max_frames or min(h[-1]["frames"] for hs in by_algo.values() for h in hs)
+    # (5% slack: runs stop at the first batch boundary past their budget).
+    cut = args.max_frames or 1.05 * min(h[-1]["frames"] for hs in by_algo.values() for h in hs)
     by_algo = {a: [[r for r in h if r["frames"] <= cut] for h in hs] for a, hs in by_algo.items()}
     hlines = {}
     if args.baselines:
