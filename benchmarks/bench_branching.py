@@ -31,6 +31,7 @@ import time
 import warnings
 
 import torch
+from claims import claim
 from torchrl.envs import ParallelEnv
 
 from torchrl_grpo.branching import (
@@ -192,14 +193,19 @@ def main() -> None:
     p1, w1 = per_step["W=1"]
     p2, w2 = per_step["W=2"]
     print("ratios")
-    print(f"  W=2 / W=1    = {med['W=2'] / med['W=1']:.2f}   (goal >= 1.7 on 2 cores)")
+    claim(
+        f"{args.scenario}: branch steps/s, 2 workers / 1 worker", med["W=2"] / med["W=1"], ">=1.7"
+    )
     print(f"  W=2 spin / W=1 = {med['W=2 spin'] / med['W=1']:.2f}   (TorchRL's spinning parent)")
     print(
         f"  W=2 / W=1 projected from CPU times on 2 free cores = "
         f"{2 * (p1 + w1) / (2 * p2 + w2):.2f}"
     )
-    print(f"  W=2 / raw    = {med['W=2'] / med['raw']:.2f}")
-    print(f"  single / raw = {med['single'] / med['raw']:.2f}   (restores + masking, in process)")
+    claim(f"{args.scenario}: branch steps/s, 2 workers / raw single env", med["W=2"] / med["raw"])
+    claim(
+        f"{args.scenario}: branch steps/s in process / raw env (restores + masking)",
+        med["single"] / med["raw"],
+    )
     print(f"  W=1 / raw    = {med['W=1'] / med['raw']:.2f}   (+ worker round trips, states)")
 
 

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import gymnasium as gym
 import numpy as np
 import torch
+from claims import claim
 from tensordict import TensorDict
 
 from torchrl_grpo.envs import HighwayEnv
@@ -49,10 +50,6 @@ def interleaved(a: Callable[[], object], b: Callable[[], object], calls: int, re
         ta.append(per_call(a, calls))
         tb.append(per_call(b, calls))
     return statistics.median(ta), statistics.median(tb)
-
-
-def row(name: str, value: float, goal: str, met: bool) -> None:
-    print(f"  {name:<52} {value:10.4f}   goal {goal:<7} {'MET' if met else 'NOT MET'}")
 
 
 @dataclass
@@ -156,7 +153,7 @@ def bench(scenario: str, repeats: int, episodes: int) -> None:
         f"  step calls ({len(seeds)} episodes, same seeds and actions on both sides): "
         f"HighwayEnv {1 / t_ours:8.1f}/s, raw gymnasium {1 / t_raw:8.1f}/s"
     )
-    row("HighwayEnv / raw step throughput", ratio, ">=0.97", ratio >= 0.97)
+    claim(f"{scenario}: HighwayEnv / raw step throughput", ratio, ">=0.97")
     ratio_all = t_raw_all / t_ours_all
     print(
         f"  for information, resets included: HighwayEnv {1 / t_ours_all:8.1f}/s, "
@@ -186,18 +183,8 @@ def bench(scenario: str, repeats: int, episodes: int) -> None:
         f"  get_state + reset(set_state) {t_snap * 1e3:.3f} ms, codec encode + decode "
         f"{t_codec * 1e3:.3f} ms, deepcopy {t_copy * 1e3:.3f} ms"
     )
-    row(
-        "(get_state + restore) / deepcopy, via TorchRL reset",
-        t_snap / t_copy,
-        "<=0.7",
-        t_snap / t_copy <= 0.7,
-    )
-    row(
-        "(encode + decode) / deepcopy, codec alone",
-        t_codec / t_copy,
-        "<=0.7",
-        t_codec / t_copy <= 0.7,
-    )
+    claim(f"{scenario}: (get_state + restore) / deepcopy", t_snap / t_copy, "<=0.7")
+    claim(f"{scenario}: (encode + decode) / deepcopy, codec alone", t_codec / t_copy)
 
     def restore() -> None:
         env.reset(td, set_state=True)
@@ -209,17 +196,12 @@ def bench(scenario: str, repeats: int, episodes: int) -> None:
 
     t_restore, t_replay = interleaved(restore, reset_replay, calls=5, repeats=repeats)
     print(f"  restore {t_restore * 1e3:.3f} ms, reset + 5-step replay {t_replay * 1e3:.1f} ms")
-    row(
-        "restore / (reset + replay 5 steps)",
-        t_restore / t_replay,
-        "<=0.01",
-        t_restore / t_replay <= 0.01,
-    )
+    claim(f"{scenario}: restore / (reset + replay of 5 steps)", t_restore / t_replay, "<=1/100")
 
     state_bytes = sum(t.numel() * t.element_size() for t in state.values(True, True))
     pickled = len(pickle.dumps(env.gym_env.unwrapped))
     print(f"  state {state_bytes} bytes, pickled env {pickled} bytes")
-    row("state bytes / pickled env bytes", state_bytes / pickled, "<=1.0", state_bytes <= pickled)
+    claim(f"{scenario}: state bytes / pickled env bytes", state_bytes / pickled, "<=1.0")
     env.close()
     raw.close()
 

@@ -17,6 +17,7 @@ import time
 import warnings
 
 import torch
+from claims import claim
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn
@@ -120,8 +121,7 @@ def main() -> None:
         t_loss, t_ref = time_pair(loss, ppo, batch, max(args.reps // 2, 10))
         print(f"{name:<21} fwd+bwd {t_loss * 1e3:7.2f} ms  ({t_loss / t_ref:.2f}x PPO, info)")
 
-    print(f"ratio GRPOLoss / ClipPPOLoss = {ratio:.3f} (goal <= {GOAL})")
-    print("goal met" if ratio <= GOAL else "goal NOT met")
+    claim("GRPOLoss / ClipPPOLoss, forward + backward", ratio, f"<={GOAL}")
 
 
 if __name__ == "__main__":

@@ -35,6 +35,7 @@ import warnings
 from pathlib import Path
 
 import torch
+from claims import claim
 from hydra import compose, initialize_config_dir
 
 from torchrl_grpo.branching import GroupCollector, make_branch_env
@@ -130,7 +131,9 @@ print(
 )
 print(f"local GroupCollector, ParallelEnv W={args.workers}: {local:.2f} groups/s  {rates['local']}")
 print(f"Ray, {args.actors} actors x 1 env:           {ray_groups:.2f} groups/s  {rates['ray']}")
-print(f"ratio ray / local:                 {ray_groups / local:.2f}")
+claim(
+    f"{args.scenario}: groups/s, Ray ({args.actors} actors) / local ParallelEnv", ray_groups / local
+)
 print(f"learner update per batch of {args.groups} groups: {update:.2f} s  {rates['update']}")
 print("projection, synchronous (node = this machine's Ray rate):")
 print("  K nodes | collect s | update s | groups/s | speedup vs 1 node")

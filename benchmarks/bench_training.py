@@ -14,9 +14,11 @@ scripted baselines evaluated on the same seeds.
 import argparse
 import json
 import logging
+import statistics
 from collections import defaultdict
 from pathlib import Path
 
+from claims import claim
 from omegaconf import OmegaConf
 
 from torchrl_grpo.training import plot_learning_curve
@@ -81,3 +83,24 @@ for env, by_algo in curves.items():
             hlines=hlines if metric == "return" else None,
         )
         log.info("wrote %s", path)
+    # The claim: how soon each algorithm's greedy policy beats always-SLOWER (a run
+    # beats it at its first evaluation whose return is above the baseline's).
+    slower = hlines.get("always-SLOWER")
+    if slower is None:
+        continue
+    for algo, histories in by_algo.items():
+        beaten = [next((r for r in h if r["return"] > slower), None) for h in histories]
+        hits = [r for r in beaten if r is not None]
+        if hits:
+            frames = statistics.median(r["frames"] for r in hits)
+            walls = [r["wall_seconds"] for r in hits if "wall_seconds" in r]
+            wall = f", {statistics.median(walls):.0f} s of training" if walls else ""
+            note = f"median of the runs that did: {frames:.0f} frames{wall}"
+        else:
+            note = f"no run did within {cut:.0f} frames"
+        claim(
+            f"{envs[env].scenario} {algo}: share of runs beating always-SLOWER ({slower:.2f})",
+            len(hits) / len(histories),
+            ">=1.0",
+            note=note,
+        )

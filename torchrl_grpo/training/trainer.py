@@ -125,6 +125,15 @@ class TrainResult:
         iterations: training iterations done.
         interrupted: the run was stopped by Ctrl-C.
         final: the final evaluation's summary.
+
+    Example:
+        >>> run_dir = Path("outputs/run")
+        >>> result = TrainResult(run_dir, checkpoint=run_dir / "last.pt", frames=2048,
+        ...                      iterations=4, final={"return": 21.5})
+        >>> status = "interrupted (Ctrl-C)" if result.interrupted else "done"
+        >>> print(f"{status}: {result.frames} env frames, {result.iterations} iterations, "
+        ...       f"return {result.final['return']:.2f}, checkpoint {result.checkpoint.name}")
+        done: 2048 env frames, 4 iterations, return 21.50, checkpoint last.pt
     """
 
     run_dir: Path
@@ -184,6 +193,10 @@ class Trainer:
         self.iteration = 0
         self.frames = 0
         self.updates = 0
+        # Seconds of training so far (resumed runs continue the count), and the start of
+        # the iteration in progress: evaluation rows record the wall-clock they were at.
+        self.wall_seconds = 0.0
+        self._iteration_start: float | None = None
         self.eval_history: list[dict[str, float]] = []
         self._episode_acc: dict[str, Any] = {}
         self._collector_state: dict[str, Any] | None = None
@@ -205,6 +218,7 @@ class Trainer:
             "iteration": self.iteration,
             "frames": self.frames,
             "updates": self.updates,
+            "wall_seconds": self.wall_seconds,
             "policy": self.policy.state_dict(),
             "value": None if self.value is None else self.value.state_dict(),
             "loss": self.loss.state_dict(),
@@ -233,6 +247,7 @@ class Trainer:
         self.iteration = int(ckpt["iteration"])
         self.frames = int(ckpt["frames"])
         self.updates = int(ckpt["updates"])
+        self.wall_seconds = float(ckpt.get("wall_seconds", 0.0))
         self.eval_history = list(ckpt["eval_history"])
         self._episode_acc = dict(ckpt.get("episode_acc") or {})
         self._collector_state = ckpt["collector"]
@@ -275,7 +290,7 @@ class Trainer:
             start_frames = env_frames(collector)
             data_iter = iter(collector)
             while self.frames < total and not self._stop_requested:
-                t0 = time.perf_counter()
+                t0 = self._iteration_start = time.perf_counter()
                 with timer("collect"):
                     batch = next(data_iter)
                 frames_now = env_frames(collector)
@@ -297,6 +312,8 @@ class Trainer:
                         result.checkpoint = self.save(collector)
                 times = timer.pop()
                 elapsed = time.perf_counter() - t0
+                self.wall_seconds += elapsed
+                self._iteration_start = None
                 metrics.update(times)
                 metrics["time/iteration"] = elapsed
                 metrics["time/fps"] = new_frames / max(times.get("time/collect", elapsed), 1e-9)
@@ -520,7 +537,11 @@ class Trainer:
             record=self._render_env() if record else None,
         )
         summary = res.summary()
-        self.eval_history.append({"iteration": self.iteration, "frames": self.frames, **summary})
+        wall = self.wall_seconds
+        if self._iteration_start is not None:
+            wall += time.perf_counter() - self._iteration_start
+        row = {"iteration": self.iteration, "frames": self.frames, "wall_seconds": wall}
+        self.eval_history.append({**row, **summary})
         with open(self.run_dir / "eval_history.jsonl", "a") as f:
             f.write(json.dumps(self.eval_history[-1]) + "\n")
         if video is not None:
