@@ -94,6 +94,18 @@ class MultiTurnResult:
         final_states: ``[R]`` the state each episode stopped in (the last chosen
             branch's final state).
         ended: ``[R]`` the episode ended (``False``: stopped by ``max_turns``).
+
+    Example:
+        >>> from torchrl_grpo.branching import reset_roots
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> from torchrl_grpo.modules import RandomPolicy
+        >>> env = HighwayEnv("merge-v0", seed=0)
+        >>> roots = reset_roots(env, 1, seed=0)
+        >>> out = multi_turn_rollout(env, RandomPolicy(seed=0), roots, 2, 3, max_turns=2)
+        >>> out.groups.batch_size, out.episode.tolist(), out.turn.tolist()
+        (torch.Size([2, 2, 3]), [0, 0], [0, 1])
+        >>> out.trunk(0)["step_count"].flatten().tolist()  # the chosen branches, in order
+        [0, 1, 2, 3, 4, 5]
     """
 
     groups: TensorDict

@@ -34,6 +34,19 @@ class GroupFigure:
     Attributes:
         image: ``(3, H, W)`` uint8 RGB image.
         path: where the PNG was written (``None`` when no path was given).
+
+    Example:
+        >>> import tempfile
+        >>> from torchrl_grpo.branching import branch_rollout, reset_roots
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> from torchrl_grpo.modules import RandomPolicy
+        >>> env = HighwayEnv("merge-v0", seed=0)
+        >>> data = branch_rollout(env, RandomPolicy(seed=0), reset_roots(env, 1, seed=0), 2, 3)
+        >>> fig = plot_group(data, path=tempfile.mkdtemp() + "/group.png", dpi=20)
+        >>> fig.image.shape, fig.image.dtype, fig.path.name
+        (torch.Size([3, 80, 220]), torch.uint8, 'group.png')
+        >>> fig.video.shape  # for logger.log_video(name, fig.video, step=...)
+        torch.Size([1, 1, 3, 80, 220])
     """
 
     image: torch.Tensor

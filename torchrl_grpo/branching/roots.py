@@ -312,6 +312,24 @@ class RootSource(ABC):
     Subclass it to branch from your own states. A source that continues episodes
     from the collected branches sets ``needs_final_states`` and receives every batch
     through :meth:`observe`.
+
+    Example:
+        >>> from torchrl_grpo.branching import GroupCollector
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> from torchrl_grpo.modules import RandomPolicy
+        >>> class FixedRoot(RootSource):  # every group branches from the same state
+        ...     def __init__(self, state):
+        ...         self.state = state
+        ...     def next_roots(self, env, policy, num_roots):
+        ...         return make_roots([self.state] * num_roots, root_step=0)
+        >>> env = HighwayEnv("merge-v0", seed=0)
+        >>> source = FixedRoot(env.get_state())
+        >>> with GroupCollector(env, RandomPolicy(seed=0), group_size=2, horizon=2,
+        ...                     groups_per_batch=1, total_frames=8, roots=source) as collector:
+        ...     for batch in collector:
+        ...         print(batch.batch_size, batch["group_id"][:, 0, 0].tolist())
+        torch.Size([1, 2, 2]) [0]
+        torch.Size([1, 2, 2]) [1]
     """
 
     needs_final_states: bool = False

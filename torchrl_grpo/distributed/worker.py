@@ -55,6 +55,27 @@ class WorkerSnapshot:
         root_source: a copy of the root source (its seed chain, pending trunk decision
             points or live episodes; a copy is exact where its ``state_dict`` may not be).
         torch_rng: the actor's global torch generator, from which the policy samples.
+
+    Example:
+        >>> import copy, functools
+        >>> from torchrl_grpo.branching import make_branch_env
+        >>> from torchrl_grpo.modules import ConstantActionPolicy
+        >>> def build(seed):  # no Ray needed: GroupWorker is a plain class
+        ...     env_factory = functools.partial(make_branch_env, "merge-v0", 1, backend="single")
+        ...     return GroupWorker(env_factory, ConstantActionPolicy("IDLE"),
+        ...                        dict(group_size=2, horizon=2, groups_per_batch=1),
+        ...                        seed=seed, num_threads=None)
+        >>> worker, replacement = build(0), build(1)
+        >>> snapshot = worker.collect(None, first_group_id=0).snapshot
+        >>> snapshot.collector["frames"]
+        4
+        >>> replacement.restore(copy.deepcopy(snapshot))  # as if shipped to another actor
+        >>> a = worker.collect(None, first_group_id=1).data
+        >>> b = replacement.collect(None, first_group_id=1).data
+        >>> torch.equal(a["observation"], b["observation"])
+        True
+        >>> worker.close(), replacement.close()
+        (None, None)
     """
 
     collector: dict[str, Any]
@@ -70,6 +91,19 @@ class GroupResult:
         data: the ``[R_a, G, T]`` groups (``None`` when the roots ran out).
         snapshot: the actor's state after this batch (where a replacement restarts).
         trunk_frames: trunk steps the actor simulated so far (``roots="trunk"``).
+
+    Example:
+        >>> import functools
+        >>> from torchrl_grpo.branching import make_branch_env
+        >>> from torchrl_grpo.modules import ConstantActionPolicy
+        >>> env_factory = functools.partial(make_branch_env, "merge-v0", 1, backend="single")
+        >>> worker = GroupWorker(env_factory, ConstantActionPolicy("IDLE"),  # no Ray needed
+        ...                      dict(group_size=2, horizon=2, groups_per_batch=1, roots="trunk"),
+        ...                      seed=0, num_threads=None)
+        >>> result = worker.collect(None, first_group_id=0)
+        >>> result.data.batch_size, result.trunk_frames, type(result.snapshot).__name__
+        (torch.Size([1, 2, 2]), 4, 'WorkerSnapshot')
+        >>> worker.close()
     """
 
     data: TensorDictBase | None

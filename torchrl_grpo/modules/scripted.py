@@ -71,6 +71,15 @@ class ScriptedPolicy(TensorDictModule):
         decider: module mapping ``[*batch, V, F]`` to int64 actions ``[*batch]``.
         in_key: observation key.
         out_key: action key.
+
+    Example:
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> class AlwaysFaster(nn.Module):
+        ...     def forward(self, observation):
+        ...         return torch.full(observation.shape[:-2], FASTER, dtype=torch.int64)
+        >>> policy = ScriptedPolicy(AlwaysFaster())
+        >>> HighwayEnv("merge-v0", seed=0).rollout(3, policy)["action"].tolist()
+        [3, 3, 3]
     """
 
     def __init__(
@@ -567,6 +576,18 @@ class AggressivePolicy(ScriptedPolicy):
         brake_ttc: time to collision (s) below which it brakes.
         in_key: observation key.
         out_key: action key.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> layout = KinematicsLayout()  # highway-env's default observation, 3 lanes
+        >>> cols = {f: torch.zeros(2, 5) for f in layout.features}  # two scenes
+        >>> cols["presence"][:, :2] = 1.0  # the ego (row 0) and one other vehicle
+        >>> cols["y"][:, 0], cols["vx"][:, 0] = 4.0, 25.0  # ego: middle lane, 25 m/s
+        >>> cols["x"][:, 1] = torch.tensor([100.0, 12.0])  # the other: 100 m / 12 m ahead
+        >>> obs = layout.encode(cols)
+        >>> AggressivePolicy(layout)(TensorDict(observation=obs, batch_size=[2]))[
+        ...     "action"].tolist()  # FASTER when the lane is free, else LANE_LEFT
+        [3, 0]
     """
 
     def __init__(
@@ -613,6 +634,18 @@ class ConservativePolicy(ScriptedPolicy):
         ttc: time to collision (s) below which it brakes.
         in_key: observation key.
         out_key: action key.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> layout = KinematicsLayout()  # highway-env's default observation, 3 lanes
+        >>> cols = {f: torch.zeros(2, 5) for f in layout.features}  # two scenes
+        >>> cols["presence"][:, :2] = 1.0  # the ego (row 0) and one other vehicle
+        >>> cols["y"][:, 0], cols["vx"][:, 0] = 4.0, 25.0  # ego: middle lane, 25 m/s
+        >>> cols["x"][:, 1] = torch.tensor([100.0, 60.0])  # the other: 100 m / 60 m ahead
+        >>> obs = layout.encode(cols)
+        >>> ConservativePolicy(layout)(TensorDict(observation=obs, batch_size=[2]))[
+        ...     "action"].tolist()  # IDLE beyond a 3 s headway, SLOWER within it
+        [1, 4]
     """
 
     def __init__(
@@ -658,6 +691,19 @@ class LaneChangePolicy(ScriptedPolicy):
         ttc: time to collision (s) below which it brakes.
         in_key: observation key.
         out_key: action key.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> layout = KinematicsLayout()  # highway-env's default observation, 3 lanes
+        >>> cols = {f: torch.zeros(2, 5) for f in layout.features}  # two scenes
+        >>> cols["presence"][:, 0] = 1.0  # the ego alone on the road
+        >>> cols["y"][:, 0] = torch.tensor([4.0, 0.0])  # in the middle / leftmost lane
+        >>> cols["vx"][:, 0] = 25.0
+        >>> td = TensorDict(observation=layout.encode(cols), batch_size=[2])
+        >>> LaneChangePolicy("left", layout)(td)["action"].tolist()  # LANE_LEFT, then IDLE
+        [0, 1]
+        >>> LaneChangePolicy("right", layout)(td)["action"].tolist()  # LANE_RIGHT
+        [2, 2]
     """
 
     def __init__(
@@ -698,6 +744,19 @@ class CautiousPolicy(ScriptedPolicy):
         near_distance: radius (m) that triggers braking.
         in_key: observation key.
         out_key: action key.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> layout = KinematicsLayout()  # highway-env's default observation, 3 lanes
+        >>> cols = {f: torch.zeros(2, 5) for f in layout.features}  # two scenes
+        >>> cols["presence"][:, :2] = 1.0  # the ego (row 0) and one other vehicle
+        >>> cols["y"][:, 0], cols["vx"][:, 0] = 4.0, 25.0  # ego: middle lane, 25 m/s
+        >>> cols["x"][:, 1] = torch.tensor([-20.0, 15.0])  # the other: 20 m behind / 15 m ahead
+        >>> cols["y"][:, 1] = 4.0  # ... in the right lane
+        >>> obs = layout.encode(cols)
+        >>> CautiousPolicy(layout)(TensorDict(observation=obs, batch_size=[2]))[
+        ...     "action"].tolist()  # IDLE, SLOWER for a vehicle near ahead (any lane)
+        [1, 4]
     """
 
     def __init__(

@@ -71,6 +71,19 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
 
     Raises:
         FileNotFoundError: naming the path.
+
+    Example:
+        >>> import tempfile
+        >>> path = save_checkpoint({"iteration": 3, "policy": {"weight": torch.ones(2)}},
+        ...                        tempfile.mkdtemp() + "/last.pt")
+        >>> checkpoint = load_checkpoint(path)
+        >>> checkpoint["iteration"], checkpoint["policy"]["weight"]
+        (3, tensor([1., 1.]))
+        >>> try:
+        ...     load_checkpoint(path.with_name("missing.pt"))
+        ... except FileNotFoundError as err:
+        ...     print(str(err).startswith("no checkpoint at"))
+        True
     """
     path = Path(path)
     if not path.is_file():

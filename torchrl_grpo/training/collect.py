@@ -159,13 +159,37 @@ def make_ray_collector(
 
 
 def env_frames(collector: BaseCollector) -> int:
-    """Env steps simulated so far: collected frames plus GRPO trunk steps."""
+    """Env steps simulated so far: collected frames plus GRPO trunk steps.
+
+    Example:
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> from torchrl_grpo.modules import ConstantActionPolicy
+        >>> collector = GroupCollector(HighwayEnv("merge-v0"), ConstantActionPolicy("IDLE"),
+        ...                            group_size=2, horizon=2, groups_per_batch=1,
+        ...                            roots="trunk", seed=0)
+        >>> _ = next(iter(collector))
+        >>> collector.frames, collector.trunk_frames, env_frames(collector)
+        (4, 4, 8)
+        >>> collector.shutdown()
+    """
     frames = int(getattr(collector, "frames", getattr(collector, "_frames", 0)))
     return frames + int(getattr(collector, "trunk_frames", 0))
 
 
 def collector_state(collector: BaseCollector) -> dict[str, Any]:
-    """The collector's exact position (see the module docstring)."""
+    """The collector's exact position (see the module docstring).
+
+    Example:
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> from torchrl_grpo.modules import ConstantActionPolicy
+        >>> collector = GroupCollector(HighwayEnv("merge-v0"), ConstantActionPolicy("IDLE"),
+        ...                            group_size=2, horizon=2, groups_per_batch=1, seed=0)
+        >>> _ = next(iter(collector))
+        >>> state = collector_state(collector)
+        >>> state["kind"], state["state"]["frames"], state["state"]["next_group_id"]
+        ('group', 4, 1)
+        >>> collector.shutdown()
+    """
     if isinstance(collector, RayGroupCollector):
         return {"kind": "ray", "state": collector.state_dict()}
     if isinstance(collector, GroupCollector):
@@ -184,7 +208,28 @@ def collector_state(collector: BaseCollector) -> dict[str, Any]:
 
 
 def load_collector_state(collector: BaseCollector, state: dict[str, Any]) -> None:
-    """Put a freshly built collector back where :func:`collector_state` was taken."""
+    """Put a freshly built collector back where :func:`collector_state` was taken.
+
+    Example:
+        >>> import torch
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> from torchrl_grpo.modules import ConstantActionPolicy
+        >>> def build():
+        ...     return GroupCollector(HighwayEnv("merge-v0"), ConstantActionPolicy("IDLE"),
+        ...                           group_size=2, horizon=2, groups_per_batch=1, seed=0)
+        >>> collector = build()
+        >>> _ = next(iter(collector))
+        >>> state = collector_state(collector)
+        >>> expected = next(iter(collector))  # the batch after the checkpoint
+        >>> resumed = build()
+        >>> load_collector_state(resumed, state)
+        >>> batch = next(iter(resumed))
+        >>> batch["group_id"][0, 0, 0].item(), torch.equal(batch["observation"],
+        ...                                                expected["observation"])
+        (1, True)
+        >>> collector.shutdown(), resumed.shutdown()
+        (None, None)
+    """
     if isinstance(collector, RayGroupCollector):
         if state["kind"] != "ray":
             raise ValueError("this checkpoint was not written with rollout.backend=ray")

@@ -189,7 +189,17 @@ class WandbMode(_Choice):
 
 @dataclass
 class EnvConfig:
-    """``env`` group: a highway-env scenario and its config overrides."""
+    """``env`` group: a highway-env scenario and its config overrides.
+
+    Example:
+        >>> cfg = OmegaConf.structured(EnvConfig)
+        >>> OmegaConf.is_missing(cfg, "scenario")  # a YAML file of conf/env/ must set it
+        True
+        >>> cfg = OmegaConf.merge(cfg, {"name": "merge", "scenario": "merge-v0",
+        ...                             "config": {"collision_reward": -2.0}})
+        >>> cfg.scenario, cfg.config.collision_reward, cfg.max_episode_steps
+        ('merge-v0', -2.0, 1000)
+    """
 
     name: str = MISSING
     scenario: str = MISSING
@@ -199,7 +209,21 @@ class EnvConfig:
 
 @dataclass
 class ModelConfig:
-    """``model`` group: the policy (and PPO value) network."""
+    """``model`` group: the policy (and PPO value) network.
+
+    Example:
+        >>> cfg = OmegaConf.structured(ModelConfig)
+        >>> print(cfg.kind, cfg.num_cells)
+        mlp [256, 256]
+        >>> cfg.kind = "ego_attention"  # a ModelKind, compared as a string
+        >>> cfg.kind == "ego_attention"
+        True
+        >>> try:
+        ...     cfg.kind = "transformer"
+        ... except Exception as err:
+        ...     print(type(err).__name__)
+        ValidationError
+    """
 
     kind: ModelKind = ModelKind.mlp
     num_cells: list[int] = field(default_factory=lambda: [256, 256])
@@ -211,7 +235,21 @@ class ModelConfig:
 
 @dataclass
 class AlgoConfig:
-    """``algo`` group: fields every algorithm has."""
+    """``algo`` group: fields every algorithm has.
+
+    The group holds a :class:`GRPOConfig` or a :class:`PPOConfig`.
+
+    Example:
+        >>> cfg = OmegaConf.structured(Config)
+        >>> cfg.algo = PPOConfig(name="ppo")
+        >>> OmegaConf.get_type(cfg.algo).__name__, cfg.algo.epochs, cfg.algo.minibatch_size
+        ('PPOConfig', 4, 256)
+        >>> try:
+        ...     cfg.algo.name = "sac"  # not an AlgoName
+        ... except Exception as err:
+        ...     print(type(err).__name__)
+        ValidationError
+    """
 
     name: AlgoName = MISSING
     entropy_coeff: float = 0.01
@@ -221,7 +259,16 @@ class AlgoConfig:
 
 @dataclass
 class GRPOConfig(AlgoConfig):
-    """GRPO (``grpo_branch``, ``grpo_episode``): group-relative advantage, no critic."""
+    """GRPO (``grpo_branch``, ``grpo_episode``): group-relative advantage, no critic.
+
+    Example:
+        >>> cfg = OmegaConf.structured(GRPOConfig(name="grpo_branch", group_size=4))
+        >>> print(cfg.group_size, cfg.roots, cfg.clip_epsilon_low, cfg.clip_epsilon_high)
+        4 trunk 0.2 0.28
+        >>> cfg.roots = "reset"  # branch from episode starts
+        >>> cfg.roots == "reset"
+        True
+    """
 
     group_size: int = 8
     roots: RootKindName = RootKindName.trunk
@@ -245,7 +292,13 @@ class GRPOConfig(AlgoConfig):
 
 @dataclass
 class PPOConfig(AlgoConfig):
-    """PPO baseline: TorchRL's ``ClipPPOLoss`` with a value network and GAE."""
+    """PPO baseline: TorchRL's ``ClipPPOLoss`` with a value network and GAE.
+
+    Example:
+        >>> cfg = OmegaConf.merge(OmegaConf.structured(PPOConfig), {"name": "ppo", "gamma": 0.99})
+        >>> cfg.gamma, cfg.lmbda, cfg.clip_epsilon, cfg.loss_critic_type
+        (0.99, 0.95, 0.2, 'smooth_l1')
+    """
 
     gamma: float = 0.9
     lmbda: float = 0.95
@@ -277,7 +330,20 @@ class RayConfig:
 
 @dataclass
 class RolloutConfig:
-    """``rollout`` group: how experience is gathered."""
+    """``rollout`` group: how experience is gathered.
+
+    Example:
+        >>> cfg = OmegaConf.structured(Config(rollout=RolloutConfig(num_workers=2)))
+        >>> print(cfg.rollout.backend, cfg.rollout.horizon, cfg.rollout.ray.num_actors)
+        single 8 2
+        >>> try:
+        ...     check_config(cfg)
+        ... except ValueError as err:
+        ...     print(err)
+        rollout.num_workers must be 1 with rollout.backend=single, got 2
+        >>> cfg.rollout.backend = "parallel"
+        >>> check_config(cfg)
+    """
 
     horizon: int = 8
     decision_interval: int = 4
@@ -291,7 +357,14 @@ class RolloutConfig:
 
 @dataclass
 class OptimConfig:
-    """``optim`` group: Adam and gradient clipping."""
+    """``optim`` group: Adam and gradient clipping.
+
+    Example:
+        >>> cfg = OmegaConf.merge(OmegaConf.structured(OptimConfig),
+        ...                       OmegaConf.from_dotlist(["optim.lr=0.001"]).optim)
+        >>> cfg.lr, cfg.max_grad_norm, cfg.anneal_lr
+        (0.001, 1.0, False)
+    """
 
     lr: float = 5e-4
     weight_decay: float = 0.0
@@ -302,7 +375,17 @@ class OptimConfig:
 
 @dataclass
 class LoggerConfig:
-    """``logger`` group: TorchRL logger backend and media."""
+    """``logger`` group: TorchRL logger backend and media.
+
+    Example:
+        >>> import tempfile
+        >>> from torchrl_grpo.training import make_logger
+        >>> cfg = OmegaConf.structured(LoggerConfig(backend="csv"))
+        >>> print(cfg.backend, cfg.mode, cfg.video)
+        csv offline True
+        >>> type(make_logger(cfg, tempfile.mkdtemp(), "demo", {})).__name__
+        'CSVLogger'
+    """
 
     backend: LoggerBackend = LoggerBackend.wandb
     mode: WandbMode = WandbMode.offline
@@ -315,7 +398,13 @@ class LoggerConfig:
 
 @dataclass
 class ExperimentConfig:
-    """``experiment`` group: budgets and how often to evaluate and checkpoint."""
+    """``experiment`` group: budgets and how often to evaluate and checkpoint.
+
+    Example:
+        >>> cfg = OmegaConf.structured(ExperimentConfig(total_frames=2000, eval_every=0))
+        >>> cfg.total_frames, cfg.eval_every, cfg.baselines
+        (2000, 0, ['random', 'idle', 'slower', 'rule'])
+    """
 
     name: str = "default"
     total_frames: int = 30_000
@@ -332,7 +421,21 @@ class ExperimentConfig:
 
 @dataclass
 class Config:
-    """The whole training config (``conf/config.yaml``)."""
+    """The whole training config (``conf/config.yaml``).
+
+    Example:
+        >>> import pathlib
+        >>> from hydra import compose, initialize_config_dir
+        >>> import torchrl_grpo
+        >>> conf = pathlib.Path(torchrl_grpo.__file__).parents[1] / "conf"
+        >>> _ = register_configs()
+        >>> with initialize_config_dir(str(conf), version_base=None):
+        ...     cfg = compose("config", ["env=merge", "algo=ppo", "seed=3"])
+        >>> OmegaConf.get_type(cfg).__name__, OmegaConf.get_type(cfg.algo).__name__
+        ('Config', 'PPOConfig')
+        >>> cfg.env.scenario, cfg.seed
+        ('merge-v0', 3)
+    """
 
     env: EnvConfig = MISSING
     model: ModelConfig = MISSING

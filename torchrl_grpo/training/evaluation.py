@@ -59,6 +59,14 @@ class EvalResult:
         lengths: steps of each episode.
         speeds: mean ego speed of each episode (m/s).
         seeds: the episodes' seeds.
+
+    Example:
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> from torchrl_grpo.modules import ConstantActionPolicy
+        >>> result, _ = evaluate(HighwayEnv("merge-v0"), ConstantActionPolicy("SLOWER"),
+        ...                      episodes=2, seed=0, max_steps=2, name="always-SLOWER")
+        >>> result.name, result.episodes, result.lengths, result.seeds, result.crashed
+        ('always-SLOWER', 2, [2, 2], [0, 1], [False, False])
     """
 
     name: str

@@ -109,6 +109,17 @@ def log_video(logger: Logger | None, name: str, video: torch.Tensor, step: int) 
 
     wandb encodes videos with moviepy (the ``dev`` extra); without it the video is
     skipped with a warning (the GIF in the run folder is always written).
+
+    Example:
+        >>> import os, tempfile
+        >>> from omegaconf import OmegaConf
+        >>> run_dir = tempfile.mkdtemp()
+        >>> logger = make_logger(OmegaConf.create({"backend": "csv"}), run_dir, "demo", {})
+        >>> video = torch.zeros(1, 4, 3, 8, 8, dtype=torch.uint8)  # four black 8x8 frames
+        >>> log_video(logger, "eval/video", video, step=0)
+        >>> os.listdir(os.path.join(run_dir, "csv", "demo", "videos", "eval"))
+        ['video_0.pt']
+        >>> log_video(None, "eval/video", video, step=0)  # no logger: a no-op
     """
     if logger is None:
         return
