@@ -177,14 +177,20 @@ def bench(scenario: str, repeats: int, episodes: int) -> None:
     def deepcopy() -> None:
         copy.deepcopy(env.gym_env.unwrapped)
 
+    def pickle_round_trip() -> None:
+        pickle.loads(pickle.dumps(env.gym_env.unwrapped))
+
     t_snap, t_copy = interleaved(snapshot_restore, deepcopy, calls=50, repeats=repeats)
+    _, t_pickle = interleaved(snapshot_restore, pickle_round_trip, calls=50, repeats=repeats)
     t_codec, _ = interleaved(codec_round_trip, deepcopy, calls=50, repeats=repeats)
     print(
         f"  get_state + reset(set_state) {t_snap * 1e3:.3f} ms, codec encode + decode "
-        f"{t_codec * 1e3:.3f} ms, deepcopy {t_copy * 1e3:.3f} ms"
+        f"{t_codec * 1e3:.3f} ms, deepcopy {t_copy * 1e3:.3f} ms, pickle dumps + loads "
+        f"{t_pickle * 1e3:.3f} ms"
     )
     claim(f"{scenario}: (get_state + restore) / deepcopy", t_snap / t_copy, "<=0.7")
     claim(f"{scenario}: (encode + decode) / deepcopy, codec alone", t_codec / t_copy)
+    claim(f"{scenario}: (get_state + restore) / pickle round trip", t_snap / t_pickle)
 
     def restore() -> None:
         env.reset(td, set_state=True)
