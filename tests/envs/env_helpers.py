@@ -57,7 +57,13 @@ def actions_for(env, policy: str, n: int, seed: int = 0) -> list[torch.Tensor]:
     if policy == "careful":
         return careful_actions(env, n)
     if policy == "random":
-        return random_actions(env, n, seed)
+        actions = random_actions(env, n, seed)
+        if getattr(env, "scenario", None) == "two-way-v0":
+            # highway-env 1.12.1 itself raises ZeroDivisionError in two-way-v0's reward once
+            # LANE_LEFT (0) takes the ego onto the one-lane oncoming road (raw gym, seed 1,
+            # these actions: step 31); the random policy there changes lanes rightwards only.
+            actions = [a if int(a) != 0 else torch.ones_like(a) * 2 for a in actions]
+        return actions
     raise ValueError(policy)
 
 

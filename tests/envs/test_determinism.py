@@ -32,7 +32,7 @@ from env_helpers import (
 from tensordict import TensorDict
 from torchrl.collectors import Collector
 
-from torchrl_grpo.envs import HIGHWAY_SCENARIOS, HighwayEnv
+from torchrl_grpo.envs import HIGHWAY_SCENARIOS, HighwayEnv, states_equal
 
 WARMUP = 3  # steps before the snapshot: restore a state with history, not a reset state
 
@@ -277,3 +277,21 @@ def test_collector_trajectory_steps_can_be_branched():
             batch["next"][t].select("observation", "reward"),
             f"collector step {t}",
         )
+
+
+def test_the_constructor_seed_seeds_the_first_reset():
+    """HighwayEnv(seed=s).reset() starts the seed-s episode; a restore drops that seed."""
+    env = HighwayEnv("highway-fast-v0", seed=5)
+    built = env.get_state()
+    env.reset()
+    assert_bitwise_equal(env.get_state(), built, "first reset after HighwayEnv(seed=5)")
+    env.reset()
+    assert not states_equal(env.get_state(), built), "the second reset starts a new episode"
+    # After a restore, the restored generator decides the next episode, not the seed.
+    other = HighwayEnv("highway-fast-v0", seed=9)
+    env = HighwayEnv("highway-fast-v0", seed=5)
+    restore(env, other.get_state())
+    env.reset()
+    other.reset()  # its first reset replays its seed's episode: skip it
+    other.reset()
+    assert_bitwise_equal(env.get_state(), other.get_state(), "episode after a restore")

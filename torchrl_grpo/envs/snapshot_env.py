@@ -98,8 +98,10 @@ class SnapshotEnv(EnvBase):
         self.codec = codec
         self.return_state = return_state
         self._categorical = categorical_action_encoding
-        self._pending_seed: int | None = None
         obs, info = self._gym_reset(seed)
+        # The first reset() starts the seeded episode again (the one built here, which
+        # the specs were read from), as "seed seeds the first episode" promises.
+        self._pending_seed: int | None = seed
         codec.bind(self._env)
         self._make_specs(obs, info)
         # The last output as {key tuple: tensor}: a state stores it, a restore returns it.
@@ -235,6 +237,9 @@ class SnapshotEnv(EnvBase):
         restoring = bool(kwargs.get("set_state"))
         if restoring:
             output = self._restore(tensordict)
+            # The restored generator decides the next episodes: a seed still pending
+            # (the constructor's, or set_seed before the restore) is dropped.
+            self._pending_seed = None
         else:
             obs, info = self._gym_reset(self._pending_seed)
             self._pending_seed = None
