@@ -87,6 +87,13 @@ def page(rows: list[dict], runs: list[dict], started: str) -> str:
         value = fmt(r["value"]) + (f" ({r['note']})" if r["note"] else "")
         goal = r["goal"] or ""
         lines.append(f"| {r['claim']} | {value} | {goal} | {verdict} | `{r['command']}` |")
+    if not any(run["command"].startswith("python benchmarks/bench_training.py") for run in runs):
+        lines += [
+            "",
+            "The training claim (how soon GRPO beats always-SLOWER on highway-fast-v0) was not",
+            "measured in this run: it needs finished training runs (`--training-runs`, see",
+            "[results](results.md)).",
+        ]
     lines += [
         "",
         "## Runs",
