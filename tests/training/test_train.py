@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import math
 import os
 import signal
@@ -51,6 +52,11 @@ def test_smoke_run_writes_finite_metrics_and_checkpoint(smoke_run):
     assert params and all(torch.isfinite(p).all() for p in params)
     assert (run_dir / "results.md").read_text().count("|") > 10
     assert list((run_dir / "plots").glob("group_it*.png"))
+    # Every evaluation records the training wall-clock it was at: growing, within the run.
+    history = (run_dir / "eval_history.jsonl").read_text().splitlines()
+    walls = [json.loads(line)["wall_seconds"] for line in history]
+    assert walls and walls[0] > 0 and walls == sorted(walls), walls
+    assert walls[-1] < elapsed
 
 
 def _train(tmp_path, name: str, overrides: list[str]) -> Trainer:
