@@ -108,7 +108,8 @@ for env, by_algo in curves.items():
             frames = statistics.median(r["frames"] for r in hits)
             walls = [r["wall_seconds"] for r in hits if "wall_seconds" in r]
             wall = f", {statistics.median(walls):.0f} s of training" if walls else ""
-            note = f"median of the runs that did: {frames:.0f} frames{wall}"
+            margin = statistics.median(r["return"] - slower_on(int(r["episodes"])) for r in hits)
+            note = f"median of the runs that did: {frames:.0f} frames{wall}, by {margin:+.2f}"
         else:
             note = f"no run did within {cut:.0f} frames"
         # Beating it once is not keeping it: say where the runs ended.
