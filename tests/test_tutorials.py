@@ -61,7 +61,7 @@ EXPECTED: dict[str, tuple[list[str], list[str]]] = {
         ],
     ),
     "train_merge": (
-        ["learning_curve.png"],
+        ["learning_curve.png", "crash_rate.png"],
         [
             r"^trained: \d+ env frames, \d+ iterations$",
             r"^offline wandb run: .*/run/wandb/offline-run-\S+$",

@@ -22,7 +22,8 @@ Run it::
     python tutorials/train_merge.py algo.group_size=4 seed=1   # any Hydra override
 
 Pictures (in ``--out``, default ``outputs/tutorials/train_merge``):
-``learning_curve.png``; the run folder is ``<out>/run``.
+``learning_curve.png`` and ``crash_rate.png`` (drawn by the library's
+``plot_learning_curve``); the run folder is ``<out>/run``.
 """
 
 from __future__ import annotations
@@ -36,15 +37,14 @@ import sys
 import time
 from pathlib import Path
 
-import matplotlib
+from hydra import compose, initialize_config_dir
 
-matplotlib.use("Agg")  # no display needed
-
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from hydra import compose, initialize_config_dir  # noqa: E402
-
-from torchrl_grpo.training import Trainer, TrainResult, register_configs  # noqa: E402
+from torchrl_grpo.training import (
+    Trainer,
+    TrainResult,
+    plot_learning_curve,
+    register_configs,
+)
 
 NAME = "train_merge"
 CONF = Path(__file__).resolve().parents[1] / "conf"
@@ -133,35 +133,6 @@ def check_with_wandb_cli(run_folder: Path) -> str:
 
 
 # ---------------------------------------------------------------------------- plot
-def plot_learning_curve(history: list[dict], baselines: dict, path: Path, title: str) -> None:
-    """Evaluation return (± std) and crash rate against env frames, baselines dashed."""
-    # The last row repeats the last frames with the final (larger) evaluation: keep it.
-    rows = list({row["frames"]: row for row in history}.values())
-    frames = np.array([r["frames"] for r in rows])
-    ret = np.array([r["return"] for r in rows])
-    std = np.array([r["return_std"] for r in rows])
-    crash = np.array([100 * r["crash_rate"] for r in rows])
-    fig, (ax_r, ax_c) = plt.subplots(1, 2, figsize=(12, 4.3))
-    ax_r.plot(frames, ret, "-o", color="tab:blue", label="trained policy (greedy)")
-    ax_r.fill_between(frames, ret - std, ret + std, color="tab:blue", alpha=0.2)
-    ax_c.plot(frames, crash, "-o", color="tab:red", label="trained policy (greedy)")
-    styles = iter(["--", ":", "-.", (0, (5, 1))])
-    for name, res in baselines.items():
-        style = next(styles, "--")
-        ax_r.axhline(res["return"], color="0.4", ls=style, lw=1.2, label=name)
-        ax_c.axhline(100 * res["crash_rate"], color="0.4", ls=style, lw=1.2, label=name)
-    ax_r.set(xlabel="env frames", ylabel="evaluation return", title="return (± std)")
-    ax_c.set(xlabel="env frames", ylabel="crash rate (%)", title="crash rate")
-    ax_c.set_ylim(-5, 105)
-    for ax in (ax_r, ax_c):
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="best")
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-
-
 # ---------------------------------------------------------------------------- main
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """Command-line options."""
@@ -224,9 +195,19 @@ def main(argv: list[str] | None = None) -> None:
     # The final evaluation beside the scripted baselines (results.json), and the curve.
     results = json.loads(result.results_json.read_text())["results"]
     baselines = {r["name"]: r["summary"] for r in results if "(trained)" not in r["name"]}
-    curve = args.out / "learning_curve.png"
+    # The library's plot (the trainer draws the same into the run folder): return with
+    # the baselines as dashed lines, then the crash rate.
     scenario = "merge-v0" if "env=merge" in overrides else "the scenario"
-    plot_learning_curve(history, baselines, curve, f"GRPO with branching on {scenario}")
+    runs = {"GRPO with branching (greedy)": [history]}
+    curve = plot_learning_curve(
+        runs,
+        args.out / "learning_curve.png",
+        title=f"{scenario}: evaluation return",
+        hlines={name: summary["return"] for name, summary in baselines.items()},
+    )
+    plot_learning_curve(
+        runs, args.out / "crash_rate.png", metric="crash_rate", title=f"{scenario}: crash rate"
+    )
     print(f"\nfinal evaluation ({result.results_table}):")
     print(result.results_table.read_text().strip())
     print(f"\nlearning curve: {curve}")
