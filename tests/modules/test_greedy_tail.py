@@ -82,3 +82,57 @@ def test_branch_rollout_marks_the_first_steps_of_every_branch():
     explored = out[EXPLORED] & out["mask"]
     assert explored[..., :2].all() and not explored[..., 2:].any()
     env.close()
+
+
+def test_enumerated_first_actions_cover_every_action_with_their_own_log_prob():
+    actor = _actor()
+    td = _rows(2 * N_ACTIONS + 1, [0] * (2 * N_ACTIONS) + [1])
+    td["branch"] = torch.arange(2 * N_ACTIONS + 1)
+    out = GreedyTail(actor, explore_steps=1, first_action="enumerate")(td.clone())
+    first = 2 * N_ACTIONS
+    assert out["action"][:first].tolist() == list(range(N_ACTIONS)) * 2
+    # The log-prob is the policy's own, computed independently from the logits.
+    logits = actor.module[0](td)["logits"]
+    expected = torch.log_softmax(logits, -1).gather(-1, out["action"].unsqueeze(-1)).squeeze(-1)
+    torch.testing.assert_close(out["action_log_prob"][:first], expected[:first])
+    # The step after the first is greedy and not explored.
+    assert out["action"][first] == logits[first].argmax()
+    assert out[EXPLORED].tolist() == [True] * first + [False]
+
+
+def test_enumerated_one_hot_actions():
+    torch.manual_seed(0)
+    from torchrl.data import OneHot
+
+    actor = make_discrete_actor(torch.nn.Linear(4, 3), OneHot(3))
+    td = _rows(3, [0, 0, 0])
+    td["branch"] = torch.arange(3)
+    out = GreedyTail(actor, explore_steps=1, first_action="enumerate")(td)
+    assert torch.equal(out["action"], torch.eye(3, dtype=out["action"].dtype))
+
+
+def test_enumerate_needs_the_branch_index_and_a_probabilistic_actor():
+    actor = _actor()
+    with pytest.raises(KeyError, match="branch"):
+        GreedyTail(actor, 1, first_action="enumerate")(_rows(2, [0, 0]))
+    with pytest.raises(ValueError, match="first_action must be"):
+        GreedyTail(actor, 1, first_action="all")
+    with pytest.raises(TypeError, match="probabilistic actor"):
+        GreedyTail(actor.module[0], 1, first_action="enumerate")
+
+
+def test_enumerated_groups_branch_every_action_from_one_root():
+    env = HighwayEnv("highway-fast-v0", seed=0)
+    obs_dim = env.observation_spec["observation"].shape.numel()
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Flatten(-2), torch.nn.Linear(obs_dim, N_ACTIONS))
+    actor = make_discrete_actor(net, env.action_spec)
+    roots = reset_roots(env, 1, seed=0)
+    policy = GreedyTail(actor, explore_steps=1, first_action="enumerate")
+    out = branch_rollout(env, policy, roots, group_size=N_ACTIONS, horizon=3)
+    assert out["action"][0, :, 0].tolist() == list(range(N_ACTIONS))
+    # After the first step every branch follows the greedy policy of its own observation.
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        greedy = actor(out[0, :, 1].select("observation").clone())["action"]
+    assert torch.equal(out["action"][0, :, 1], greedy)
+    env.close()

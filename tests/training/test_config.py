@@ -110,6 +110,11 @@ def test_check_config_names_the_key():
     cfg = OmegaConf.structured(Config(algo=GRPOConfig(group_size=1)))
     with pytest.raises(ValueError, match="algo.group_size"):
         check_config(cfg)
+    cfg = OmegaConf.structured(Config(algo=GRPOConfig(first_action="enumerate")))
+    with pytest.raises(ValueError, match="algo.explore_steps"):
+        check_config(cfg)
+    cfg.algo.explore_steps = 1
+    check_config(cfg)
 
 
 def test_evaluate_config_composes():

@@ -2,16 +2,21 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, exploration_type, set_exploration_type
 
-__all__ = ["EXPLORED", "GreedyTail"]
+__all__ = ["EXPLORED", "FirstAction", "GreedyTail"]
+
+FirstAction = Literal["sample", "enumerate"]
 
 EXPLORED = "explored"
 """bool: ``True`` on steps where :class:`GreedyTail` sampled the action."""
 
+_BRANCH = "branch"
 _ROOT_STEP = "root_step"
 _STEP_COUNT = "step_count"
 
@@ -36,10 +41,23 @@ class GreedyTail(TensorDictModuleBase):
     ``set_exploration_type(DETERMINISTIC)`` (evaluation, greedy trunks) every step is
     greedy.
 
+    With ``first_action="enumerate"`` (discrete actions), a branch's first action is not
+    sampled but set by its index in the group: branch ``b`` takes action ``b mod n``.
+    A group of ``G = n`` branches then compares every action from its root, each
+    followed by the greedy policy: the group's returns are the ``H``-step values
+    ``Q(s, a)`` of all actions, and the group-normalised advantage ranks them. Sampled
+    first actions stop exploring once the policy is nearly deterministic (every branch
+    draws the same action and the group's returns are all equal); enumerated ones
+    never do. The written ``action_log_prob`` is the current policy's log-probability
+    of the enumerated action, so the clipped ratio of the loss starts at 1.
+
     Args:
         policy: a probabilistic actor (reads its ``in_keys``, writes ``action`` and,
             when it returns one, ``action_log_prob``).
         explore_steps: how many steps at the start of each branch sample (>= 1).
+        first_action: ``"sample"`` the first action from the policy, or
+            ``"enumerate"`` it from the branch index (needs ``"branch"`` in the input
+            and a categorical actor; later explored steps still sample).
 
     Example:
         >>> import torch
@@ -52,17 +70,39 @@ class GreedyTail(TensorDictModuleBase):
         ...                 step_count=torch.tensor([[5], [6]]), batch_size=[2])
         >>> rollout_policy(td)["explored"].tolist()
         [True, False]
+        >>> every_action = GreedyTail(actor, explore_steps=1, first_action="enumerate")
+        >>> zeros = torch.zeros(4, dtype=torch.long)
+        >>> td = TensorDict(observation=torch.randn(4, 4), root_step=zeros,
+        ...                 step_count=zeros.unsqueeze(-1),
+        ...                 branch=torch.arange(4), batch_size=[4])
+        >>> every_action(td)["action"].tolist()
+        [0, 1, 2, 0]
     """
 
-    def __init__(self, policy: TensorDictModuleBase, explore_steps: int) -> None:
+    def __init__(
+        self,
+        policy: TensorDictModuleBase,
+        explore_steps: int,
+        first_action: FirstAction = "sample",
+    ) -> None:
         super().__init__()
         if isinstance(explore_steps, bool) or not isinstance(explore_steps, int):
             raise TypeError(f"explore_steps must be an int, got {explore_steps!r}")
         if explore_steps < 1:
             raise ValueError(f"explore_steps must be >= 1, got {explore_steps}")
+        if first_action not in ("sample", "enumerate"):
+            raise ValueError(f"first_action must be 'sample' or 'enumerate', got {first_action!r}")
+        if first_action == "enumerate" and not hasattr(policy, "dist_sample_keys"):
+            raise TypeError(
+                "first_action='enumerate' needs a probabilistic actor (a ProbabilisticActor "
+                f"with a categorical distribution), got {type(policy).__name__}"
+            )
         self.policy = policy
         self.explore_steps = explore_steps
+        self.first_action = first_action
         self.in_keys = [*policy.in_keys, _ROOT_STEP, _STEP_COUNT]
+        if first_action == "enumerate":
+            self.in_keys.append(_BRANCH)
         self.out_keys = [*policy.out_keys, EXPLORED]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -72,7 +112,10 @@ class GreedyTail(TensorDictModuleBase):
             out = self.policy(tensordict)
             explored = torch.zeros(out.batch_size, dtype=torch.bool, device=out.device)
             return out.set(EXPLORED, explored)
-        for key in (_ROOT_STEP, _STEP_COUNT):
+        needed = [_ROOT_STEP, _STEP_COUNT]
+        if self.first_action == "enumerate":
+            needed.append(_BRANCH)
+        for key in needed:
             if key not in tensordict.keys():
                 raise KeyError(
                     f"GreedyTail needs {key!r} to know each row's step within its branch; "
@@ -83,6 +126,8 @@ class GreedyTail(TensorDictModuleBase):
         ).reshape(tensordict.batch_size)
         explored = t < self.explore_steps
         sampled = self.policy(tensordict.clone(False))
+        if self.first_action == "enumerate":
+            self._enumerate(sampled, tensordict.get(_BRANCH).reshape(t.shape), t == 0)
         if bool(explored.all()):
             return tensordict.update(sampled).set(EXPLORED, explored)
         with set_exploration_type(ExplorationType.DETERMINISTIC):
@@ -93,3 +138,26 @@ class GreedyTail(TensorDictModuleBase):
             rows = explored.reshape(explored.shape + (1,) * (a.ndim - explored.ndim))
             tensordict.set(key, torch.where(rows, a, b))
         return tensordict.set(EXPLORED, explored)
+
+    def _enumerate(
+        self, sampled: TensorDictBase, branch: torch.Tensor, first: torch.Tensor
+    ) -> None:
+        """Overwrite the first step's sampled action with ``branch mod n``, and its log-prob."""
+        if not bool(first.any()):
+            return
+        dist = self.policy.build_dist_from_params(sampled)
+        action_key = self.policy.dist_sample_keys[0]
+        action = sampled.get(action_key)
+        n = dist.logits.shape[-1]
+        index = branch.remainder(n)
+        if action.shape == dist.logits.shape:  # one-hot actions
+            forced = torch.nn.functional.one_hot(index, n).to(action.dtype)
+            rows = first.unsqueeze(-1)
+        else:
+            forced = index.to(action.dtype).reshape(action.shape)
+            rows = first.reshape(action.shape)
+        action = torch.where(rows, forced, action)
+        sampled.set(action_key, action)
+        for key in getattr(self.policy, "log_prob_keys", []):
+            if key in sampled.keys(True):
+                sampled.set(key, dist.log_prob(action).reshape(sampled.get(key).shape))

@@ -70,7 +70,8 @@ def make_collector(
         roots = str(algo.roots)
         explore_steps = algo.get("explore_steps")
         if explore_steps is not None:
-            policy = GreedyTail(policy, int(explore_steps))
+            first_action = str(algo.get("first_action", "sample"))
+            policy = GreedyTail(policy, int(explore_steps), first_action=first_action)
         source = "continue" if roots == "continuation" else roots
         if roots == "trunk" and str(algo.get("trunk", "sample")) == "greedy":
             # Decision points on the states the evaluated (greedy) policy visits.

@@ -133,6 +133,13 @@ class TrunkPolicyName(_Choice):
     greedy = "greedy"
 
 
+class FirstActionName(_Choice):
+    """How a greedy-tail branch picks its first action (``algo.first_action``)."""
+
+    sample = "sample"
+    enumerate = "enumerate"
+
+
 class ScaleRewards(_Choice):
     """Division of the centred returns (TRL's ``scale_rewards``)."""
 
@@ -287,6 +294,7 @@ class GRPOConfig(AlgoConfig):
     ref_model_sync_steps: int = 64
     ref_model_mixup_alpha: float = 1.0
     explore_steps: int | None = None
+    first_action: FirstActionName = FirstActionName.sample
     trunk: TrunkPolicyName = TrunkPolicyName.sample
 
 
@@ -538,6 +546,13 @@ def check_config(cfg: DictConfig) -> None:
     if algo is not None and not OmegaConf.is_missing(cfg, "algo"):
         if "group_size" in algo and algo.group_size < 2:
             raise ValueError(f"algo.group_size must be >= 2, got {algo.group_size}")
+        first_action = algo.get("first_action")
+        if first_action is not None and str(first_action) != "sample":
+            if algo.get("explore_steps") is None:
+                raise ValueError(
+                    f"algo.first_action={first_action} chooses the first action of "
+                    "greedy-tail branches: set algo.explore_steps too (e.g. 1)"
+                )
     rollout = cfg.get("rollout")
     if rollout is not None and not OmegaConf.is_missing(cfg, "rollout"):
         if rollout.backend == Backend.single and rollout.num_workers != 1:
