@@ -10,9 +10,11 @@ from torchrl_grpo.envs.cartpole_codec import CartPoleStateCodec
 from torchrl_grpo.envs.codec import (
     StateCodec,
     check_state_layout,
+    from_bits,
     stable_hash,
     state_differences,
     states_equal,
+    to_bits,
 )
 from torchrl_grpo.envs.errors import (
     SnapshotError,
@@ -50,6 +52,7 @@ __all__ = [
     "check_state_layout",
     "check_worker_states",
     "codec_for",
+    "from_bits",
     "local_worker_env",
     "register_class_parameter",
     "register_codec",
@@ -57,4 +60,5 @@ __all__ = [
     "stable_hash",
     "state_differences",
     "states_equal",
+    "to_bits",
 ]

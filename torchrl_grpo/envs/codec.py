@@ -216,7 +216,17 @@ def to_bits(tensor: torch.Tensor) -> torch.Tensor:
 
 
 def from_bits(tensor: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
-    """Inverse of :func:`to_bits`: view integer bit patterns as ``dtype``."""
+    """Inverse of :func:`to_bits`: view integer bit patterns as ``dtype``.
+
+    States store floats as their bit patterns (so that a comparison is bitwise and
+    NaN payloads survive); read a float field of a state through this.
+
+    Example:
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> state = HighwayEnv("merge-v0", seed=0).get_state()
+        >>> from_bits(state["sim", "env", "time"], torch.float64).item()
+        0.0
+    """
     return tensor if tensor.dtype == dtype else tensor.view(dtype)
 
 

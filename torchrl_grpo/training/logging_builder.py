@@ -86,7 +86,10 @@ def log_hparams(logger: Logger | None, config: dict) -> None:
 
 
 def log_metrics(logger: Logger | None, metrics: dict[str, Any], step: int) -> None:
-    """Log finite scalars under their names at ``step``.
+    """Log scalars under their names at ``step``, in one call of TorchRL's ``log_metrics``.
+
+    One call, so that wandb records one history row per training iteration (a
+    ``log_scalar`` per metric would commit a row each).
 
     Example:
         >>> log_metrics(None, {"train/return": 1.0}, step=0)  # no logger: a no-op
@@ -100,8 +103,7 @@ def log_metrics(logger: Logger | None, metrics: dict[str, Any], step: int) -> No
         if value is None:
             continue
         clean[name] = float(value)
-    for name, value in clean.items():
-        logger.log_scalar(name, value, step=step)
+    logger.log_metrics(clean, step=step)
 
 
 def log_video(logger: Logger | None, name: str, video: torch.Tensor, step: int) -> None:
