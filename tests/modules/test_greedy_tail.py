@@ -136,3 +136,16 @@ def test_enumerated_groups_branch_every_action_from_one_root():
         greedy = actor(out[0, :, 1].select("observation").clone())["action"]
     assert torch.equal(out["action"][0, :, 1], greedy)
     env.close()
+
+
+def test_a_tail_policy_takes_the_greedy_steps_and_the_deterministic_mode():
+    actor, tail = _actor(0), _actor(1)
+    td = _rows(6, [0, 0, 0, 1, 2, 3])
+    out = GreedyTail(actor, explore_steps=1, tail_policy=tail)(td.clone())
+    tail_argmax = tail.module[0](td)["logits"].argmax(-1)
+    assert torch.equal(out["action"][3:], tail_argmax[3:])
+    # The control: the two actors disagree on some of these rows.
+    assert not torch.equal(tail_argmax, actor.module[0](td)["logits"].argmax(-1))
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        greedy = GreedyTail(actor, explore_steps=1, tail_policy=tail)(td.clone())
+    assert torch.equal(greedy["action"], tail_argmax)

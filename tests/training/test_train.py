@@ -38,11 +38,27 @@ def test_smoke_run_writes_finite_metrics_and_checkpoint(smoke_run):
     for label in ("run folder:", "checkpoint:", "logs:", "results:", "curve:"):
         assert label in proc.stdout, proc.stdout
     scalars = _csv_scalars(run_dir)
-    for name in ("train/crash_rate", "group/return_mean", "group/return_std",
-                 "advantage/mean", "loss/objective", "loss/entropy", "loss/kl",
-                 "diag/clip_fraction", "diag/ESS", "diag/kl_approx", "diag/entropy",
-                 "time/collect", "time/update", "time/fps", "eval/return", "eval/crash_rate",
-                 "eval/speed", "eval/length", "final/return"):
+    for name in (
+        "train/crash_rate",
+        "group/return_mean",
+        "group/return_std",
+        "advantage/mean",
+        "loss/objective",
+        "loss/entropy",
+        "loss/kl",
+        "diag/clip_fraction",
+        "diag/ESS",
+        "diag/kl_approx",
+        "diag/entropy",
+        "time/collect",
+        "time/update",
+        "time/fps",
+        "eval/return",
+        "eval/crash_rate",
+        "eval/speed",
+        "eval/length",
+        "final/return",
+    ):
         assert scalars.get(name), f"no {name} metric in {sorted(scalars)}"
         assert all(math.isfinite(v) for v in scalars[name]), (name, scalars[name])
     assert scalars["frames/total"][-1] >= 200
@@ -85,8 +101,7 @@ def test_resume_continues_exactly(tmp_path, algo, extra, first, total):
     resumed = _train(
         tmp_path,
         "resumed",
-        [*common, f"experiment.total_frames={total}",
-         f"resume={tmp_path / 'stopped' / 'last.pt'}"],
+        [*common, f"experiment.total_frames={total}", f"resume={tmp_path / 'stopped' / 'last.pt'}"],
     )
     assert (resumed.iteration, resumed.frames) == (straight.iteration, straight.frames)
     a, b = _params(straight), _params(resumed)
@@ -96,6 +111,32 @@ def test_resume_continues_exactly(tmp_path, algo, extra, first, total):
     # The control: the stopped run's parameters differ, so the check can fail.
     c = _params(stopped)
     assert any(not torch.equal(a[k], c[k]) for k in a)
+
+
+def test_resume_restores_the_lagging_tail_policy(tmp_path):
+    common = [
+        "algo.group_size=5",
+        "rollout.horizon=2",
+        "algo.explore_steps=1",
+        "algo.first_action=enumerate",
+        "algo.trunk=greedy",
+        "algo.tail_sync_batches=2",
+    ]
+    stopped = _train(tmp_path, "stopped", [*common, "experiment.total_frames=70"])
+    assert stopped.iteration == 3
+    tail, policy = stopped.tail_policy.state_dict(), stopped.policy.state_dict()
+    assert any(not torch.equal(tail[k], policy[k]) for k in tail)  # it lags one batch
+    cfg = compose_config(
+        [
+            *TINY,
+            *common,
+            "experiment.total_frames=130",
+            f"resume={tmp_path / 'stopped' / 'last.pt'}",
+        ]
+    )
+    resumed = Trainer(cfg, run_dir=tmp_path / "resumed").tail_policy.state_dict()
+    for key, value in tail.items():
+        assert torch.equal(resumed[key], value), key
 
 
 def test_resume_refuses_another_algorithm(tmp_path):
@@ -108,13 +149,21 @@ def test_resume_refuses_another_algorithm(tmp_path):
 def test_ctrl_c_saves_and_leaves_no_worker(tmp_path):
     run_dir = tmp_path / "run"
     args = [
-        str(ROOT / "scripts" / "train.py"), *TINY, "rollout.backend=parallel",
-        "rollout.num_workers=1", "experiment.total_frames=100000",
-        "experiment.checkpoint_every=1", f"experiment.out_dir={run_dir}",
+        str(ROOT / "scripts" / "train.py"),
+        *TINY,
+        "rollout.backend=parallel",
+        "rollout.num_workers=1",
+        "experiment.total_frames=100000",
+        "experiment.checkpoint_every=1",
+        f"experiment.out_dir={run_dir}",
     ]
     proc = subprocess.Popen(
-        [sys.executable, *args], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        text=True, start_new_session=True,
+        [sys.executable, *args],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
         env={**os.environ, "WANDB_MODE": "offline"},
     )
     try:

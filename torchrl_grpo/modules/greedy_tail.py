@@ -58,6 +58,10 @@ class GreedyTail(TensorDictModuleBase):
         first_action: ``"sample"`` the first action from the policy, or
             ``"enumerate"`` it from the branch index (needs ``"branch"`` in the input
             and a categorical actor; later explored steps still sample).
+        tail_policy: the actor whose greedy actions the tail (and deterministic mode)
+            takes; ``None``: ``policy`` itself. A copy of the policy refreshed only now
+            and then keeps the evaluated policy fixed over several updates, as
+            approximate policy iteration evaluates one policy before improving it.
 
     Example:
         >>> import torch
@@ -84,6 +88,7 @@ class GreedyTail(TensorDictModuleBase):
         policy: TensorDictModuleBase,
         explore_steps: int,
         first_action: FirstAction = "sample",
+        tail_policy: TensorDictModuleBase | None = None,
     ) -> None:
         super().__init__()
         if isinstance(explore_steps, bool) or not isinstance(explore_steps, int):
@@ -100,6 +105,7 @@ class GreedyTail(TensorDictModuleBase):
         self.policy = policy
         self.explore_steps = explore_steps
         self.first_action = first_action
+        self.tail_policy = tail_policy
         self.in_keys = [*policy.in_keys, _ROOT_STEP, _STEP_COUNT]
         if first_action == "enumerate":
             self.in_keys.append(_BRANCH)
@@ -108,8 +114,9 @@ class GreedyTail(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Write the action (sampled or greedy per row) and ``"explored"``."""
         mode = exploration_type()
+        greedy_policy = self.policy if self.tail_policy is None else self.tail_policy
         if mode in (ExplorationType.DETERMINISTIC, ExplorationType.MODE, ExplorationType.MEAN):
-            out = self.policy(tensordict)
+            out = greedy_policy(tensordict)
             explored = torch.zeros(out.batch_size, dtype=torch.bool, device=out.device)
             return out.set(EXPLORED, explored)
         needed = [_ROOT_STEP, _STEP_COUNT]
@@ -131,7 +138,7 @@ class GreedyTail(TensorDictModuleBase):
         if bool(explored.all()):
             return tensordict.update(sampled).set(EXPLORED, explored)
         with set_exploration_type(ExplorationType.DETERMINISTIC):
-            greedy = self.policy(tensordict.clone(False))
+            greedy = greedy_policy(tensordict.clone(False))
         out_keys = [k for k in self.policy.out_keys if k in sampled.keys(True)]
         for key in out_keys:
             a, b = sampled.get(key), greedy.get(key)

@@ -43,13 +43,18 @@ _SOURCE_EXTRA = ("seed", "trunk_steps", "_queue", "_live", "episodes_finished")
 
 
 def make_collector(
-    cfg: DictConfig, env: EnvBase | None, policy: TensorDictModuleBase, seed: int
+    cfg: DictConfig,
+    env: EnvBase | None,
+    policy: TensorDictModuleBase,
+    seed: int,
+    tail_policy: TensorDictModuleBase | None = None,
 ) -> BaseCollector:
     """The collector of ``cfg.algo.name`` over ``env`` (which it owns and closes).
 
     The collector runs without a frame budget: the trainer stops it, counting trunk
     steps too. With ``rollout.backend=ray`` the envs are built in the Ray actors:
-    pass ``env=None`` (a given env is closed).
+    pass ``env=None`` (a given env is closed). ``tail_policy`` is the actor greedy
+    tails and greedy trunks follow (``algo.tail_sync_batches``; default: ``policy``).
 
     Example:
         >>> from omegaconf import OmegaConf
@@ -71,7 +76,9 @@ def make_collector(
         explore_steps = algo.get("explore_steps")
         if explore_steps is not None:
             first_action = str(algo.get("first_action", "sample"))
-            policy = GreedyTail(policy, int(explore_steps), first_action=first_action)
+            policy = GreedyTail(
+                policy, int(explore_steps), first_action=first_action, tail_policy=tail_policy
+            )
         source = "continue" if roots == "continuation" else roots
         if roots == "trunk" and str(algo.get("trunk", "sample")) == "greedy":
             # Decision points on the states the evaluated (greedy) policy visits.

@@ -295,6 +295,7 @@ class GRPOConfig(AlgoConfig):
     ref_model_mixup_alpha: float = 1.0
     explore_steps: int | None = None
     first_action: FirstActionName = FirstActionName.sample
+    tail_sync_batches: int | None = None
     trunk: TrunkPolicyName = TrunkPolicyName.sample
 
 
@@ -546,6 +547,12 @@ def check_config(cfg: DictConfig) -> None:
     if algo is not None and not OmegaConf.is_missing(cfg, "algo"):
         if "group_size" in algo and algo.group_size < 2:
             raise ValueError(f"algo.group_size must be >= 2, got {algo.group_size}")
+        tail_sync = algo.get("tail_sync_batches")
+        if tail_sync is not None and (tail_sync < 1 or algo.get("explore_steps") is None):
+            raise ValueError(
+                f"algo.tail_sync_batches={tail_sync}: must be >= 1, and applies to "
+                "greedy-tail branches only (set algo.explore_steps too)"
+            )
         first_action = algo.get("first_action")
         if first_action is not None and str(first_action) != "sample":
             if algo.get("explore_steps") is None:

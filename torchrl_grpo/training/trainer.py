@@ -12,6 +12,7 @@ normally; a second Ctrl-C stops at once (the last periodic checkpoint stands).
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import math
@@ -29,6 +30,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
+from torch import nn
 from torchrl.collectors import BaseCollector
 
 from torchrl_grpo.branching import BRANCH_RETURN, GROUP_ID, MASK, plot_group
@@ -190,6 +192,7 @@ class Trainer:
         self.advantage = make_advantage(cfg.algo, self.value)
         self.ref_sync = make_reference_sync(cfg.algo, self.loss)
         self.optimizer = make_optimizer(cfg.optim, self.loss)
+        self.tail_policy = _make_tail_policy(cfg.algo, self.policy) if self.grpo else None
         self.iteration = 0
         self.frames = 0
         self.updates = 0
@@ -220,6 +223,7 @@ class Trainer:
             "updates": self.updates,
             "wall_seconds": self.wall_seconds,
             "policy": self.policy.state_dict(),
+            "tail_policy": None if self.tail_policy is None else self.tail_policy.state_dict(),
             "value": None if self.value is None else self.value.state_dict(),
             "loss": self.loss.state_dict(),
             "optimizer": self.optimizer.state_dict(),
@@ -239,6 +243,8 @@ class Trainer:
             )
         self.loss.load_state_dict(ckpt["loss"])
         self.policy.load_state_dict(ckpt["policy"])
+        if self.tail_policy is not None and ckpt.get("tail_policy") is not None:
+            self.tail_policy.load_state_dict(ckpt["tail_policy"])
         if self.value is not None and ckpt["value"] is not None:
             self.value.load_state_dict(ckpt["value"])
         self.optimizer.load_state_dict(ckpt["optimizer"])
@@ -282,7 +288,9 @@ class Trainer:
             if str(cfg.rollout.backend) != "ray":
                 # With the Ray backend every actor builds its own env workers.
                 env = make_rollout_env(cfg.env, cfg.rollout, snapshots=self.grpo, **extra)
-            collector = make_collector(cfg, env, self.policy, seed=self.seed)
+            collector = make_collector(
+                cfg, env, self.policy, seed=self.seed, tail_policy=self.tail_policy
+            )
             if self._collector_state is not None:
                 load_collector_state(collector, self._collector_state)
             if self._rng_state is not None:
@@ -300,6 +308,7 @@ class Trainer:
                 self.iteration += 1
                 metrics = self._batch_metrics(batch)
                 metrics.update(self._update(batch, timer))
+                self._maybe_sync_tail()
                 self._maybe_anneal_lr(total)
                 if self._due(exp.plot_every) and self.grpo:
                     with timer("plot"):
@@ -506,6 +515,11 @@ class Trainer:
         out["diag/minibatches"] = float(count)
         return out
 
+    def _maybe_sync_tail(self) -> None:
+        """Copy the policy into the tail policy every ``algo.tail_sync_batches`` batches."""
+        if self.tail_policy is not None and self._due(int(self.cfg.algo.tail_sync_batches)):
+            self.tail_policy.load_state_dict(self.policy.state_dict())
+
     def _maybe_anneal_lr(self, total: int) -> None:
         if not self.cfg.optim.anneal_lr:
             return
@@ -619,6 +633,15 @@ class Trainer:
             if run_dir:
                 # wandb's files/ folder; its parent is the run folder `wandb sync` takes.
                 result.logs = Path(run_dir).parent
+
+
+def _make_tail_policy(algo: DictConfig, policy: nn.Module) -> nn.Module | None:
+    """A frozen copy of ``policy`` for greedy tails (``algo.tail_sync_batches``), or None."""
+    if algo.get("tail_sync_batches") is None or algo.get("explore_steps") is None:
+        return None
+    tail = copy.deepcopy(policy)
+    tail.requires_grad_(False)
+    return tail
 
 
 def _seed_everything(seed: int) -> None:
