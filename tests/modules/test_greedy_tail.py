@@ -71,12 +71,17 @@ def test_needs_branch_steps_and_a_positive_int():
         GreedyTail(actor, 1.5)
 
 
-def test_branch_rollout_marks_the_first_steps_of_every_branch():
-    env = HighwayEnv("merge-v0", seed=0)
+def _env_actor(scenario: str) -> tuple[HighwayEnv, torch.nn.Module]:
+    """An env and a linear actor over its flattened kinematics table."""
+    env = HighwayEnv(scenario, seed=0)
     obs_dim = env.observation_spec["observation"].shape.numel()
     torch.manual_seed(0)
     net = torch.nn.Sequential(torch.nn.Flatten(-2), torch.nn.Linear(obs_dim, N_ACTIONS))
-    actor = make_discrete_actor(net, env.action_spec)
+    return env, make_discrete_actor(net, env.action_spec)
+
+
+def test_branch_rollout_marks_the_first_steps_of_every_branch():
+    env, actor = _env_actor("merge-v0")
     roots = reset_roots(env, 1, seed=0)
     out = branch_rollout(env, GreedyTail(actor, explore_steps=2), roots, group_size=3, horizon=4)
     explored = out[EXPLORED] & out["mask"]
@@ -122,11 +127,7 @@ def test_enumerate_needs_the_branch_index_and_a_probabilistic_actor():
 
 
 def test_enumerated_groups_branch_every_action_from_one_root():
-    env = HighwayEnv("highway-fast-v0", seed=0)
-    obs_dim = env.observation_spec["observation"].shape.numel()
-    torch.manual_seed(0)
-    net = torch.nn.Sequential(torch.nn.Flatten(-2), torch.nn.Linear(obs_dim, N_ACTIONS))
-    actor = make_discrete_actor(net, env.action_spec)
+    env, actor = _env_actor("highway-fast-v0")
     roots = reset_roots(env, 1, seed=0)
     policy = GreedyTail(actor, explore_steps=1, first_action="enumerate")
     out = branch_rollout(env, policy, roots, group_size=N_ACTIONS, horizon=3)
