@@ -149,6 +149,23 @@ def step_throughput(
     )
 
 
+def wrapper_cpu_per_step(scenario: str, calls: int = 2000) -> float:
+    """Seconds per ``HighwayEnv.step`` when the simulator's step returns at once.
+
+    What is left is the wrapper's own work (action conversion, info tensors, output
+    tensordict, TorchRL's step bookkeeping): the floor of its cost per step.
+    """
+    env = HighwayEnv(scenario, seed=0)
+    env.reset()
+    result = env.gym_env.step(IDLE)
+    env.gym_env.step = lambda action: result  # an instance attribute: this env only
+    td = TensorDict(action=torch.tensor(IDLE))
+    per_call(lambda: env.step(td.clone()), 200)
+    seconds = per_call(lambda: env.step(td.clone()), calls)
+    env.close()
+    return seconds
+
+
 def bench(scenario: str, repeats: int, episodes: int) -> None:
     print(f"{scenario}")
     env = HighwayEnv(scenario, seed=0)
@@ -163,6 +180,9 @@ def bench(scenario: str, repeats: int, episodes: int) -> None:
         f"HighwayEnv {1 / t_ours:8.1f}/s, raw gymnasium {1 / t_raw:8.1f}/s"
     )
     claim(f"{scenario}: HighwayEnv / raw step throughput", ratio, ">=0.97")
+    t_wrapper = wrapper_cpu_per_step(scenario)
+    print(f"  HighwayEnv's own CPU per step, simulator stubbed out: {t_wrapper * 1e6:.0f} us")
+    claim(f"{scenario}: HighwayEnv's own CPU per step / raw step", t_wrapper / t_raw)
     # The reference: TorchRL's own gymnasium wrapper, measured the same way, shows what
     # any TorchRL env (tensors in, tensordicts out) costs on top of this simulator.
     torchrl_env = GymEnv(scenario, categorical_action_encoding=True)
@@ -210,6 +230,25 @@ def bench(scenario: str, repeats: int, episodes: int) -> None:
     claim(f"{scenario}: (get_state + restore) / deepcopy", t_snap / t_copy, "<=0.7")
     claim(f"{scenario}: (encode + decode) / deepcopy, codec alone", t_codec / t_copy)
     claim(f"{scenario}: (get_state + restore) / pickle round trip", t_snap / t_pickle)
+
+    # Where the time goes: SnapshotEnv._reset is the whole restore of ours (checks,
+    # decode, output); what env.reset() adds on top is TorchRL's reset bookkeeping.
+    def own_restore() -> None:
+        env._reset(td, set_state=True)
+
+    def torchrl_restore() -> None:
+        env.reset(td, set_state=True)
+
+    t_own, t_reset = interleaved(own_restore, torchrl_restore, calls=50, repeats=repeats)
+    t_get, _ = interleaved(env.get_state, deepcopy, calls=50, repeats=repeats)
+    print(
+        f"  of which get_state {t_get * 1e3:.3f} ms, SnapshotEnv._reset(set_state) "
+        f"{t_own * 1e3:.3f} ms, TorchRL's reset bookkeeping {(t_reset - t_own) * 1e3:.3f} ms"
+    )
+    claim(
+        f"{scenario}: (get_state + _reset) / deepcopy, without TorchRL's reset bookkeeping",
+        (t_get + t_own) / t_copy,
+    )
 
     def restore() -> None:
         env.reset(td, set_state=True)
