@@ -168,8 +168,8 @@ class EnvSlots:
         if not self._warned_slow:
             logger.warning(
                 "reading worker states through env.get_state() (a pipe round trip per "
-                "worker); build the env with make_branch_env(..., snapshots=True) (workers "
-                "with return_state=True) to ship them through shared memory"
+                "worker); build the workers with return_state=True (make_branch_env does, "
+                "for highway-env) to ship them through shared memory"
             )
             self._warned_slow = True
         states: Sequence[TensorDictBase] = _get_state(self.env)
