@@ -637,7 +637,8 @@ class Trainer:
 
 def _make_tail_policy(algo: DictConfig, policy: nn.Module) -> nn.Module | None:
     """A frozen copy of ``policy`` for greedy tails (``algo.tail_sync_batches``), or None."""
-    if algo.get("tail_sync_batches") is None or algo.get("explore_steps") is None:
+    # check_config has refused tail_sync_batches without explore_steps.
+    if algo.get("tail_sync_batches") is None:
         return None
     tail = copy.deepcopy(policy)
     tail.requires_grad_(False)
