@@ -143,3 +143,21 @@ def test_stored_roots_cycle():
     b = src.next_roots(None, None, 2)
     assert states_equal(b["state"][0], roots["state"][2])
     assert states_equal(b["state"][1], a["state"][0])
+
+
+def test_a_trunk_policy_given_to_the_source_drives_the_trunks():
+    left, idle = ConstantActionPolicy("LANE_LEFT"), ConstantActionPolicy("IDLE")
+    own = TrunkRoots(every=2, max_steps=5, policy=left)
+    own.set_seed(0)
+    roots = own.next_roots(plain_env("highway-fast-v0"), idle, 3)
+    reference = TrunkRoots(every=2, max_steps=5)
+    reference.set_seed(0)
+    expected = reference.next_roots(plain_env("highway-fast-v0"), left, 3)
+    assert roots["root_step"].tolist() == [0, 2, 4]
+    assert states_equal(roots["state"], expected["state"])
+    # The control: trunks of the collector's own policy go elsewhere.
+    other = TrunkRoots(every=2, max_steps=5)
+    other.set_seed(0)
+    assert not states_equal(
+        other.next_roots(plain_env("highway-fast-v0"), idle, 3)["state"][2], expected["state"][2]
+    )

@@ -10,7 +10,13 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_grpo.branching import branch_rollout, reset_roots
 from torchrl_grpo.envs import HighwayEnv
-from torchrl_grpo.modules import EXPLORED, GreedyTail, make_discrete_actor
+from torchrl_grpo.modules import (
+    EXPLORED,
+    SLOWER,
+    ConstantActionPolicy,
+    GreedyTail,
+    make_discrete_actor,
+)
 
 N_ACTIONS = 5
 
@@ -150,3 +156,22 @@ def test_a_tail_policy_takes_the_greedy_steps_and_the_deterministic_mode():
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         greedy = GreedyTail(actor, explore_steps=1, tail_policy=tail)(td.clone())
     assert torch.equal(greedy["action"], tail_argmax)
+
+
+def test_a_scripted_tail_acts_after_the_enumerated_first_action():
+    env, actor = _env_actor("highway-fast-v0")
+    roots = reset_roots(env, 1, seed=0)
+    policy = GreedyTail(
+        actor, explore_steps=1, first_action="enumerate", tail_policy=ConstantActionPolicy("SLOWER")
+    )
+    out = branch_rollout(env, policy, roots, group_size=N_ACTIONS, horizon=3)[0]
+    env.close()
+    assert out["action"][:, 0].tolist() == list(range(N_ACTIONS))
+    tail = out["mask"][:, 1:]
+    assert bool(tail.any())
+    assert (out["action"][:, 1:][tail] == SLOWER).all()
+    assert not out[EXPLORED][:, 1:][tail].any()
+    # The explored steps keep the learner's own log-prob of the enumerated action.
+    logits = actor.module[0](out[:, 0].select("observation").clone())["logits"]
+    expected = torch.log_softmax(logits, -1)[torch.arange(N_ACTIONS), torch.arange(N_ACTIONS)]
+    torch.testing.assert_close(out["action_log_prob"][:, 0], expected)

@@ -54,14 +54,20 @@ def test_rollout_follows_the_algorithm(algo):
 def test_default_is_grpo_branch_on_highway_fast_with_offline_wandb():
     cfg = compose_config([])
     assert (cfg.env.scenario, str(cfg.algo.name), str(cfg.algo.roots)) == (
-        "highway-fast-v0", "grpo_branch", "trunk")
+        "highway-fast-v0",
+        "grpo_branch",
+        "trunk",
+    )
     assert (str(cfg.logger.backend), str(cfg.logger.mode)) == ("wandb", "offline")
 
 
 def test_issue_example_overrides_compose():
     cfg = compose_config(["env=merge", "algo.group_size=8", "logger=csv"])
     assert (cfg.env.scenario, cfg.algo.group_size, str(cfg.logger.backend)) == (
-        "merge-v0", 8, "csv")
+        "merge-v0",
+        8,
+        "csv",
+    )
 
 
 @pytest.mark.parametrize(
@@ -79,8 +85,12 @@ def test_misspelt_key_fails_naming_it(override, key):
 
 @pytest.mark.parametrize(
     "override,key",
-    [("algo.group_size=eight", "group_size"), ("algo.aggregation=mean", "aggregation"),
-     ("model.kind=transformer", "kind"), ("logger=csv", None)],
+    [
+        ("algo.group_size=eight", "group_size"),
+        ("algo.aggregation=mean", "aggregation"),
+        ("model.kind=transformer", "kind"),
+        ("logger=csv", None),
+    ],
 )
 def test_wrong_type_or_choice_fails_naming_the_key(override, key):
     if key is None:  # the control: a valid override composes
@@ -115,6 +125,33 @@ def test_check_config_names_the_key():
         check_config(cfg)
     cfg.algo.explore_steps = 1
     check_config(cfg)
+
+
+def test_a_scripted_tail_needs_greedy_tail_branches_and_no_tail_sync():
+    cfg = OmegaConf.structured(Config(algo=GRPOConfig(tail_policy="slower")))
+    with pytest.raises(ValueError, match="algo.tail_policy=slower.*algo.explore_steps"):
+        check_config(cfg)
+    cfg.algo.explore_steps = 1
+    check_config(cfg)
+    cfg.algo.tail_sync_batches = 2
+    with pytest.raises(ValueError, match="algo.tail_sync_batches null"):
+        check_config(cfg)
+    with pytest.raises(ValidationError, match="tail_policy"):
+        cfg.algo.tail_policy = "slowr"
+
+
+def test_replay_needs_policy_independent_advantages():
+    cfg = OmegaConf.structured(Config(algo=GRPOConfig(explore_steps=1, replay_groups=10)))
+    with pytest.raises(ValueError, match="algo.first_action=enumerate and a scripted"):
+        check_config(cfg)
+    cfg.algo.first_action = "enumerate"
+    with pytest.raises(ValueError, match="algo.tail_policy"):
+        check_config(cfg)  # the learner's own tail: advantages change with the policy
+    cfg.algo.tail_policy = "rule"
+    check_config(cfg)
+    cfg.algo.replay_groups = 0
+    with pytest.raises(ValueError, match="algo.replay_groups must be >= 1"):
+        check_config(cfg)
 
 
 def test_evaluate_config_composes():

@@ -15,7 +15,8 @@ import pytest
 import torch
 from conftest import ROOT, TINY, compose_config
 
-from torchrl_grpo.training import Trainer, load_checkpoint
+from torchrl_grpo.modules import EXPLORED, SLOWER
+from torchrl_grpo.training import Trainer, load_checkpoint, make_collector, make_rollout_env
 
 
 def _csv_scalars(run_dir) -> dict[str, list[float]]:
@@ -82,6 +83,18 @@ def _train(tmp_path, name: str, overrides: list[str]) -> Trainer:
     return trainer
 
 
+# Enumerated groups scored by a scripted tail, replayed for 50 groups.
+_REPLAY = [
+    "algo.group_size=5",
+    "rollout.horizon=2",
+    "rollout.decision_interval=2",
+    "algo.explore_steps=1",
+    "algo.first_action=enumerate",
+    "algo.tail_policy=slower",
+    "algo.replay_groups=50",
+]
+
+
 def _params(trainer: Trainer) -> dict[str, torch.Tensor]:
     return {k: v.clone() for k, v in trainer.loss.state_dict().items()}
 
@@ -91,7 +104,9 @@ def _params(trainer: Trainer) -> dict[str, torch.Tensor]:
     [
         ("grpo_branch", ["algo.group_size=2", "rollout.decision_interval=2"], 40, 110),
         ("ppo", ["rollout.frames_per_batch=32"], 32, 96),
+        ("grpo_branch", [*_REPLAY], 60, 160),
     ],
+    ids=["grpo_branch", "ppo", "grpo_branch_replay"],
 )
 def test_resume_continues_exactly(tmp_path, algo, extra, first, total):
     common = [f"algo={algo}", "experiment.checkpoint_every=1", *extra]
@@ -137,6 +152,53 @@ def test_resume_restores_the_lagging_tail_policy(tmp_path):
     resumed = Trainer(cfg, run_dir=tmp_path / "resumed").tail_policy.state_dict()
     for key, value in tail.items():
         assert torch.equal(resumed[key], value), key
+
+
+def test_a_scripted_tail_scores_every_first_action_from_the_learners_trunks(tmp_path):
+    overrides = [
+        "algo.group_size=5",
+        "rollout.horizon=3",
+        "algo.explore_steps=1",
+        "algo.first_action=enumerate",
+        "algo.trunk=greedy",
+        "algo.tail_policy=slower",
+    ]
+    trainer = _train(tmp_path, "base_tail", [*overrides, "experiment.total_frames=40"])
+    assert trainer.iteration >= 1
+    cfg = trainer.cfg
+    env = make_rollout_env(cfg.env, cfg.rollout, snapshots=True)
+    collector = make_collector(cfg, env, trainer.policy, seed=0, tail_policy=trainer.tail_policy)
+    try:
+        batch = next(iter(collector))
+        assert collector.root_source.policy is trainer.policy  # trunks: the learner, not the base
+    finally:
+        collector.shutdown()
+    first = batch["action"][..., 0]
+    assert (first == torch.arange(5)).all()
+    tail = batch["mask"] & ~batch[EXPLORED]
+    assert bool(tail[..., 1:].any()) and not bool(tail[..., 0].any())
+    assert (batch["action"][tail] == SLOWER).all()
+
+
+def test_replayed_groups_accumulate_and_get_the_current_policys_log_probs(tmp_path):
+    trainer = _train(tmp_path, "replay", [*_REPLAY, "experiment.total_frames=60"])
+    rows = len(trainer.replay)
+    assert trainer.iteration >= 2 and rows > 5  # more than one batch's rows
+    old = trainer.replay[:]
+    fresh = old[:3].clone()
+    fresh["action_log_prob"] = torch.zeros(3)  # a stale value, overwritten
+    data = trainer._replayed(fresh)
+    assert data.shape[0] == rows + 3
+    logits = trainer.policy.module[0](data.select("observation").clone())["logits"]
+    expected = torch.log_softmax(logits, -1).gather(-1, data["action"].unsqueeze(-1)).squeeze(-1)
+    torch.testing.assert_close(data["action_log_prob"], expected)
+    # FIFO: 50 groups of 5 branches, one trained step each.
+    trainer.replay.extend(torch.cat([old] * (300 // rows + 1)))
+    assert len(trainer.replay) == 250
+    # A resume with another replay size is refused when it loads, not mid-run.
+    bigger = [*_REPLAY, "algo.replay_groups=60", f"resume={tmp_path / 'replay' / 'last.pt'}"]
+    with pytest.raises(ValueError, match="algo.replay_groups"):
+        Trainer(compose_config([*TINY, *bigger]), run_dir=tmp_path / "bigger")
 
 
 def test_resume_refuses_another_algorithm(tmp_path):

@@ -6,7 +6,9 @@ at once with :func:`branch_rollout` (one ``[R, G, T]`` tensordict), continue an
 episode from a chosen branch with :func:`multi_turn_rollout`, or stream groups for
 training with :class:`GroupCollector`. Roots come from episode starts
 (:func:`reset_roots`), decision points along a trunk (:func:`trunk_roots`) or
-stored trajectories (:func:`roots_from_trajectories`). See ``docs/branching.md``.
+stored trajectories (:func:`roots_from_trajectories`). :class:`LookaheadPolicy` uses
+the same snapshots to plan: every action from the current state, then a base policy.
+See ``docs/branching.md``.
 """
 
 from torchrl_grpo.branching.collector import GroupCollector, RootKind
@@ -28,6 +30,7 @@ from torchrl_grpo.branching.keys import (
     STEP_COUNT,
     TRAJ_IDS,
 )
+from torchrl_grpo.branching.lookahead import LookaheadPolicy
 from torchrl_grpo.branching.plots import GroupFigure, plot_group
 from torchrl_grpo.branching.rollout import RngMode, branch_rollout, final_states
 from torchrl_grpo.branching.roots import (
@@ -65,6 +68,7 @@ __all__ = [
     "EpisodeStartRoots",
     "GroupCollector",
     "GroupFigure",
+    "LookaheadPolicy",
     "MultiTurnResult",
     "RngMode",
     "RootKind",

@@ -261,8 +261,9 @@ def roots_from_trajectories(
 
     Example:
         >>> from torchrl_grpo.envs import HighwayEnv
+        >>> from torchrl_grpo.modules import ConstantActionPolicy
         >>> env = HighwayEnv("merge-v0", seed=0, return_state=True)
-        >>> data = env.rollout(5)
+        >>> data = env.rollout(5, ConstantActionPolicy("SLOWER"))  # no crash: 5 steps
         >>> roots_from_trajectories(data, every=2)["root_step"].tolist()
         [0, 2, 4]
     """
@@ -393,6 +394,10 @@ class TrunkRoots(RootSource):
         every: K, the number of steps between decision points.
         max_steps: stop trunks at this episode step.
         exploration_type: how the policy acts on the trunks.
+        policy: the policy the trunks follow; ``None``: the collector's (the one that
+            also acts on the branches). Give the learner here when the branches act
+            through a wrapper that should not drive the trunks, e.g. a
+            :class:`~torchrl_grpo.modules.GreedyTail` whose tail is a fixed base policy.
 
     Attributes:
         trunk_steps: env steps simulated on trunks so far (not part of any batch).
@@ -413,12 +418,14 @@ class TrunkRoots(RootSource):
         *,
         max_steps: int | None = None,
         exploration_type: ExplorationType = ExplorationType.RANDOM,
+        policy: Policy | None = None,
     ) -> None:
         if every < 1:
             raise ValueError(f"every must be >= 1, got {every}")
         self.every = every
         self.max_steps = max_steps
         self.exploration_type = exploration_type
+        self.policy = policy
         self._queue: TensorDict | None = None
         self.trunk_steps = 0
 
@@ -428,7 +435,12 @@ class TrunkRoots(RootSource):
         while self._queue is None or self._queue.shape[0] < num_roots:
             starts = self.fresh_roots(env, slots.num_slots)
             new, steps = _trunk_roots(
-                slots, policy, starts, self.every, self.max_steps, self.exploration_type
+                slots,
+                policy if self.policy is None else self.policy,
+                starts,
+                self.every,
+                self.max_steps,
+                self.exploration_type,
             )
             new = new.exclude("trunk")
             self.trunk_steps += steps

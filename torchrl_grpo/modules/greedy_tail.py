@@ -61,7 +61,10 @@ class GreedyTail(TensorDictModuleBase):
         tail_policy: the actor whose greedy actions the tail (and deterministic mode)
             takes; ``None``: ``policy`` itself. A copy of the policy refreshed only now
             and then keeps the evaluated policy fixed over several updates, as
-            approximate policy iteration evaluates one policy before improving it.
+            approximate policy iteration evaluates one policy before improving it. A
+            fixed base policy (a scripted one, which writes only the action) makes the
+            group's returns ``Q_base(s, a)``: a target that does not move with the
+            learner, the one-step improvement of rollout algorithms.
 
     Example:
         >>> import torch
@@ -139,9 +142,17 @@ class GreedyTail(TensorDictModuleBase):
             return tensordict.update(sampled).set(EXPLORED, explored)
         with set_exploration_type(ExplorationType.DETERMINISTIC):
             greedy = greedy_policy(tensordict.clone(False))
-        out_keys = [k for k in self.policy.out_keys if k in sampled.keys(True)]
-        for key in out_keys:
-            a, b = sampled.get(key), greedy.get(key)
+        greedy_keys = set(greedy.keys(True))
+        for key in self.policy.out_keys:
+            if key not in sampled.keys(True):
+                continue
+            a = sampled.get(key)
+            if key not in greedy_keys:
+                # A scripted tail writes only the action; the rows it acts on are not
+                # trained on, so the sampled log-prob and logits may stand there.
+                tensordict.set(key, a)
+                continue
+            b = greedy.get(key)
             rows = explored.reshape(explored.shape + (1,) * (a.ndim - explored.ndim))
             tensordict.set(key, torch.where(rows, a, b))
         return tensordict.set(EXPLORED, explored)

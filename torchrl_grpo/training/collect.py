@@ -54,7 +54,9 @@ def make_collector(
     The collector runs without a frame budget: the trainer stops it, counting trunk
     steps too. With ``rollout.backend=ray`` the envs are built in the Ray actors:
     pass ``env=None`` (a given env is closed). ``tail_policy`` is the actor greedy
-    tails and greedy trunks follow (``algo.tail_sync_batches``; default: ``policy``).
+    tails follow: a lagging copy of ``policy`` (``algo.tail_sync_batches``; greedy
+    trunks follow it too) or a scripted base policy (``algo.tail_policy``; trunks follow
+    ``policy``). Default: ``policy``.
 
     Example:
         >>> from omegaconf import OmegaConf
@@ -73,17 +75,26 @@ def make_collector(
     name = str(algo.name)
     if name in ("grpo_branch", "grpo_episode"):
         roots = str(algo.roots)
+        learner = policy
         explore_steps = algo.get("explore_steps")
         if explore_steps is not None:
             first_action = str(algo.get("first_action", "sample"))
             policy = GreedyTail(
                 policy, int(explore_steps), first_action=first_action, tail_policy=tail_policy
             )
+        # A scripted base tail scores actions; the trunks still follow the learner, so
+        # that its decision points are the states the learner visits (as in DAgger).
+        base_tail = str(algo.get("tail_policy", "learner")) != "learner"
+        greedy_trunk = str(algo.get("trunk", "sample")) == "greedy"
         source = "continue" if roots == "continuation" else roots
-        if roots == "trunk" and str(algo.get("trunk", "sample")) == "greedy":
-            # Decision points on the states the evaluated (greedy) policy visits.
+        if roots == "trunk" and (greedy_trunk or base_tail):
+            # Greedy: decision points on the states the evaluated policy visits.
             source = TrunkRoots(
-                int(rollout.decision_interval), exploration_type=ExplorationType.DETERMINISTIC
+                int(rollout.decision_interval),
+                exploration_type=(
+                    ExplorationType.DETERMINISTIC if greedy_trunk else ExplorationType.RANDOM
+                ),
+                policy=learner if base_tail else None,
             )
         if str(rollout.get("backend")) == "ray":
             if env is not None:

@@ -54,6 +54,7 @@ __all__ = [
     "RootKindName",
     "ScaleRewards",
     "SelectionName",
+    "TailPolicyName",
     "TrunkPolicyName",
     "WandbMode",
     "WorkerBackend",
@@ -138,6 +139,23 @@ class FirstActionName(_Choice):
 
     sample = "sample"
     enumerate = "enumerate"
+
+
+class TailPolicyName(_Choice):
+    """Who acts on greedy-tail branches after their explored steps (``algo.tail_policy``).
+
+    ``learner``: the policy being trained (approximate policy iteration; with
+    ``algo.tail_sync_batches``, a lagging copy of it). The others are scripted base
+    policies (:data:`~torchrl_grpo.modules.SCRIPTED_POLICIES`): the group's returns are
+    then the base policy's ``Q(s, a)``, a target that does not move with the learner.
+    """
+
+    learner = "learner"
+    idle = "idle"
+    slower = "slower"
+    rule = "rule"
+    conservative = "conservative"
+    cautious = "cautious"
 
 
 class ScaleRewards(_Choice):
@@ -296,6 +314,8 @@ class GRPOConfig(AlgoConfig):
     explore_steps: int | None = None
     first_action: FirstActionName = FirstActionName.sample
     tail_sync_batches: int | None = None
+    tail_policy: TailPolicyName = TailPolicyName.learner
+    replay_groups: int | None = None
     trunk: TrunkPolicyName = TrunkPolicyName.sample
 
 
@@ -553,6 +573,31 @@ def check_config(cfg: DictConfig) -> None:
                 f"algo.tail_sync_batches={tail_sync}: must be >= 1, and applies to "
                 "greedy-tail branches only (set algo.explore_steps too)"
             )
+        tail_policy = algo.get("tail_policy")
+        if tail_policy is not None and str(tail_policy) != "learner":
+            if algo.get("explore_steps") is None or tail_sync is not None:
+                raise ValueError(
+                    f"algo.tail_policy={tail_policy} is the base policy of greedy-tail "
+                    "branches: set algo.explore_steps too (e.g. 1), and leave "
+                    "algo.tail_sync_batches null (it refreshes a learner's copy)"
+                )
+            backend = cfg.get("rollout", {}).get("backend")
+            if backend is not None and str(backend) == "ray":
+                raise ValueError(
+                    f"algo.tail_policy={tail_policy} is not supported with rollout.backend=ray "
+                    "yet; use the parallel, serial or single backend"
+                )
+        replay = algo.get("replay_groups")
+        if replay is not None:
+            if replay < 1:
+                raise ValueError(f"algo.replay_groups must be >= 1, got {replay}")
+            enumerated = str(algo.get("first_action")) == "enumerate"
+            if not enumerated or str(algo.get("tail_policy", "learner")) == "learner":
+                raise ValueError(
+                    f"algo.replay_groups={replay} replays old groups, which is sound only when "
+                    "their advantages do not depend on the policy that collected them: set "
+                    "algo.first_action=enumerate and a scripted algo.tail_policy (e.g. rule)"
+                )
         first_action = algo.get("first_action")
         if first_action is not None and str(first_action) != "sample":
             if algo.get("explore_steps") is None:

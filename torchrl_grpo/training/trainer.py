@@ -32,9 +32,11 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from torch import nn
 from torchrl.collectors import BaseCollector
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.envs import EnvBase
 
 from torchrl_grpo.branching import BRANCH_RETURN, GROUP_ID, MASK, plot_group
-from torchrl_grpo.modules import EXPLORED
+from torchrl_grpo.modules import EXPLORED, KinematicsLayout, make_scripted_policy
 from torchrl_grpo.training.checkpoint import (
     get_rng_state,
     load_checkpoint,
@@ -192,7 +194,12 @@ class Trainer:
         self.advantage = make_advantage(cfg.algo, self.value)
         self.ref_sync = make_reference_sync(cfg.algo, self.loss)
         self.optimizer = make_optimizer(cfg.optim, self.loss)
-        self.tail_policy = _make_tail_policy(cfg.algo, self.policy) if self.grpo else None
+        self.tail_policy = (
+            _make_tail_policy(cfg.algo, self.policy, self.eval_env, self.layout)
+            if self.grpo
+            else None
+        )
+        self.replay = _make_replay(cfg.algo) if self.grpo else None
         self.iteration = 0
         self.frames = 0
         self.updates = 0
@@ -224,6 +231,7 @@ class Trainer:
             "wall_seconds": self.wall_seconds,
             "policy": self.policy.state_dict(),
             "tail_policy": None if self.tail_policy is None else self.tail_policy.state_dict(),
+            "replay": None if self.replay is None else self.replay.state_dict(),
             "value": None if self.value is None else self.value.state_dict(),
             "loss": self.loss.state_dict(),
             "optimizer": self.optimizer.state_dict(),
@@ -245,6 +253,16 @@ class Trainer:
         self.policy.load_state_dict(ckpt["policy"])
         if self.tail_policy is not None and ckpt.get("tail_policy") is not None:
             self.tail_policy.load_state_dict(ckpt["tail_policy"])
+        if self.replay is not None and ckpt.get("replay") is not None:
+            saved = _replay_rows(OmegaConf.create(ckpt["config"]["algo"]))
+            if saved != self.replay.storage.max_size:
+                # A loaded storage keeps its saved size: the first write past it would fail.
+                raise ValueError(
+                    f"resume={path} replays {saved} trained steps and this config "
+                    f"{self.replay.storage.max_size}: resume with the run's algo.replay_groups, "
+                    "algo.group_size and algo.explore_steps"
+                )
+            self.replay.load_state_dict(ckpt["replay"])
         if self.value is not None and ckpt["value"] is not None:
             self.value.load_state_dict(ckpt["value"])
         self.optimizer.load_state_dict(ckpt["optimizer"])
@@ -419,9 +437,28 @@ class Trainer:
             "advantage/nonzero_fraction": float((adv != 0).float().mean()),
             "group/bootstrap_mean": bonus,
         }
+        if self.replay is not None:
+            data = self._replayed(data)
+            stats["replay/steps"] = float(data.shape[0])
         with timer("update"):
             stats.update(self._epochs(data, advantage_fn=None))
         return stats
+
+    def _replayed(self, data: TensorDictBase) -> TensorDictBase:
+        """This batch's trained steps plus the replayed ones, log-probs of the current policy.
+
+        With enumerated first actions and a scripted tail, a step's advantage compares
+        every action under a fixed base policy: it does not depend on the policy that
+        collected it, so old groups stay valid targets (DAgger's aggregated dataset).
+        The "old" log-probs of the clipped ratio are the current policy's, so each
+        update is a trust region around the policy it starts from.
+        """
+        self.replay.extend(data.exclude("action_log_prob"))
+        data = self.replay[:]
+        with torch.no_grad():
+            dist = self.policy.get_dist(data.select(*self.policy.in_keys).clone())
+            data.set("action_log_prob", dist.log_prob(data.get("action")))
+        return data
 
     def _bootstrap(self, batch: TensorDictBase) -> float:
         """Write the training reward: the env's, plus a tail for branches cut by the horizon.
@@ -517,7 +554,8 @@ class Trainer:
 
     def _maybe_sync_tail(self) -> None:
         """Copy the policy into the tail policy every ``algo.tail_sync_batches`` batches."""
-        if self.tail_policy is not None and self._due(int(self.cfg.algo.tail_sync_batches)):
+        sync = self.cfg.algo.get("tail_sync_batches")
+        if self.tail_policy is not None and sync is not None and self._due(int(sync)):
             self.tail_policy.load_state_dict(self.policy.state_dict())
 
     def _maybe_anneal_lr(self, total: int) -> None:
@@ -635,14 +673,45 @@ class Trainer:
                 result.logs = Path(run_dir).parent
 
 
-def _make_tail_policy(algo: DictConfig, policy: nn.Module) -> nn.Module | None:
-    """A frozen copy of ``policy`` for greedy tails (``algo.tail_sync_batches``), or None."""
-    # check_config has refused tail_sync_batches without explore_steps.
+def _make_tail_policy(
+    algo: DictConfig, policy: nn.Module, env: EnvBase, layout: KinematicsLayout | None
+) -> nn.Module | None:
+    """The actor of greedy tails when it is not ``policy`` itself, or None.
+
+    A scripted base policy (``algo.tail_policy``), or a frozen copy of ``policy``
+    (``algo.tail_sync_batches``).
+    """
+    # check_config has refused both settings without explore_steps, and together.
+    base = str(algo.get("tail_policy", "learner"))
+    if base != "learner":
+        n_actions = env.action_spec.space.n if hasattr(env.action_spec.space, "n") else None
+        if n_actions != 5 or layout is None:
+            raise ValueError(
+                f"algo.tail_policy={base} is a scripted policy of highway-env's 5-action "
+                "DiscreteMetaAction on Kinematics observations; this env has "
+                f"{n_actions or 'continuous'} actions"
+                + ("" if layout is not None else " and no Kinematics observation")
+            )
+        return make_scripted_policy(base, layout)
     if algo.get("tail_sync_batches") is None:
         return None
     tail = copy.deepcopy(policy)
     tail.requires_grad_(False)
     return tail
+
+
+def _make_replay(algo: DictConfig) -> ReplayBuffer | None:
+    """The FIFO buffer of trained steps of ``algo.replay_groups`` groups, or None."""
+    rows = _replay_rows(algo)
+    return None if rows is None else ReplayBuffer(storage=LazyTensorStorage(rows), batch_size=None)
+
+
+def _replay_rows(algo: DictConfig) -> int | None:
+    """Trained steps the replay holds: one per explored step of each of the groups' branches."""
+    groups = algo.get("replay_groups")
+    if groups is None:
+        return None
+    return int(groups) * int(algo.group_size) * int(algo.explore_steps)
 
 
 def _seed_everything(seed: int) -> None:

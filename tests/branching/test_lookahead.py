@@ -1,0 +1,67 @@
+"""LookaheadPolicy: every action from the current state, then a base policy; the best wins."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from branching_helpers import plain_env
+from tensordict import TensorDict
+
+from torchrl_grpo.branching import LookaheadPolicy
+from torchrl_grpo.envs import states_equal
+from torchrl_grpo.modules import ConstantActionPolicy
+
+SCENARIO = "highway-fast-v0"
+
+
+def _branch(state, first: int, base_action: int, horizon: int) -> tuple[float, int]:
+    """A branch's return and length computed independently: restore, step, sum."""
+    env = plain_env(SCENARIO)
+    env.set_state(state)
+    total, steps = 0.0, 0
+    for t in range(horizon):
+        out = env.step(TensorDict(action=torch.tensor(first if t == 0 else base_action)))
+        total += float(out["next", "reward"])
+        steps += 1
+        if bool(out["next", "done"]):
+            break
+    return total, steps
+
+
+def test_the_planned_action_is_the_best_branch_and_the_driven_env_is_untouched():
+    env = plain_env(SCENARIO, seed=3, return_state=True)
+    td = env.rollout(4, ConstantActionPolicy("FASTER"))[-1]["next"].clone()
+    before = env.get_state()
+    planner = LookaheadPolicy(plain_env(SCENARIO), ConstantActionPolicy("IDLE"), horizon=3)
+    scores = planner.returns(td)
+    branches = [_branch(td["state"], a, 1, 3) for a in range(5)]
+    expected = [total for total, _ in branches]
+    assert scores.tolist() == expected
+    assert len(set(expected)) > 1  # the control: the actions do differ here
+    assert int(planner(td.clone())["action"]) == max(range(5), key=lambda a: (expected[a], -a))
+    assert planner.frames == 2 * sum(steps for _, steps in branches)
+    assert states_equal(env.get_state(), before)
+
+
+def test_batched_input_is_planned_row_by_row():
+    env = plain_env(SCENARIO, seed=0, return_state=True)
+    rows = env.rollout(3, ConstantActionPolicy("SLOWER"))["next"]
+    planner = LookaheadPolicy(plain_env(SCENARIO), ConstantActionPolicy("SLOWER"), horizon=2)
+    batched = planner(rows.clone())["action"]
+    one_by_one = [int(planner(rows[i].clone())["action"]) for i in range(3)]
+    assert batched.tolist() == one_by_one
+
+
+def test_bad_input_names_the_problem():
+    planner = LookaheadPolicy(plain_env(SCENARIO), ConstantActionPolicy("IDLE"), horizon=2)
+    env = plain_env(SCENARIO, seed=0)
+    first = env.step(env.reset().set("action", torch.tensor(1)))["next"]
+    with pytest.raises(KeyError, match="return_state=True"):
+        planner(first)
+    # Without return_state a rollout carries the reset's state to every step: refused.
+    stale = env.rollout(3, ConstantActionPolicy("IDLE"))[-1]
+    assert "state" in stale.keys()
+    with pytest.raises(ValueError, match="stale state"):
+        planner(stale)
+    with pytest.raises(ValueError, match="horizon"):
+        LookaheadPolicy(plain_env(SCENARIO), ConstantActionPolicy("IDLE"), horizon=0)

@@ -1,0 +1,131 @@
+"""A planner that uses snapshots for search: try every action, keep the best.
+
+:class:`LookaheadPolicy` is the rollout algorithm (Bertsekas) over a base policy: from
+the current state it branches once per action, takes that action, follows the base
+policy for the rest of the horizon and acts with the action whose branch earned the
+most reward. It is the exact version of what a group with enumerated first actions and
+a scripted tail measures (``algo.first_action=enumerate algo.tail_policy=...``), so it
+shows how far a learner trained on those groups could go.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import EnvBase
+
+from torchrl_grpo.branching.keys import STATE
+from torchrl_grpo.envs import to_bits
+
+__all__ = ["LookaheadPolicy"]
+
+
+class LookaheadPolicy(TensorDictModuleBase):
+    """Act with the action whose ``horizon``-step branch, then ``base``, earns the most.
+
+    The policy reads the simulator state from its input (``"state"``, written at every
+    step by envs built with ``return_state=True``), so it works in ``env.rollout`` and
+    in :func:`~torchrl_grpo.training.evaluate` like any policy. It restores that state
+    into its own ``env`` once per action: the env being driven is never touched. A
+    branch's score is its undiscounted reward; a branch ends early when its episode
+    does (a crash forfeits the rest of the horizon). Ties go to the lowest action index.
+
+    Args:
+        env: a snapshot env of the same scenario and config, used only for planning.
+        base: the policy the branches follow after their first action (for example a
+            scripted policy from :func:`~torchrl_grpo.modules.make_scripted_policy`).
+        horizon: steps per branch (>= 1; 1 compares the immediate rewards only).
+        n_actions: actions to try, ``0 .. n_actions - 1``; default: ``env.action_spec.n``.
+
+    Attributes:
+        frames: env steps simulated for planning so far.
+
+    Example:
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> from torchrl_grpo.modules import make_scripted_policy
+        >>> env = HighwayEnv("highway-fast-v0", seed=0, return_state=True)
+        >>> planner = LookaheadPolicy(HighwayEnv("highway-fast-v0"),
+        ...                           make_scripted_policy("slower"), horizon=2)
+        >>> data = env.rollout(3, planner)
+        >>> data["action"].shape, planner.frames <= 3 * 5 * 2
+        (torch.Size([3]), True)
+    """
+
+    def __init__(
+        self, env: EnvBase, base: TensorDictModuleBase, horizon: int, n_actions: int | None = None
+    ) -> None:
+        super().__init__()
+        if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
+            raise ValueError(f"horizon must be an int >= 1, got {horizon!r}")
+        if not getattr(env, "_supports_set_state", False):
+            raise TypeError(
+                f"LookaheadPolicy plans by restoring snapshots; {type(env).__name__} cannot "
+                "reset(set_state=True)"
+            )
+        if n_actions is None:
+            n_actions = getattr(env.action_spec, "n", None)
+            if n_actions is None:
+                raise ValueError("the env's actions are not discrete: pass n_actions")
+        self.env = env
+        self.base = base
+        self.horizon = horizon
+        self.n_actions = int(n_actions)
+        self.frames = 0
+        self.in_keys = [STATE, *base.in_keys]
+        self.out_keys = ["action"]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Write the planned ``"action"``; a batched input is planned row by row."""
+        if STATE not in tensordict.keys():
+            raise KeyError(
+                f"LookaheadPolicy reads the simulator state from {STATE!r}: build the env it "
+                "drives with return_state=True"
+            )
+        if tensordict.batch_dims == 0:
+            return tensordict.set("action", self._plan(tensordict))
+        flat = tensordict.reshape(-1)
+        actions = torch.stack([self._plan(flat[i]) for i in range(flat.shape[0])])
+        return tensordict.set("action", actions.reshape(tensordict.batch_size))
+
+    def returns(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """The branch return of every action from the state in ``tensordict`` (unbatched)."""
+        state = tensordict.get(STATE)
+        _check_fresh(tensordict, state)
+        scores = torch.zeros(self.n_actions, dtype=torch.float64)
+        for action in range(self.n_actions):
+            td = self.env.reset(TensorDict({STATE: state.clone()}), set_state=True)
+            td.set("action", torch.tensor(action))
+            for t in range(self.horizon):
+                if t > 0:
+                    td = self.base(td)
+                td = self.env.step(td)
+                self.frames += 1
+                nxt = td.get("next")
+                scores[action] += float(nxt.get("reward"))
+                if bool(nxt.get("done").any()):
+                    break
+                td = nxt
+        return scores
+
+    def _plan(self, tensordict: TensorDictBase) -> torch.Tensor:
+        # argmax returns the first maximum: ties go to the lowest action index.
+        return self.returns(tensordict).argmax().to(torch.int64)
+
+
+def _check_fresh(tensordict: TensorDictBase, state: TensorDictBase) -> None:
+    """Refuse a state that is not the one the input's observation was read from.
+
+    An env built without ``return_state`` writes its state at reset only, and a
+    rollout carries that state to every later step: planning from it would silently
+    plan from the episode's start.
+    """
+    stored = state.get(("output", "observation"), None)
+    if stored is None or "observation" not in tensordict.keys():
+        return
+    observation = tensordict.get("observation")
+    if not torch.equal(to_bits(observation), stored):
+        raise ValueError(
+            f"the input's {STATE!r} is not the state its observation comes from (a stale "
+            "state, carried from the reset): build the env it drives with return_state=True"
+        )
