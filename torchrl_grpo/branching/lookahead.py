@@ -11,11 +11,13 @@ shows how far a learner trained on those groups could go.
 from __future__ import annotations
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
-from torchrl_grpo.branching.keys import STATE
+from torchrl_grpo.branching.keys import BRANCH, MASK, ROOT_STEP, STATE, STEP_COUNT
+from torchrl_grpo.branching.rollout import branch_rollout
+from torchrl_grpo.branching.roots import as_roots
 from torchrl_grpo.envs import to_bits
 
 __all__ = ["LookaheadPolicy"]
@@ -72,6 +74,7 @@ class LookaheadPolicy(TensorDictModuleBase):
         self.horizon = horizon
         self.n_actions = int(n_actions)
         self.frames = 0
+        self._branch_policy = _ActionThenBase(base)
         self.in_keys = [STATE, *base.in_keys]
         self.out_keys = ["action"]
 
@@ -92,25 +95,39 @@ class LookaheadPolicy(TensorDictModuleBase):
         """The branch return of every action from the state in ``tensordict`` (unbatched)."""
         state = tensordict.get(STATE)
         _check_fresh(tensordict, state)
+        data = branch_rollout(
+            self.env, self._branch_policy, as_roots(state), self.n_actions, self.horizon
+        )[0]
+        mask = data.get(MASK)
+        self.frames += int(mask.sum())
+        reward = data.get(("next", "reward")).reshape(mask.shape).double()
+        # Summed step by step, in float64: the order of a sequential sum of the rewards.
         scores = torch.zeros(self.n_actions, dtype=torch.float64)
-        for action in range(self.n_actions):
-            td = self.env.reset(TensorDict({STATE: state.clone()}), set_state=True)
-            td.set("action", torch.tensor(action))
-            for t in range(self.horizon):
-                if t > 0:
-                    td = self.base(td)
-                td = self.env.step(td)
-                self.frames += 1
-                nxt = td.get("next")
-                scores[action] += float(nxt.get("reward"))
-                if bool(nxt.get("done").any()):
-                    break
-                td = nxt
+        for t in range(mask.shape[-1]):
+            scores += torch.where(mask[:, t], reward[:, t], 0.0)
         return scores
 
     def _plan(self, tensordict: TensorDictBase) -> torch.Tensor:
         # argmax returns the first maximum: ties go to the lowest action index.
         return self.returns(tensordict).argmax().to(torch.int64)
+
+
+class _ActionThenBase(TensorDictModuleBase):
+    """Branch ``b`` takes action ``b`` at its first step, then ``base`` acts."""
+
+    def __init__(self, base: TensorDictModuleBase) -> None:
+        super().__init__()
+        self.base = base
+        self.in_keys = [*base.in_keys, BRANCH, ROOT_STEP, STEP_COUNT]
+        self.out_keys = ["action"]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        shape = tensordict.batch_size
+        step = tensordict.get(STEP_COUNT).reshape(shape)
+        first = step == tensordict.get(ROOT_STEP).reshape(shape)
+        action = self.base(tensordict).get("action")
+        branch = tensordict.get(BRANCH).reshape(action.shape).to(action.dtype)
+        return tensordict.set("action", torch.where(first.reshape(action.shape), branch, action))
 
 
 def _check_fresh(tensordict: TensorDictBase, state: TensorDictBase) -> None:
