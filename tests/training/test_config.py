@@ -138,6 +138,14 @@ def test_a_scripted_tail_needs_greedy_tail_branches_and_no_tail_sync():
         check_config(cfg)
     with pytest.raises(ValidationError, match="tail_policy"):
         cfg.algo.tail_policy = "slowr"
+    on_ray = OmegaConf.structured(
+        Config(
+            algo=GRPOConfig(explore_steps=1, tail_policy="slower"),
+            rollout=RolloutConfig(backend="ray"),
+        )
+    )
+    with pytest.raises(ValueError, match="algo.tail_policy=slower is not supported with"):
+        check_config(on_ray)
 
 
 def test_replay_needs_policy_independent_advantages():

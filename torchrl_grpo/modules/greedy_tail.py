@@ -142,9 +142,9 @@ class GreedyTail(TensorDictModuleBase):
             return tensordict.update(sampled).set(EXPLORED, explored)
         with set_exploration_type(ExplorationType.DETERMINISTIC):
             greedy = greedy_policy(tensordict.clone(False))
-        greedy_keys = set(greedy.keys(True))
+        sampled_keys, greedy_keys = set(sampled.keys(True)), set(greedy.keys(True))
         for key in self.policy.out_keys:
-            if key not in sampled.keys(True):
+            if key not in sampled_keys:
                 continue
             a = sampled.get(key)
             if key not in greedy_keys:

@@ -581,12 +581,6 @@ def check_config(cfg: DictConfig) -> None:
                     "branches: set algo.explore_steps too (e.g. 1), and leave "
                     "algo.tail_sync_batches null (it refreshes a learner's copy)"
                 )
-            backend = cfg.get("rollout", {}).get("backend")
-            if backend is not None and str(backend) == "ray":
-                raise ValueError(
-                    f"algo.tail_policy={tail_policy} is not supported with rollout.backend=ray "
-                    "yet; use the parallel, serial or single backend"
-                )
         replay = algo.get("replay_groups")
         if replay is not None:
             if replay < 1:
@@ -619,8 +613,17 @@ def check_config(cfg: DictConfig) -> None:
 def _check_ray(cfg: DictConfig, rollout: DictConfig) -> None:
     """The ``rollout.ray`` keys (only read with ``rollout.backend=ray``)."""
     algo = cfg.get("algo")
-    if algo is not None and not OmegaConf.is_missing(cfg, "algo") and "group_size" not in algo:
-        raise ValueError(f"rollout.backend=ray collects GRPO groups; algo={algo.name} is not GRPO")
+    if algo is not None and not OmegaConf.is_missing(cfg, "algo"):
+        if "group_size" not in algo:
+            raise ValueError(
+                f"rollout.backend=ray collects GRPO groups; algo={algo.name} is not GRPO"
+            )
+        tail_policy = algo.get("tail_policy")
+        if tail_policy is not None and str(tail_policy) != "learner":
+            raise ValueError(
+                f"algo.tail_policy={tail_policy} is not supported with rollout.backend=ray "
+                "yet; use the parallel, serial or single backend"
+            )
     ray = rollout.get("ray")
     if ray is None:
         return

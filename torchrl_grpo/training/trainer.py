@@ -684,7 +684,7 @@ def _make_tail_policy(
     # check_config has refused both settings without explore_steps, and together.
     base = str(algo.get("tail_policy", "learner"))
     if base != "learner":
-        n_actions = env.action_spec.space.n if hasattr(env.action_spec.space, "n") else None
+        n_actions = getattr(env.action_spec, "n", None)
         if n_actions != 5 or layout is None:
             raise ValueError(
                 f"algo.tail_policy={base} is a scripted policy of highway-env's 5-action "
