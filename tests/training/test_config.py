@@ -162,6 +162,30 @@ def test_replay_needs_policy_independent_advantages():
         check_config(cfg)
 
 
+def test_a_prior_policy_is_typed_and_its_weight_positive():
+    cfg = compose_config(["model.prior=rule", "model.prior_weight=3"])
+    check_config(cfg)
+    assert cfg.model.prior == "rule" and cfg.model.prior_weight == 3.0
+    with pytest.raises(ConfigCompositionException) as info:
+        compose_config(["model.prior=rules"])
+    assert "prior" in str(info.value.__cause__)
+    cfg.model.prior_weight = 0.0
+    with pytest.raises(ValueError, match="model.prior_weight must be > 0, got 0.0"):
+        check_config(cfg)
+
+
+def test_a_null_sync_keeps_the_reference_frozen():
+    from torchrl_grpo.envs import HighwayEnv
+    from torchrl_grpo.training.loss_builder import make_loss, make_reference_sync
+    from torchrl_grpo.training.model_builder import make_policy
+
+    cfg = compose_config(["algo.ref_model_sync_steps=null"])
+    loss = make_loss(cfg.algo, make_policy(cfg.model, HighwayEnv(seed=0)), None)
+    assert make_reference_sync(cfg.algo, loss) is None
+    cfg = compose_config([])  # the control: the default syncs every 64 updates
+    assert make_reference_sync(cfg.algo, loss) is not None
+
+
 def test_evaluate_config_composes():
     cfg = compose_config(["checkpoint=x.pt", "env=merge"], config_name="evaluate")
     assert cfg.checkpoint == "x.pt" and cfg.env.scenario == "merge-v0" and cfg.episodes >= 30

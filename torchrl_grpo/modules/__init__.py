@@ -21,6 +21,7 @@ from torchrl_grpo.modules.networks import (
     NetworkKind,
     make_network,
 )
+from torchrl_grpo.modules.prior import PriorLogits
 from torchrl_grpo.modules.scripted import (
     FASTER,
     IDLE,
@@ -67,6 +68,7 @@ __all__ = [
     "LaneChangePolicy",
     "MetaAction",
     "NetworkKind",
+    "PriorLogits",
     "RandomPolicy",
     "RulePolicy",
     "ScriptedPolicy",

@@ -48,6 +48,7 @@ __all__ = [
     "ModelKind",
     "OptimConfig",
     "PPOConfig",
+    "PriorName",
     "RayConfig",
     "ReturnsName",
     "RolloutConfig",
@@ -158,6 +159,20 @@ class TailPolicyName(_Choice):
     cautious = "cautious"
 
 
+class PriorName(_Choice):
+    """Scripted base policy whose action the policy's logits favour (``model.prior``).
+
+    See :class:`~torchrl_grpo.modules.PriorLogits`; the names are those of
+    :data:`~torchrl_grpo.modules.SCRIPTED_POLICIES` that drive deterministically.
+    """
+
+    idle = "idle"
+    slower = "slower"
+    rule = "rule"
+    conservative = "conservative"
+    cautious = "cautious"
+
+
 class ScaleRewards(_Choice):
     """Division of the centred returns (TRL's ``scale_rewards``)."""
 
@@ -256,6 +271,8 @@ class ModelConfig:
     num_heads: int = 2
     encoder_cells: list[int] = field(default_factory=lambda: [64])
     decoder_cells: list[int] = field(default_factory=lambda: [64, 64])
+    prior: PriorName | None = None
+    prior_weight: float = 2.0
 
 
 @dataclass
@@ -309,7 +326,7 @@ class GRPOConfig(AlgoConfig):
     kl_to_ref_coeff: float | None = 0.01
     kl_estimator: KLEstimatorName = KLEstimatorName.k3
     aggregation: AggregationName = AggregationName.dapo
-    ref_model_sync_steps: int = 64
+    ref_model_sync_steps: int | None = 64
     ref_model_mixup_alpha: float = 1.0
     explore_steps: int | None = None
     first_action: FirstActionName = FirstActionName.sample
@@ -563,6 +580,11 @@ def check_config(cfg: DictConfig) -> None:
         value = node[name]
         if value is not None and value < low:
             raise ValueError(f"{key} must be >= {low}, got {value}")
+    model = cfg.get("model")
+    if model is not None and not OmegaConf.is_missing(cfg, "model"):
+        weight = model.get("prior_weight")
+        if weight is not None and not weight > 0:
+            raise ValueError(f"model.prior_weight must be > 0, got {weight}")
     algo = cfg.get("algo")
     if algo is not None and not OmegaConf.is_missing(cfg, "algo"):
         if "group_size" in algo and algo.group_size < 2:

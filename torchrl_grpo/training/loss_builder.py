@@ -112,12 +112,19 @@ def make_advantage(
 def make_reference_sync(algo_cfg: DictConfig, loss: LossModule) -> ReferenceSync | None:
     """The reference-policy updater of a GRPO loss with a KL term (``None`` otherwise).
 
+    ``algo.ref_model_sync_steps=null`` keeps the reference frozen at the initial policy
+    (``None``): with ``model.prior``, the KL then holds the learner to the base policy.
+
     Example:
         >>> from omegaconf import OmegaConf
         >>> make_reference_sync(OmegaConf.create({"name": "ppo"}), None) is None
         True
     """
-    if not is_grpo(algo_cfg) or algo_cfg.kl_to_ref_coeff is None:
+    if (
+        not is_grpo(algo_cfg)
+        or algo_cfg.kl_to_ref_coeff is None
+        or algo_cfg.ref_model_sync_steps is None
+    ):
         return None
     return ReferenceSync(
         loss,

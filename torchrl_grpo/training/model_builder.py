@@ -7,7 +7,14 @@ from torch import nn
 from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, ValueOperator
 
-from torchrl_grpo.modules import make_discrete_actor, make_network, make_value_net
+from torchrl_grpo.modules import (
+    PriorLogits,
+    make_discrete_actor,
+    make_network,
+    make_scripted_policy,
+    make_value_net,
+)
+from torchrl_grpo.training.env_builder import make_layout
 
 __all__ = ["make_net", "make_policy", "make_value"]
 
@@ -52,6 +59,9 @@ def make_net(model_cfg: DictConfig, env: EnvBase, out_features: int) -> nn.Modul
 def make_policy(model_cfg: DictConfig, env: EnvBase) -> ProbabilisticActor:
     """The categorical policy: writes ``logits``, ``action`` and ``action_log_prob``.
 
+    With ``model.prior`` set, the logits are the network's plus ``model.prior_weight``
+    on that scripted policy's action (:class:`~torchrl_grpo.modules.PriorLogits`).
+
     Example:
         >>> from omegaconf import OmegaConf
         >>> from torchrl_grpo.training.config import ModelConfig
@@ -64,7 +74,23 @@ def make_policy(model_cfg: DictConfig, env: EnvBase) -> ProbabilisticActor:
     spec = env.action_spec
     if not hasattr(spec, "n"):
         raise ValueError(f"the policies here are discrete; the env's action spec is {spec}")
-    return make_discrete_actor(make_net(model_cfg, env, int(spec.n)), spec)
+    n_actions = int(spec.n)
+    net = make_net(model_cfg, env, n_actions)
+    prior = model_cfg.get("prior")
+    if prior is not None:
+        layout = make_layout(env)
+        if n_actions != 5 or layout is None:
+            raise ValueError(
+                f"model.prior={prior} is a scripted policy of highway-env's 5-action "
+                f"DiscreteMetaAction on Kinematics observations; this env has {n_actions} "
+                "actions" + ("" if layout is not None else " and no Kinematics observation")
+            )
+        try:
+            base = make_scripted_policy(str(prior), layout)
+        except ValueError as err:
+            raise ValueError(f"model.prior={prior}: {err}") from err
+        net = PriorLogits(net, base, n_actions, model_cfg.prior_weight)
+    return make_discrete_actor(net, spec)
 
 
 def make_value(model_cfg: DictConfig, env: EnvBase) -> ValueOperator:
