@@ -186,6 +186,14 @@ def test_a_null_sync_keeps_the_reference_frozen():
     assert make_reference_sync(cfg.algo, loss) is not None
 
 
+def test_policy_action_weights_need_enumerated_actions():
+    cfg = OmegaConf.structured(Config(algo=GRPOConfig(explore_steps=1, action_weights="policy")))
+    with pytest.raises(ValueError, match="algo.action_weights=policy.*first_action=enumerate"):
+        check_config(cfg)
+    cfg.algo.first_action = "enumerate"
+    check_config(cfg)
+
+
 def test_evaluate_config_composes():
     cfg = compose_config(["checkpoint=x.pt", "env=merge"], config_name="evaluate")
     assert cfg.checkpoint == "x.pt" and cfg.env.scenario == "merge-v0" and cfg.episodes >= 30

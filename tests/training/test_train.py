@@ -14,9 +14,14 @@ import time
 import pytest
 import torch
 from conftest import ROOT, TINY, compose_config
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torchrl.modules import ProbabilisticActor
 
 from torchrl_grpo.modules import EXPLORED, SLOWER
+from torchrl_grpo.objectives import GRPOLoss
 from torchrl_grpo.training import Trainer, load_checkpoint, make_collector, make_rollout_env
+from torchrl_grpo.training.trainer import _policy_weighted
 
 
 def _csv_scalars(run_dir) -> dict[str, list[float]]:
@@ -199,6 +204,52 @@ def test_replayed_groups_accumulate_and_get_the_current_policys_log_probs(tmp_pa
     bigger = [*_REPLAY, "algo.replay_groups=60", f"resume={tmp_path / 'replay' / 'last.pt'}"]
     with pytest.raises(ValueError, match="algo.replay_groups"):
         Trainer(compose_config([*TINY, *bigger]), run_dir=tmp_path / "bigger")
+
+
+def test_policy_weights_scale_advantages_by_n_pi_and_leave_the_replay_alone(tmp_path):
+    overrides = [*_REPLAY, "algo.action_weights=policy", "experiment.total_frames=60"]
+    trainer = _train(tmp_path, "weighted", overrides)
+    stored = trainer.replay[:].clone()
+    data = _policy_weighted(trainer._replayed(stored[:1].clone()), 5)
+    plain = torch.cat([stored["advantage"], stored["advantage"][:1]])
+    logits = trainer.policy.module[0](data.select("observation").clone())["logits"]
+    prob = torch.softmax(logits, -1).gather(-1, data["action"].unsqueeze(-1))
+    torch.testing.assert_close(data["advantage"], plain * 5 * prob)
+    assert torch.equal(trainer.replay[:]["advantage"], plain)  # stored unweighted
+
+
+def test_policy_weights_give_the_expected_surrogates_gradient():
+    """Against autograd of ``sum_a pi(a|s) A(s, a)``, the all-action policy gradient."""
+    n_states, n_actions = 3, 5
+    table = torch.nn.Parameter(torch.randn(n_states, n_actions))
+    actor = ProbabilisticActor(
+        TensorDictModule(lambda state: table[state], ["state"], ["logits"]),
+        ["logits"],
+        distribution_class=torch.distributions.Categorical,
+        return_log_prob=True,
+    )
+    advantage = torch.randn(n_states, n_actions)
+    log_pi = torch.log_softmax(table.detach(), -1)
+    data = TensorDict(
+        {
+            "state": torch.arange(n_states).repeat_interleave(n_actions),
+            "action": torch.arange(n_actions).repeat(n_states),
+            "action_log_prob": log_pi.reshape(-1),
+            "advantage": advantage.reshape(-1, 1),
+            "mask": torch.ones(n_states * n_actions, dtype=torch.bool),
+        },
+        batch_size=[n_states * n_actions],
+    )
+    loss = GRPOLoss(actor, entropy_bonus=False)
+    loss(_policy_weighted(data, n_actions))["loss_objective"].backward()
+    reference = table.detach().clone().requires_grad_(True)
+    expected = -(torch.softmax(reference, -1) * advantage).sum() * n_actions / data.numel()
+    expected.backward()
+    torch.testing.assert_close(table.grad, reference.grad)
+    # The control: uniform weights give another gradient.
+    table.grad = None
+    loss(data)["loss_objective"].backward()
+    assert not torch.allclose(table.grad, reference.grad)
 
 
 def test_resume_refuses_another_algorithm(tmp_path):

@@ -30,6 +30,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 __all__ = [
+    "ActionWeightsName",
     "AggregationName",
     "AlgoConfig",
     "AlgoName",
@@ -140,6 +141,21 @@ class FirstActionName(_Choice):
 
     sample = "sample"
     enumerate = "enumerate"
+
+
+class ActionWeightsName(_Choice):
+    """Weight of each enumerated first action in the objective (``algo.action_weights``).
+
+    ``uniform``: every action of a group counts once, so each advantage moves its
+    action's logit by the same amount whatever the policy (the clipped objective over
+    the enumerated actions as if they had been sampled). ``policy``: the action's
+    advantage is scaled by ``n * pi(a|s)`` (the policy the update starts from), which
+    makes the objective the expected clipped surrogate over all actions
+    (the all-action policy gradient): a state moves the actions the policy plays.
+    """
+
+    uniform = "uniform"
+    policy = "policy"
 
 
 class TailPolicyName(_Choice):
@@ -330,6 +346,7 @@ class GRPOConfig(AlgoConfig):
     ref_model_mixup_alpha: float = 1.0
     explore_steps: int | None = None
     first_action: FirstActionName = FirstActionName.sample
+    action_weights: ActionWeightsName = ActionWeightsName.uniform
     tail_sync_batches: int | None = None
     tail_policy: TailPolicyName = TailPolicyName.learner
     replay_groups: int | None = None
@@ -615,6 +632,13 @@ def check_config(cfg: DictConfig) -> None:
                     "algo.first_action=enumerate and a scripted algo.tail_policy (e.g. rule)"
                 )
         first_action = algo.get("first_action")
+        weights = algo.get("action_weights")
+        if weights is not None and str(weights) != "uniform" and str(first_action) != "enumerate":
+            raise ValueError(
+                f"algo.action_weights={weights} weighs enumerated first actions: set "
+                "algo.first_action=enumerate (sampled actions are already drawn from the "
+                "policy)"
+            )
         if first_action is not None and str(first_action) != "sample":
             if algo.get("explore_steps") is None:
                 raise ValueError(

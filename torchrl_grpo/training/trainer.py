@@ -440,6 +440,8 @@ class Trainer:
         if self.replay is not None:
             data = self._replayed(data)
             stats["replay/steps"] = float(data.shape[0])
+        if str(self.cfg.algo.get("action_weights", "uniform")) == "policy":
+            data = _policy_weighted(data, int(self.eval_env.action_spec.n))
         with timer("update"):
             stats.update(self._epochs(data, advantage_fn=None))
         return stats
@@ -698,6 +700,19 @@ def _make_tail_policy(
     tail = copy.deepcopy(policy)
     tail.requires_grad_(False)
     return tail
+
+
+def _policy_weighted(data: TensorDictBase, n_actions: int) -> TensorDictBase:
+    """Scale each enumerated step's advantage by ``n * pi(a|s)`` (``algo.action_weights``).
+
+    The clipped surrogate is linear in the advantage, so this weighs each action's
+    term by the probability the policy gives it: the sum over a group is then
+    ``n`` times the expected surrogate over all actions of its root.
+    """
+    weight = n_actions * data.get("action_log_prob").exp()
+    advantage = data.get("advantage")
+    weighted = advantage * weight.reshape(advantage.shape)
+    return data.clone(recurse=False).set("advantage", weighted)
 
 
 def _make_replay(algo: DictConfig) -> ReplayBuffer | None:
