@@ -22,6 +22,7 @@ from torchrl_grpo.modules.networks import (
     make_network,
 )
 from torchrl_grpo.modules.prior import PriorLogits
+from torchrl_grpo.modules.scene import SceneFeatures, SceneMLP
 from torchrl_grpo.modules.scripted import (
     FASTER,
     IDLE,
@@ -71,6 +72,8 @@ __all__ = [
     "PriorLogits",
     "RandomPolicy",
     "RulePolicy",
+    "SceneFeatures",
+    "SceneMLP",
     "ScriptedPolicy",
     "make_continuous_actor",
     "make_discrete_actor",

@@ -209,6 +209,7 @@ class ModelKind(_Choice):
 
     mlp = "mlp"
     ego_attention = "ego_attention"
+    scene = "scene"
 
 
 class Backend(_Choice):

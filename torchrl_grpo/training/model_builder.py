@@ -9,6 +9,7 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 
 from torchrl_grpo.modules import (
     PriorLogits,
+    SceneMLP,
     make_discrete_actor,
     make_network,
     make_scripted_policy,
@@ -42,6 +43,17 @@ def make_net(model_cfg: DictConfig, env: EnvBase, out_features: int) -> nn.Modul
     """
     n_vehicles, n_features = _table_shape(env)
     kind = str(model_cfg.kind)
+    if kind == "scene":
+        layout = make_layout(env)
+        if layout is None:
+            raise ValueError(
+                "model.kind=scene reads highway-env's Kinematics observation; this env "
+                "observes something else"
+            )
+        try:
+            return SceneMLP(layout, out_features, num_cells=list(model_cfg.num_cells))
+        except ValueError as err:
+            raise ValueError(f"model.kind=scene: {err}") from err
     if kind == "mlp":
         kwargs = {"num_cells": list(model_cfg.num_cells)}
     else:
