@@ -5,9 +5,9 @@ highway-env's Kinematics table holds positions and speeds normalised by 200 m an
 changes with distance. What decides a crash (the gap to the car ahead in a lane, how
 fast it closes, whether a neighbouring lane has room) is a small, nonlinear function of
 a few of its entries, and an MLP over the table learns it slowly: cloned from 5,000
-states of the rule policy it matches 88% of the actions of held-out states and crashes
-in 4 of 10 episodes, where the same MLP over :class:`SceneFeatures` matches 96% and
-crashes as often as the rule policy (docs/results.md). :class:`SceneFeatures` decodes the
+states of the rule policy it matches 85% of the actions of held-out states, where the
+same MLP over :class:`SceneFeatures` matches 95% and drives as the rule policy does
+(``benchmarks/bench_features.py``, docs/results.md). :class:`SceneFeatures` decodes the
 table with the scene reader of the scripted drivers (:mod:`~torchrl_grpo.modules.scripted`)
 into 18 numbers per observation; :class:`SceneMLP` is an MLP over them.
 """
