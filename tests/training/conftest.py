@@ -27,21 +27,28 @@ TINY = [
 ]
 
 
-def compose_config(overrides: list[str], config_name: str = "config", conf: Path = CONF
-                   ) -> DictConfig:
+def compose_config(
+    overrides: list[str], config_name: str = "config", conf: Path = CONF
+) -> DictConfig:
     """Compose ``conf/<config_name>.yaml`` with Hydra's compose API."""
     register_configs()
     with initialize_config_dir(str(conf), version_base=None):
         return compose(config_name, overrides=overrides)
 
 
-def run_script(script: str, args: list[str], timeout: float = 120, **kwargs
-               ) -> subprocess.CompletedProcess:
+def run_script(
+    script: str, args: list[str], timeout: float = 120, **kwargs
+) -> subprocess.CompletedProcess:
     """Run ``scripts/<script>`` in a subprocess, wandb offline, from the repository root."""
     env = {**os.environ, "WANDB_MODE": "offline", "PYTHONUNBUFFERED": "1"}
     return subprocess.run(
         [sys.executable, str(ROOT / "scripts" / script), *args],
-        cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout, **kwargs,
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        **kwargs,
     )
 
 

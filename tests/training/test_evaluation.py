@@ -32,8 +32,14 @@ def _manual_return(action: int, seed: int, max_steps: int) -> tuple[float, bool,
 
 def test_baselines_numbers_match_hand_rollouts(tmp_path):
     cfg = compose_config(
-        ["env=highway_fast", "episodes=2", "seed=123", "baselines=[idle,slower]",
-         "video=false", "env.max_episode_steps=12"],
+        [
+            "env=highway_fast",
+            "episodes=2",
+            "seed=123",
+            "baselines=[idle,slower]",
+            "video=false",
+            "env.max_episode_steps=12",
+        ],
         config_name="evaluate",
     )
     report = evaluate_checkpoint(cfg, tmp_path)
@@ -65,8 +71,10 @@ def test_evaluation_is_repeatable_and_seed_dependent():
 def test_evaluate_script_on_a_checkpoint(smoke_run):
     train, run, _ = smoke_run
     assert train.returncode == 0, train.stderr[-3000:]
-    proc = run_script("evaluate.py", [f"checkpoint={run / 'last.pt'}", "episodes=1",
-                                      "baselines=[slower]", "video=true"])
+    proc = run_script(
+        "evaluate.py",
+        [f"checkpoint={run / 'last.pt'}", "episodes=1", "baselines=[slower]", "video=true"],
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "always-SLOWER" in proc.stdout and "grpo_branch" in proc.stdout
     assert (run / "eval" / "eval_episode.gif").stat().st_size > 0

@@ -12,7 +12,7 @@ override the base policy in a state it must learn a margin of ``weight`` there.
 from __future__ import annotations
 
 import torch
-from tensordict.nn import TensorDictModuleBase
+from tensordict.nn import TensorDictModule
 from torch import nn
 
 __all__ = ["PriorLogits"]
@@ -47,7 +47,7 @@ class PriorLogits(nn.Module):
         super().__init__()
         if not weight > 0:
             raise ValueError(f"the prior's logit weight must be > 0, got {weight}")
-        if isinstance(prior, TensorDictModuleBase):
+        if isinstance(prior, TensorDictModule):
             prior = prior.module
         if any(True for _ in prior.parameters()):
             raise ValueError(
