@@ -2,6 +2,7 @@
 
 import pytest
 import torch
+from modules_helpers import LAYOUT, scene
 from omegaconf import OmegaConf
 
 from torchrl_grpo.envs import HighwayEnv
@@ -9,29 +10,11 @@ from torchrl_grpo.modules import KinematicsLayout, RandomPolicy, SceneFeatures, 
 from torchrl_grpo.training.config import ModelConfig
 from torchrl_grpo.training.model_builder import make_policy
 
-LAYOUT = KinematicsLayout()  # highway-fast-v0: default Kinematics observation, 3 lanes
-LANE = LAYOUT.lane_width
-
-
-def table(lane: int, speed: float, others: list[tuple[float, int, float]]) -> torch.Tensor:
-    """Ego in ``lane`` at ``speed``; others are (dx m, lane offset, dvx m/s)."""
-    cols = {f: torch.zeros(5) for f in LAYOUT.features}
-    cols["presence"][0] = 1.0
-    cols["x"][0] = 150.0
-    cols["y"][0] = lane * LANE
-    cols["vx"][0] = speed
-    for i, (dx, dlane, dvx) in enumerate(others, start=1):
-        cols["presence"][i] = 1.0
-        cols["x"][i] = dx
-        cols["y"][i] = dlane * LANE
-        cols["vx"][i] = dvx
-    return LAYOUT.encode(cols)
-
 
 def test_features_of_a_scene_computed_by_hand():
     # Ego in the middle lane at 30 m/s. Left lane: a car 40 m ahead, 10 m/s slower,
     # and one 10 m behind. Own lane: nothing. Right lane: a car 60 m ahead at our speed.
-    obs = table(1, 30.0, [(40.0, -1, -10.0), (-10.0, -1, 0.0), (60.0, 1, 0.0)])
+    obs = scene(1, 30.0, [(40.0, -1, -10.0), (-10.0, -1, 0.0), (60.0, 1, 0.0)])
     f = SceneFeatures(LAYOUT)(obs)
     expected = [
         1.0,  # (30 - 25) / 5
@@ -51,7 +34,7 @@ def test_features_of_a_scene_computed_by_hand():
 
 def test_a_missing_lane_and_an_unsafe_one():
     # Ego in the left lane (no lane further left); a car 2 m behind in the right lane.
-    f = SceneFeatures(LAYOUT)(table(0, 20.0, [(-7.0, 1, 0.0)]))
+    f = SceneFeatures(LAYOUT)(scene(0, 20.0, [(-7.0, 1, 0.0)]))
     assert f[2].item() == 0.0  # the left lane does not exist
     assert f[12].item() == 1.0 and f[16].item() == 0.0  # right lane exists, unsafe
     assert f[17].item() == 1.0  # and occupied within 25 m
