@@ -10,6 +10,7 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl_grpo.modules import (
     PriorLogits,
     SceneMLP,
+    ScriptedPolicy,
     make_discrete_actor,
     make_network,
     make_scripted_policy,
@@ -17,7 +18,7 @@ from torchrl_grpo.modules import (
 )
 from torchrl_grpo.training.env_builder import make_layout
 
-__all__ = ["make_net", "make_policy", "make_value"]
+__all__ = ["make_base_policy", "make_net", "make_policy", "make_value"]
 
 
 def _table_shape(env: EnvBase) -> tuple[int, int]:
@@ -90,19 +91,32 @@ def make_policy(model_cfg: DictConfig, env: EnvBase) -> ProbabilisticActor:
     net = make_net(model_cfg, env, n_actions)
     prior = model_cfg.get("prior")
     if prior is not None:
-        layout = make_layout(env)
-        if n_actions != 5 or layout is None:
-            raise ValueError(
-                f"model.prior={prior} is a scripted policy of highway-env's 5-action "
-                f"DiscreteMetaAction on Kinematics observations; this env has {n_actions} "
-                "actions" + ("" if layout is not None else " and no Kinematics observation")
-            )
-        try:
-            base = make_scripted_policy(str(prior), layout)
-        except ValueError as err:
-            raise ValueError(f"model.prior={prior}: {err}") from err
+        base = make_base_policy(str(prior), env, "model.prior")
         net = PriorLogits(net, base, n_actions, model_cfg.prior_weight)
     return make_discrete_actor(net, spec)
+
+
+def make_base_policy(name: str, env: EnvBase, key: str) -> ScriptedPolicy:
+    """The scripted policy ``name`` for ``env``; the error names the config ``key``.
+
+    Example:
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> type(make_base_policy("rule", HighwayEnv(seed=0), "model.prior")).__name__
+        'RulePolicy'
+    """
+    n_actions = getattr(env.action_spec, "n", None)
+    layout = make_layout(env)
+    if n_actions != 5 or layout is None:
+        raise ValueError(
+            f"{key}={name} is a scripted policy of highway-env's 5-action "
+            "DiscreteMetaAction on Kinematics observations; this env has "
+            f"{n_actions or 'continuous'} actions"
+            + ("" if layout is not None else " and no Kinematics observation")
+        )
+    try:
+        return make_scripted_policy(name, layout)
+    except ValueError as err:
+        raise ValueError(f"{key}={name}: {err}") from err
 
 
 def make_value(model_cfg: DictConfig, env: EnvBase) -> ValueOperator:

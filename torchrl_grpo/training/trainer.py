@@ -36,7 +36,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs import EnvBase
 
 from torchrl_grpo.branching import BRANCH_RETURN, GROUP_ID, MASK, plot_group
-from torchrl_grpo.modules import EXPLORED, KinematicsLayout, make_scripted_policy
+from torchrl_grpo.modules import EXPLORED
 from torchrl_grpo.training.checkpoint import (
     get_rng_state,
     load_checkpoint,
@@ -73,7 +73,7 @@ from torchrl_grpo.training.loss_builder import (
     make_optimizer,
     make_reference_sync,
 )
-from torchrl_grpo.training.model_builder import make_policy, make_value
+from torchrl_grpo.training.model_builder import make_base_policy, make_policy, make_value
 
 __all__ = ["PhaseTimer", "TrainResult", "Trainer", "plot_learning_curve"]
 
@@ -195,9 +195,7 @@ class Trainer:
         self.ref_sync = make_reference_sync(cfg.algo, self.loss)
         self.optimizer = make_optimizer(cfg.optim, self.loss)
         self.tail_policy = (
-            _make_tail_policy(cfg.algo, self.policy, self.eval_env, self.layout)
-            if self.grpo
-            else None
+            _make_tail_policy(cfg.algo, self.policy, self.eval_env) if self.grpo else None
         )
         self.replay = _make_replay(cfg.algo) if self.grpo else None
         self.iteration = 0
@@ -675,9 +673,7 @@ class Trainer:
                 result.logs = Path(run_dir).parent
 
 
-def _make_tail_policy(
-    algo: DictConfig, policy: nn.Module, env: EnvBase, layout: KinematicsLayout | None
-) -> nn.Module | None:
+def _make_tail_policy(algo: DictConfig, policy: nn.Module, env: EnvBase) -> nn.Module | None:
     """The actor of greedy tails when it is not ``policy`` itself, or None.
 
     A scripted base policy (``algo.tail_policy``), or a frozen copy of ``policy``
@@ -686,15 +682,7 @@ def _make_tail_policy(
     # check_config has refused both settings without explore_steps, and together.
     base = str(algo.get("tail_policy", "learner"))
     if base != "learner":
-        n_actions = getattr(env.action_spec, "n", None)
-        if n_actions != 5 or layout is None:
-            raise ValueError(
-                f"algo.tail_policy={base} is a scripted policy of highway-env's 5-action "
-                "DiscreteMetaAction on Kinematics observations; this env has "
-                f"{n_actions or 'continuous'} actions"
-                + ("" if layout is not None else " and no Kinematics observation")
-            )
-        return make_scripted_policy(base, layout)
+        return make_base_policy(base, env, "algo.tail_policy")
     if algo.get("tail_sync_batches") is None:
         return None
     tail = copy.deepcopy(policy)
