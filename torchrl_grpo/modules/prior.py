@@ -49,7 +49,7 @@ class PriorLogits(nn.Module):
             raise ValueError(f"the prior's logit weight must be > 0, got {weight}")
         if isinstance(prior, TensorDictModule):
             prior = prior.module
-        if any(True for _ in prior.parameters()):
+        if next(prior.parameters(), None) is not None:
             raise ValueError(
                 f"the prior {type(prior).__name__} has parameters; it must be a fixed "
                 "policy (train the network instead)"

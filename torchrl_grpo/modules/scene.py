@@ -62,9 +62,6 @@ class SceneFeatures(_Driver):
 
     n_features = 18
 
-    def __init__(self, layout: KinematicsLayout) -> None:
-        super().__init__(layout)
-
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         """Maps ``[*batch, V, F]`` to ``[*batch, 18]``."""
         scene = self.scene(observation)
