@@ -252,11 +252,21 @@ def test_policy_weights_give_the_expected_surrogates_gradient():
     assert not torch.allclose(table.grad, reference.grad)
 
 
-def test_resume_refuses_another_algorithm(tmp_path):
+def test_resume_refuses_another_algorithm_or_model(tmp_path):
     _train(tmp_path, "grpo", ["experiment.total_frames=20"])
-    cfg = compose_config([*TINY, "algo=ppo", f"resume={tmp_path / 'grpo' / 'last.pt'}"])
+    resume = f"resume={tmp_path / 'grpo' / 'last.pt'}"
+    cfg = compose_config([*TINY, "algo=ppo", resume])
     with pytest.raises(ValueError, match="algo=grpo_branch"):
         Trainer(cfg, run_dir=tmp_path / "ppo")
+    # Same parameter shapes, another policy: the prior would change it silently.
+    cfg = compose_config([*TINY, "model.prior=rule", resume])
+    with pytest.raises(ValueError, match="model.prior=None, not 'rule'"):
+        Trainer(cfg, run_dir=tmp_path / "prior")
+    cfg = compose_config([*TINY, "model=scene", resume])
+    with pytest.raises(ValueError, match="model.kind='mlp', not 'scene'"):
+        Trainer(cfg, run_dir=tmp_path / "scene")
+    # The run's own model resumes.
+    Trainer(compose_config([*TINY, resume]), run_dir=tmp_path / "same")
 
 
 def test_ctrl_c_saves_and_leaves_no_worker(tmp_path):

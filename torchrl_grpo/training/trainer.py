@@ -247,6 +247,14 @@ class Trainer:
             raise ValueError(
                 f"resume={path} was written by algo={saved_algo}, not algo={self.cfg.algo.name}"
             )
+        # The parameters fit only the network they were trained in; a prior that changed
+        # would load them silently into another policy.
+        changed = _changed_keys(ckpt["config"]["model"], self.config["model"])
+        if changed:
+            raise ValueError(
+                f"resume={path} was written with another model: "
+                + ", ".join(f"model.{k}={a!r}, not {b!r}" for k, (a, b) in changed.items())
+            )
         self.loss.load_state_dict(ckpt["loss"])
         self.policy.load_state_dict(ckpt["policy"])
         if self.tail_policy is not None and ckpt.get("tail_policy") is not None:
@@ -721,6 +729,16 @@ def _seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
     np.random.seed(seed)
     random.seed(seed)
+
+
+def _changed_keys(saved: Any, current: Any, prefix: str = "") -> dict[str, tuple[Any, Any]]:
+    """``{dotted key: (saved, current)}`` where two plain config trees differ."""
+    if isinstance(saved, dict) and isinstance(current, dict):
+        out: dict[str, tuple[Any, Any]] = {}
+        for key in sorted(saved.keys() | current.keys()):
+            out |= _changed_keys(saved.get(key), current.get(key), f"{prefix}{key}.")
+        return out
+    return {} if saved == current else {prefix.rstrip("."): (saved, current)}
 
 
 def _progress(enabled: bool, total: int, initial: int):
