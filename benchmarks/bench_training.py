@@ -35,7 +35,14 @@ p.add_argument("--baselines", nargs="*", default=["idle", "slower", "rule"],
                help="scripted policies beside the curves; 'slower' also for the claim")
 p.add_argument("--max-frames", type=int, default=None,
                help="cut every curve here (default: the shortest run of each env)")
+p.add_argument("--labels", nargs="*", default=None,
+               help="one curve label per run, in the order given (default: the run's algo); "
+                    "runs with one label are seeds of one curve")
 args = p.parse_args()
+if args.labels is not None and len(args.labels) != len(args.runs):
+    raise SystemExit(f"--labels takes one label per run: {len(args.runs)} runs, "
+                     f"{len(args.labels)} labels")
+labels = dict(zip(args.runs, args.labels, strict=True)) if args.labels else {}
 
 curves = defaultdict(lambda: defaultdict(list))  # env -> algo -> [history]
 rows = []
@@ -48,7 +55,7 @@ for run in sorted(args.runs):
     history = [json.loads(line) for line in hist_path.read_text().splitlines() if line]
     if not history:
         continue
-    env, algo = str(cfg.env.name), str(cfg.algo.name)
+    env, algo = str(cfg.env.name), labels.get(run, str(cfg.algo.name))
     envs[env] = cfg.env
     curves[env][algo].append(history)
     last = history[-1]
