@@ -178,7 +178,7 @@ def envelope_floor(env: HighwayEnv, td: TensorDict) -> Callable[[], None]:
     The codec's encode returns a new TensorDict around the leaves of one prebuilt state
     (no simulator read, no copy) and its decode and checks return at once: what is left
     is TorchRL's reset and the state's containers, the part of a snapshot that does not
-    depend on the simulator. Call ``.restore()`` on the result to put the codec back.
+    depend on the simulator. Each call puts the codec's own methods back when it returns.
     """
     codec = env.codec
     prebuilt = dict(leaves(td["state", "sim"]))
@@ -188,14 +188,11 @@ def envelope_floor(env: HighwayEnv, td: TensorDict) -> Callable[[], None]:
         "check_compatible": lambda state: None,
     }
 
-    def snapshot_restore() -> None:
-        env.get_state()
-        env.reset(td, set_state=True)
-
     def run() -> None:
         vars(codec).update(stubs)  # instance attributes shadow the methods
         try:
-            snapshot_restore()
+            env.get_state()
+            env.reset(td, set_state=True)
         finally:
             for name in stubs:
                 vars(codec).pop(name)

@@ -21,7 +21,7 @@ from torchrl.modules import ProbabilisticActor
 from torchrl_grpo.modules import EXPLORED, SLOWER
 from torchrl_grpo.objectives import GRPOLoss
 from torchrl_grpo.training import Trainer, load_checkpoint, make_collector, make_rollout_env
-from torchrl_grpo.training.trainer import _policy_weighted
+from torchrl_grpo.training.trainer import _changed_keys, _policy_weighted
 
 
 def _csv_scalars(run_dir) -> dict[str, list[float]]:
@@ -267,6 +267,14 @@ def test_resume_refuses_another_algorithm_or_model(tmp_path):
         Trainer(cfg, run_dir=tmp_path / "scene")
     # The run's own model resumes.
     Trainer(compose_config([*TINY, resume]), run_dir=tmp_path / "same")
+
+
+def test_changed_keys_compares_only_keys_both_configs_hold():
+    saved = {"kind": "mlp", "cells": [64], "sub": {"a": 1, "old": 2}}
+    current = {"kind": "mlp", "cells": [32], "sub": {"a": 3}, "prior": None}
+    # "old" left the schema and "prior" joined it: neither is a change of this run.
+    assert _changed_keys(saved, current) == {"cells": ([64], [32]), "sub.a": (1, 3)}
+    assert _changed_keys(saved, saved) == {}
 
 
 def test_ctrl_c_saves_and_leaves_no_worker(tmp_path):

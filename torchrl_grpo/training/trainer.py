@@ -732,10 +732,14 @@ def _seed_everything(seed: int) -> None:
 
 
 def _changed_keys(saved: Any, current: Any, prefix: str = "") -> dict[str, tuple[Any, Any]]:
-    """``{dotted key: (saved, current)}`` where two plain config trees differ."""
+    """``{dotted key: (saved, current)}`` where two plain config trees differ.
+
+    Only keys both trees hold are compared: a checkpoint written before a key existed
+    ran with what is now its default.
+    """
     if isinstance(saved, dict) and isinstance(current, dict):
         out: dict[str, tuple[Any, Any]] = {}
-        for key in sorted(saved.keys() | current.keys()):
+        for key in sorted(saved.keys() & current.keys()):
             out |= _changed_keys(saved.get(key), current.get(key), f"{prefix}{key}.")
         return out
     return {} if saved == current else {prefix.rstrip("."): (saved, current)}
