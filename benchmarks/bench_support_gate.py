@@ -51,7 +51,16 @@ class SupportGate(nn.Module):
         n_actions: number of discrete actions.
     """
 
-    def __init__(self, learner, base, features, roots, radius, count, n_actions) -> None:
+    def __init__(
+        self,
+        learner: nn.Module,
+        base: nn.Module,
+        features: nn.Module,
+        roots: torch.Tensor,
+        radius: float,
+        count: int,
+        n_actions: int,
+    ) -> None:
         super().__init__()
         self.learner, self.base, self.features = learner, base, features
         self.roots, self.radius, self.count, self.n_actions = roots, radius, count, n_actions
@@ -59,6 +68,7 @@ class SupportGate(nn.Module):
         self.states = 0
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        """Maps ``[*batch, V, F]`` observations to ``[*batch, n_actions]`` logits."""
         logits = self.learner(observation)
         feats = self.features(observation).reshape(-1, self.roots.shape[1])
         near = (torch.cdist(feats, self.roots) <= self.radius).sum(-1)
