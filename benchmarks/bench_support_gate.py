@@ -21,21 +21,19 @@ from __future__ import annotations
 import argparse
 import copy
 import statistics
-import tempfile
 from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig, OmegaConf
 from torch import nn
+from torchrl.modules import ProbabilisticActor
 
 from torchrl_grpo.modules import SceneFeatures
-from torchrl_grpo.training import Trainer
-from torchrl_grpo.training.config import register_configs
+from torchrl_grpo.training import load_checkpoint
 from torchrl_grpo.training.env_builder import make_env, make_layout
 from torchrl_grpo.training.evaluation import evaluate
-from torchrl_grpo.training.model_builder import make_base_policy
-
-ROOT = Path(__file__).resolve().parent.parent
+from torchrl_grpo.training.model_builder import make_base_policy, make_policy
+from torchrl_grpo.training.trainer import _make_replay  # the buffer the run trained with
 
 
 class SupportGate(nn.Module):
@@ -81,29 +79,17 @@ class SupportGate(nn.Module):
         return torch.where(ok.unsqueeze(-1), logits, base.to(logits.dtype))
 
 
-def load_run(run: Path) -> Trainer:
-    """The run's trainer, resumed from its ``last.pt`` (policy and replay)."""
-    overrides = [
-        line[2:].strip()
-        for line in (run / ".hydra" / "overrides.yaml").read_text().splitlines()
-        if line.startswith("- ") and not line[2:].startswith(("experiment.out_dir", "logger"))
-    ]
-    scratch = tempfile.mkdtemp(prefix="support_gate_")
-    register_configs()
-    with initialize_config_dir(str(ROOT / "conf"), version_base=None):
-        cfg = compose(
-            "config",
-            overrides=[
-                *overrides,
-                f"resume={run / 'last.pt'}",
-                "logger=none",
-                f"experiment.out_dir={scratch}",
-            ],
-        )
-    trainer = Trainer(cfg, run_dir=scratch)
-    if trainer.replay is None or len(trainer.replay) == 0:
+def load_run(run: Path) -> tuple[DictConfig, ProbabilisticActor, torch.Tensor, int]:
+    """The config, trained policy, replayed observations and frames of ``run/last.pt``."""
+    ckpt = load_checkpoint(run / "last.pt")
+    cfg = OmegaConf.create(ckpt["config"])
+    replay = _make_replay(cfg.algo)
+    if replay is None or ckpt.get("replay") is None:
         raise SystemExit(f"{run} has no replayed groups: train it with algo.replay_groups")
-    return trainer
+    replay.load_state_dict(ckpt["replay"])
+    policy = make_policy(cfg.model, make_env(cfg.env, seed=0))
+    policy.load_state_dict(ckpt["policy"])
+    return cfg, policy, replay[:]["observation"], int(ckpt["frames"])
 
 
 def main() -> None:
@@ -113,21 +99,20 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--seed", type=int, default=10000)
     args = parser.parse_args()
-    trainer = load_run(args.run)
-    cfg = trainer.cfg
+    cfg, trained, observations, frames = load_run(args.run)
     env = make_env(cfg.env, seed=0)
     features = SceneFeatures(make_layout(env))
     base = make_base_policy("rule", env, "the gate's base policy").module
-    learner = trainer.policy.module[0].module
+    learner = trained.module[0].module
     with torch.no_grad():
-        roots = torch.unique(features(trainer.replay[:]["observation"]), dim=0)
-    print(f"{args.run}: {trainer.frames} frames, {len(roots)} distinct replayed root states")
+        roots = torch.unique(features(observations), dim=0)
+    print(f"{args.run}: {frames} frames, {len(roots)} distinct replayed root states")
     gates = [(float("inf"), 1, "learner everywhere"), (0.0, 2**62, "rule policy everywhere")]
     for text in args.gates:
         r, k = text.split(":")
         gates.append((float(r), int(k), f"gate r={r} k={k}"))
     for radius, count, label in gates:
-        policy = copy.deepcopy(trainer.policy)
+        policy = copy.deepcopy(trained)
         gate = SupportGate(learner, base, features, roots, radius, count, 5)
         policy.module[0].module = gate
         result, _ = evaluate(
