@@ -20,12 +20,12 @@ from __future__ import annotations
 
 import argparse
 import copy
-import statistics
 from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
+from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor
 
 from torchrl_grpo.modules import SceneFeatures
@@ -79,17 +79,18 @@ class SupportGate(nn.Module):
         return torch.where(ok.unsqueeze(-1), logits, base.to(logits.dtype))
 
 
-def load_run(run: Path) -> tuple[DictConfig, ProbabilisticActor, torch.Tensor, int]:
-    """The config, trained policy, replayed observations and frames of ``run/last.pt``."""
+def load_run(run: Path) -> tuple[DictConfig, EnvBase, ProbabilisticActor, torch.Tensor, int]:
+    """The config, its env, the trained policy, replayed observations and frames of a run."""
     ckpt = load_checkpoint(run / "last.pt")
     cfg = OmegaConf.create(ckpt["config"])
     replay = _make_replay(cfg.algo)
     if replay is None or ckpt.get("replay") is None:
         raise SystemExit(f"{run} has no replayed groups: train it with algo.replay_groups")
     replay.load_state_dict(ckpt["replay"])
-    policy = make_policy(cfg.model, make_env(cfg.env, seed=0))
+    env = make_env(cfg.env, seed=0)
+    policy = make_policy(cfg.model, env)
     policy.load_state_dict(ckpt["policy"])
-    return cfg, policy, replay[:]["observation"], int(ckpt["frames"])
+    return cfg, env, policy, replay[:]["observation"], int(ckpt["frames"])
 
 
 def main() -> None:
@@ -99,8 +100,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--seed", type=int, default=10000)
     args = parser.parse_args()
-    cfg, trained, observations, frames = load_run(args.run)
-    env = make_env(cfg.env, seed=0)
+    cfg, env, trained, observations, frames = load_run(args.run)
     features = SceneFeatures(make_layout(env))
     base = make_base_policy("rule", env, "the gate's base policy").module
     learner = trained.module[0].module
@@ -113,7 +113,7 @@ def main() -> None:
         gates.append((float(r), int(k), f"gate r={r} k={k}"))
     for radius, count, label in gates:
         policy = copy.deepcopy(trained)
-        gate = SupportGate(learner, base, features, roots, radius, count, 5)
+        gate = SupportGate(learner, base, features, roots, radius, count, int(env.action_spec.n))
         policy.module[0].module = gate
         result, _ = evaluate(
             env,
@@ -122,10 +122,10 @@ def main() -> None:
             seed=args.seed,
             max_steps=int(cfg.env.max_episode_steps),
         )
-        crashes = sum(result.crashed) / len(result.crashed)
+        summary = result.summary()
         print(
-            f"  {label:<24} return {statistics.mean(result.returns):6.2f}  crashes "
-            f"{crashes:5.1%}  speed {statistics.mean(result.speeds):5.1f} m/s  learner acts in "
+            f"  {label:<24} return {summary['return']:6.2f}  crashes "
+            f"{summary['crash_rate']:5.1%}  speed {summary['speed']:5.1f} m/s  learner acts in "
             f"{gate.supported}/{gate.states} states"
         )
 
