@@ -1,0 +1,102 @@
+"""The Kinematics observation, as ``KinematicObservation.observe`` computes it (``order="sorted"``).
+
+Row 0 is the ego in world coordinates; the next rows are the vehicles closer than
+``perception_distance`` (and, without ``see_behind``, less than two lengths behind
+the ego), sorted by ``|x - x_ego|`` (ties in road order), relative to the ego unless
+``absolute``. x, y, vx and vy are mapped from ``features_range`` to [-1, 1] (the ego's
+row too) and clipped; missing rows are zeros. Velocities are ``speed (cos, sin)(heading)``.
+
+Example:
+    >>> import torch
+    >>> from torchrl_grpo.envs.highway import tensor_params
+    >>> from torchrl_grpo.sim.state import empty_world
+    >>> params = tensor_params("highway-fast-v0")
+    >>> v = empty_world(1, 3, torch.float64).vehicles
+    >>> v = v._replace(x=torch.tensor([[100.0, 200.0, 500.0]], dtype=torch.float64),
+    ...                speed=torch.full((1, 3), 20.0, dtype=torch.float64))
+    >>> observe(v, params)[0, :3].tolist()  # vehicle 2 is out of sight (400 m ahead)
+    [[1.0, 0.5, 0.0, 0.25, 0.0], [1.0, 0.5, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 0.0]]
+"""
+
+from __future__ import annotations
+
+import torch
+
+from torchrl_grpo.sim.params import HighwayParams
+from torchrl_grpo.sim.state import Vehicles
+
+__all__ = ["FEATURES", "observe"]
+
+#: The Kinematics features this simulator computes.
+FEATURES = ("presence", "x", "y", "vx", "vy", "heading", "cos_h", "sin_h")
+
+
+def _features(v: Vehicles) -> dict[str, torch.Tensor]:
+    cos_h, sin_h = torch.cos(v.heading), torch.sin(v.heading)
+    return {
+        "presence": torch.ones_like(v.x),
+        "x": v.x,
+        "y": v.y,
+        "vx": v.speed * cos_h,
+        "vy": v.speed * sin_h,
+        "heading": v.heading,
+        "cos_h": cos_h,
+        "sin_h": sin_h,
+    }
+
+
+def observe(v: Vehicles, params: HighwayParams) -> torch.Tensor:
+    """The ``[B, vehicles_count, len(features)]`` table, in the vehicle table's dtype.
+
+    Args:
+        v: the vehicle table.
+        params: the constants (``params.observation`` describes the table).
+
+    Returns:
+        The observation; highway-env casts it to float32, the env does so in float32
+        mode.
+
+    Example:
+        >>> # see the module's example
+    """
+    obs = params.observation
+    batch, n = v.x.shape
+    dx = v.x - v.x[:, :1]
+    dy = v.y - v.y[:, :1]
+    visible = v.present & (torch.sqrt(dx * dx + dy * dy) < obs.perception_distance)
+    visible[:, 0] = False
+    if not obs.see_behind:
+        visible = visible & (-2 * params.vehicle.length < dx)
+    key = torch.where(visible, dx.abs(), torch.full_like(dx, float("inf")))
+    order = torch.argsort(key, dim=-1, stable=True)[:, : obs.vehicles_count - 1]
+    shown = visible.gather(1, order)
+
+    feats = _features(v)
+    ego = {k: t[:, :1] for k, t in feats.items()}
+    columns = []
+    for name in obs.features:
+        others = feats[name].gather(1, order)
+        if not obs.absolute and name in ("x", "y", "vx", "vy"):
+            others = others - ego[name]
+        columns.append(torch.cat([ego[name], others], dim=1))
+    table = torch.stack(columns, dim=-1)
+    if obs.normalize:
+        table = _normalize(table, params)
+    rows = torch.cat([torch.ones_like(shown[:, :1]), shown], dim=1)
+    table = torch.where(rows.unsqueeze(-1), table, torch.zeros_like(table))
+    if table.shape[1] < obs.vehicles_count:
+        pad = table.new_zeros(batch, obs.vehicles_count - table.shape[1], table.shape[2])
+        table = torch.cat([table, pad], dim=1)
+    return table
+
+
+def _normalize(table: torch.Tensor, params: HighwayParams) -> torch.Tensor:
+    obs = params.observation
+    ranges = dict(obs.features_range)
+    columns = list(table.unbind(-1))
+    for k, name in enumerate(obs.features):
+        if name in ranges:
+            low, high = ranges[name]
+            value = -1 + (columns[k] - low) * (1 - (-1)) / (high - low)
+            columns[k] = torch.clamp(value, -1, 1) if obs.clip else value
+    return torch.stack(columns, dim=-1)
