@@ -36,7 +36,7 @@ from tensordict import TensorDict
 from torchrl.envs import EnvBase, GymEnv
 
 from torchrl_grpo.envs import HighwayEnv
-from torchrl_grpo.envs.codec import leaves, nested_tensordict
+from torchrl_grpo.envs.core.bits import leaves, nested_tensordict
 
 IDLE = 1
 MAX_STEPS = 40  # per episode; episodes that end earlier are timed to their end

@@ -25,7 +25,7 @@ What it shows, in order:
            def fingerprint(self, env):    # optional: which config a state belongs to
                ...
 
-   (``bind`` and ``validate`` are optional hooks too; ``torchrl_grpo.envs.gym_state``
+   (``bind`` and ``validate`` are optional hooks too; ``torchrl_grpo.envs.core.gym_state``
    holds helpers for numpy generators and the TimeLimit / OrderEnforcing wrappers.)
    Then ``SnapshotEnv(env_id, codec=MyCodec())``, or ``register_codec(env_id, MyCodec)``
    once and ``SnapshotEnv(env_id)``. Section 1 checks the specs and runs a bitwise
@@ -72,7 +72,7 @@ from torchrl_grpo.envs import (
     SnapshotSerialEnv,
     state_differences,
 )
-from torchrl_grpo.envs.codec import from_bits
+from torchrl_grpo.envs.core.bits import from_bits
 from torchrl_grpo.modules import make_discrete_actor
 from torchrl_grpo.objectives import GroupRelativeAdvantage, GRPOLoss
 

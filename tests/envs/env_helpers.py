@@ -13,7 +13,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from torchrl_grpo.envs import HIGHWAY_SCENARIOS
-from torchrl_grpo.envs.codec import FLOAT_BITS
+from torchrl_grpo.envs.core.bits import FLOAT_BITS
 
 # highway-env flags its older scenario versions as out of date on every gym.make.
 warnings.filterwarnings("ignore", message=".*is out of date.*")

@@ -32,8 +32,8 @@ from torchrl_grpo.envs import (
     UnknownFieldError,
     register_vehicle_class,
 )
-from torchrl_grpo.envs import highway_schema as schema
-from torchrl_grpo.envs.gym_state import encode_rng, seeded_rng_words
+from torchrl_grpo.envs.core.gym_state import encode_rng, seeded_rng_words
+from torchrl_grpo.envs.highway import schema
 
 
 # ---------------------------------------------------------------- CartPole

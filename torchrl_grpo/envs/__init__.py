@@ -1,37 +1,35 @@
 """TorchRL environments whose complete simulator state is a TensorDict of tensors."""
 
-from torchrl_grpo.envs.batched import (
+from torchrl_grpo.envs.cartpole import CartPoleStateCodec
+from torchrl_grpo.envs.core.batched import (
     SnapshotParallelEnv,
     SnapshotSerialEnv,
     check_worker_states,
     local_worker_env,
 )
-from torchrl_grpo.envs.cartpole_codec import CartPoleStateCodec
-from torchrl_grpo.envs.codec import (
-    StateCodec,
+from torchrl_grpo.envs.core.bits import (
     check_state_layout,
     from_bits,
-    stable_hash,
     state_differences,
     states_equal,
     to_bits,
 )
-from torchrl_grpo.envs.errors import (
+from torchrl_grpo.envs.core.codec import StateCodec, stable_hash
+from torchrl_grpo.envs.core.errors import (
     SnapshotError,
     StateCapacityError,
     StateCorruptedError,
     StateMismatchError,
     UnknownFieldError,
 )
-from torchrl_grpo.envs.highway import HighwayEnv
-from torchrl_grpo.envs.highway_codec import HighwayStateCodec
-from torchrl_grpo.envs.highway_schema import (
+from torchrl_grpo.envs.core.registry import codec_for, register_codec
+from torchrl_grpo.envs.core.snapshot_env import STATE_KEY, SnapshotEnv
+from torchrl_grpo.envs.highway import HIGHWAY_SCENARIOS, HighwayEnv, HighwayStateCodec
+from torchrl_grpo.envs.highway.schema import (
     Field,
     register_class_parameter,
     register_vehicle_class,
 )
-from torchrl_grpo.envs.registry import HIGHWAY_SCENARIOS, codec_for, register_codec
-from torchrl_grpo.envs.snapshot_env import STATE_KEY, SnapshotEnv
 
 __all__ = [
     "HIGHWAY_SCENARIOS",

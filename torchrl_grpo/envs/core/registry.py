@@ -1,31 +1,18 @@
-"""Which state codec serves which gymnasium env id."""
+"""Which state codec serves which gymnasium env id.
+
+Each simulator package registers its codecs when it is imported (``torchrl_grpo.envs``
+imports them all), so that :class:`~torchrl_grpo.envs.SnapshotEnv` finds them by env id.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
-from torchrl_grpo.envs.cartpole_codec import CartPoleStateCodec
-from torchrl_grpo.envs.codec import StateCodec
-from torchrl_grpo.envs.highway_codec import HighwayStateCodec
+from torchrl_grpo.envs.core.codec import StateCodec
 
-HIGHWAY_SCENARIOS: tuple[str, ...] = (
-    "highway-v0",
-    "highway-fast-v0",
-    "merge-v0",
-    "roundabout-v0",
-    "intersection-v0",
-    "racetrack-v0",
-    "parking-v0",
-    "exit-v0",
-    "u-turn-v0",
-    "two-way-v0",
-    "lane-keeping-v0",
-)
-
-_CODECS: dict[str, Callable[[], StateCodec]] = {
-    "CartPole-v1": CartPoleStateCodec,
-    **{scenario: HighwayStateCodec for scenario in HIGHWAY_SCENARIOS},
-}
+# Filled by the simulator packages as they are imported (torchrl_grpo.envs imports them
+# all): core does not import the simulators it serves.
+_CODECS: dict[str, Callable[[], StateCodec]] = {}
 
 
 def register_codec(env_id: str, factory: Callable[[], StateCodec]) -> None:
@@ -36,6 +23,7 @@ def register_codec(env_id: str, factory: Callable[[], StateCodec]) -> None:
         factory: a callable returning a fresh, unbound codec.
 
     Example:
+        >>> from torchrl_grpo.envs import CartPoleStateCodec
         >>> register_codec("CartPole-v0", CartPoleStateCodec)
         >>> type(codec_for("CartPole-v0")).__name__
         'CartPoleStateCodec'

@@ -26,13 +26,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from torchrl_grpo.envs.errors import (
+from torchrl_grpo.envs.core.errors import (
     SnapshotError,
     StateCapacityError,
     StateCorruptedError,
     UnknownFieldError,
 )
-from torchrl_grpo.envs.highway_schema import DERIVED_ATTRIBUTES, MAX_COLOR, Field
+from torchrl_grpo.envs.highway.schema import DERIVED_ATTRIBUTES, MAX_COLOR, Field
 
 NONE = -1  # encodes None in integer slots (lane ids, references)
 KIND, CLASS_ID = 0, 1  # the first two i16 columns of every slot
@@ -73,7 +73,7 @@ class EntityLayout:
         not_none: required fields that must not be ``None`` either.
 
     Example:
-        >>> from torchrl_grpo.envs.highway_schema import Field
+        >>> from torchrl_grpo.envs.highway.schema import Field
         >>> layout = EntityLayout({"speed": Field("float")}, capacity=2, nodes=["a", "b"])
         >>> layout.widths["f64"]
         1

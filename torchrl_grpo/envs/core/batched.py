@@ -18,8 +18,8 @@ from typing import Any
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase, ParallelEnv, SerialEnv, TransformedEnv
 
-from torchrl_grpo.envs.errors import SnapshotError
-from torchrl_grpo.envs.snapshot_env import STATE_KEY
+from torchrl_grpo.envs.core.errors import SnapshotError
+from torchrl_grpo.envs.core.snapshot_env import STATE_KEY
 
 __all__ = [
     "SnapshotParallelEnv",

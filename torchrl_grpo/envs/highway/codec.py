@@ -9,7 +9,7 @@ Layout of a state::
                    lane, lanes, trajectory (lane-keeping / racetrack extras)
     wrappers/      elapsed_steps (TimeLimit), has_reset (OrderEnforcing)
     entities/      f64, i16, i64, flags: one row per road object, packed by
-                   :class:`~torchrl_grpo.envs.highway_layout.EntityLayout`
+                   :class:`~torchrl_grpo.envs.highway.layout.EntityLayout`
                    (``codec.layout.column(entities, "speed")`` reads a field back)
 
 Slots ``[0, max_vehicles)`` hold ``road.vehicles`` and the rest ``road.objects``;
@@ -38,23 +38,21 @@ from highway_env.vehicle.dynamics import BicycleVehicle
 from tensordict import TensorDictBase
 from torchrl.data import Composite, Unbounded
 
-from torchrl_grpo.envs import highway_schema as schema
-from torchrl_grpo.envs.codec import (
-    StateCodec,
+from torchrl_grpo.envs.core.bits import (
     bits_spec,
     check_state_layout,
     nested_tensordict,
     spec_layout,
-    stable_hash,
 )
-from torchrl_grpo.envs.errors import (
+from torchrl_grpo.envs.core.codec import StateCodec, stable_hash
+from torchrl_grpo.envs.core.errors import (
     SnapshotError,
     StateCapacityError,
     StateCorruptedError,
     StateMismatchError,
     UnknownFieldError,
 )
-from torchrl_grpo.envs.gym_state import (
+from torchrl_grpo.envs.core.gym_state import (
     RNG_WORDS,
     decode_rng,
     encode_rng,
@@ -63,8 +61,10 @@ from torchrl_grpo.envs.gym_state import (
     with_seeded_rng,
     wrapper_spec,
 )
-from torchrl_grpo.envs.highway_layout import KIND, OBJECT, VEHICLE, EntityLayout
-from torchrl_grpo.envs.highway_layout import NONE as _NONE
+from torchrl_grpo.envs.core.registry import register_codec
+from torchrl_grpo.envs.highway import schema
+from torchrl_grpo.envs.highway.layout import KIND, OBJECT, VEHICLE, EntityLayout
+from torchrl_grpo.envs.highway.layout import NONE as _NONE
 
 # Fields every road object has (RoadObject.__init__ sets them); a restored object
 # without them would fail later, in the middle of a step.
@@ -83,6 +83,21 @@ _REQUIRED_FIELDS = frozenset(
     }
 )
 _NOT_NONE = ("position", "heading", "speed")
+
+#: Every scenario highway-env 1.12 ships: HighwayEnv and the codec serve them all.
+HIGHWAY_SCENARIOS: tuple[str, ...] = (
+    "highway-v0",
+    "highway-fast-v0",
+    "merge-v0",
+    "roundabout-v0",
+    "intersection-v0",
+    "racetrack-v0",
+    "parking-v0",
+    "exit-v0",
+    "u-turn-v0",
+    "two-way-v0",
+    "lane-keeping-v0",
+)
 _SPAWN_CAPACITY = 32  # vehicle slots of scenarios that spawn traffic (intersection-v0)
 # Name-mangled private attributes of highway-env's action / observation types.
 _ACTION_VEHICLE = "_ActionType__controlled_vehicle"
@@ -655,3 +670,7 @@ def _describe(obj: Any, depth: int = 0) -> Any:
     if hasattr(obj, "__dict__"):
         return [type(obj).__name__, _describe(vars(obj), depth + 1)]
     return type(obj).__name__
+
+
+for _scenario in HIGHWAY_SCENARIOS:
+    register_codec(_scenario, HighwayStateCodec)

@@ -8,9 +8,10 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Composite, Unbounded
 
-from torchrl_grpo.envs.codec import StateCodec, check_state_layout
-from torchrl_grpo.envs.errors import StateCorruptedError
-from torchrl_grpo.envs.gym_state import (
+from torchrl_grpo.envs.core.bits import check_state_layout
+from torchrl_grpo.envs.core.codec import StateCodec
+from torchrl_grpo.envs.core.errors import StateCorruptedError
+from torchrl_grpo.envs.core.gym_state import (
     decode_rng,
     encode_rng,
     encode_wrappers,
@@ -19,6 +20,9 @@ from torchrl_grpo.envs.gym_state import (
     with_seeded_rng,
     wrapper_spec,
 )
+from torchrl_grpo.envs.core.registry import register_codec
+
+__all__ = ["CartPoleStateCodec"]
 
 
 class CartPoleStateCodec(StateCodec):
@@ -87,3 +91,6 @@ class CartPoleStateCodec(StateCodec):
         rng_state = decode_rng(state["rng"].numpy())
         beyond = int(state["steps_beyond_terminated"])
         return physics, rng_state, beyond
+
+
+register_codec("CartPole-v1", CartPoleStateCodec)

@@ -15,7 +15,7 @@ import torch
 from tensordict import NestedKey, TensorDictBase
 from torchrl.data import Composite, Unbounded
 
-from torchrl_grpo.envs.errors import SnapshotError, StateCorruptedError
+from torchrl_grpo.envs.core.errors import SnapshotError, StateCorruptedError
 
 _MASK32 = (1 << 32) - 1
 RNG_WORDS = 10  # PCG64: state (4 x 32 bits), inc (4 x 32 bits), has_uint32, uinteger

@@ -11,10 +11,10 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
 
-from torchrl_grpo.envs import highway_schema as schema
-from torchrl_grpo.envs.highway_codec import HighwayStateCodec
-from torchrl_grpo.envs.registry import HIGHWAY_SCENARIOS
-from torchrl_grpo.envs.snapshot_env import SnapshotEnv, _flag, _float32
+from torchrl_grpo.envs.core.bits import flag_tensor, float32_tensor
+from torchrl_grpo.envs.core.snapshot_env import SnapshotEnv
+from torchrl_grpo.envs.highway import schema
+from torchrl_grpo.envs.highway.codec import HIGHWAY_SCENARIOS, HighwayStateCodec
 
 
 class HighwayEnv(SnapshotEnv):
@@ -127,18 +127,18 @@ class HighwayEnv(SnapshotEnv):
         # Read from the vehicle, not from info: lane-keeping-v0's step info is empty.
         ego = self._env.unwrapped.vehicle
         out: dict[Any, torch.Tensor] = {
-            "crashed": _flag(ego.crashed),
-            "on_road": _flag(ego.on_road),
-            "speed": _float32([ego.speed]),
-            "ego_position": _float32(ego.position),
-            "ego_heading": _float32([ego.heading]),
+            "crashed": flag_tensor(ego.crashed),
+            "on_road": flag_tensor(ego.on_road),
+            "speed": float32_tensor([ego.speed]),
+            "ego_position": float32_tensor(ego.position),
+            "ego_heading": float32_tensor([ego.heading]),
         }
         if self._has_success:
-            out["is_success"] = _flag(info.get("is_success", False))
+            out["is_success"] = flag_tensor(info.get("is_success", False))
         if self._reward_components:
             rewards = info.get("rewards", {})
             out["reward_components"] = {
-                name: _float32([rewards.get(name, float("nan"))])
+                name: float32_tensor([rewards.get(name, float("nan"))])
                 for name in self._reward_components
             }
         return out
