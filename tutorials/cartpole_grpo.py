@@ -9,7 +9,7 @@ What it shows, in order:
    from any gymnasium env whose complete state a :class:`~torchrl_grpo.envs.StateCodec`
    turns into a TensorDict of tensors and back. ``SnapshotEnv("CartPole-v1",
    codec=CartPoleStateCodec())`` wraps gymnasium's CartPole for TorchRL with such a
-   codec; the codec is ``torchrl_grpo/envs/cartpole_codec.py``, 80 lines. Writing one
+   codec; the codec is ``torchrl_grpo/envs/cartpole.py``, 90 lines. Writing one
    for your own simulator means subclassing ``StateCodec``: three methods, two optional::
 
        class MyCodec(StateCodec):
@@ -70,9 +70,9 @@ from torchrl_grpo.envs import (
     CartPoleStateCodec,
     SnapshotEnv,
     SnapshotSerialEnv,
+    from_bits,
     state_differences,
 )
-from torchrl_grpo.envs.core.bits import from_bits
 from torchrl_grpo.modules import make_discrete_actor
 from torchrl_grpo.objectives import GroupRelativeAdvantage, GRPOLoss
 

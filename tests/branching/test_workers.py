@@ -156,3 +156,46 @@ def test_sleeping_wait_learns_the_wait_lengths(highway_parallel):
     recent = highway_parallel.__dict__["_recent_waits"]
     assert recent["step"] > 0 and recent["restore"] > 0
     assert highway_parallel.__dict__.get("_wait_kind") is None
+
+
+def test_make_branch_env_branches_cartpole_by_id_and_by_factory():
+    import functools
+
+    from torchrl_grpo.envs import SnapshotEnv
+
+    class Alternate:
+        """Pushes left on even branches, right on odd ones."""
+
+        def __call__(self, td):
+            return td.set("action", (td["branch"] % 2).to(torch.int64))
+
+    runs = []
+    for env_arg, backend in [
+        ("CartPole-v1", "serial"),
+        ("CartPole-v1", "parallel"),
+        (functools.partial(SnapshotEnv, "CartPole-v1"), "parallel"),
+    ]:
+        extra = {"mp_start_method": "fork"} if backend == "parallel" else {}
+        env = make_branch_env(env_arg, 2, backend=backend, **extra)
+        try:
+            roots = reset_roots(env, 2, seed=3)
+            runs.append(branch_rollout(env, Alternate(), roots, group_size=2, horizon=6))
+        finally:
+            shutdown_env(env)
+    for other in runs[1:]:
+        assert bitwise_equal(runs[0], other) == []
+    obs = runs[0]["next", "observation"]
+    assert not torch.equal(obs[:, 0], obs[:, 1])  # the two actions lead apart
+
+
+def test_make_branch_env_takes_a_highway_factory_and_refuses_bad_ids():
+    import functools
+
+    from torchrl_grpo.envs import HighwayEnv
+
+    env = make_branch_env(functools.partial(HighwayEnv, "merge-v0"), 1, backend="single")
+    assert "state" in env.observation_spec.keys()
+    with pytest.raises(KeyError, match="no state codec"):
+        make_branch_env("Pendulum-v1", 1, backend="single")
+    with pytest.raises(ValueError, match="config"):
+        make_branch_env("CartPole-v1", 1, backend="single", config={"x": 1})

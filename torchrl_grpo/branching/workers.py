@@ -12,7 +12,7 @@ from __future__ import annotations
 import functools
 import logging
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any, Literal
 
 import torch
@@ -20,7 +20,14 @@ from tensordict import NestedKey, TensorDict, TensorDictBase, unravel_key
 from torchrl.envs import EnvBase, TransformedEnv
 
 from torchrl_grpo.branching.keys import STATE
-from torchrl_grpo.envs import HighwayEnv, SnapshotParallelEnv, SnapshotSerialEnv
+from torchrl_grpo.envs import (
+    HIGHWAY_SCENARIOS,
+    HighwayEnv,
+    SnapshotEnv,
+    SnapshotParallelEnv,
+    SnapshotSerialEnv,
+    codec_for,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -268,7 +275,7 @@ def _under_state(key: NestedKey) -> bool:
 
 
 def make_branch_env(
-    scenario: str,
+    env: str | Callable[..., EnvBase],
     num_workers: int = 2,
     *,
     config: dict | None = None,
@@ -277,13 +284,19 @@ def make_branch_env(
     mp_start_method: Literal["spawn", "fork", "forkserver"] | None = None,
     **env_kwargs: Any,
 ) -> EnvBase:
-    """Build the env that runs branches: W :class:`~torchrl_grpo.envs.HighwayEnv` workers.
+    """Build the env that runs branches: W snapshot-env workers.
 
     Args:
-        scenario: a highway-env scenario id, e.g. ``"highway-fast-v0"``.
+        env: what each worker runs: a highway-env scenario id (``"highway-fast-v0"``:
+            :class:`~torchrl_grpo.envs.HighwayEnv` workers), another env id with a
+            registered state codec (``"CartPole-v1"``: :class:`~torchrl_grpo.envs.SnapshotEnv`
+            workers, see :func:`~torchrl_grpo.envs.register_codec`), or a factory that
+            builds one snapshot env and accepts ``return_state=`` (e.g.
+            ``functools.partial(SnapshotEnv, "CartPole-v1")``).
         num_workers: W, the number of branches simulated at once (one per process
             with ``backend="parallel"``). ``1`` with ``"single"``.
-        config: scenario config overrides, the same in every worker.
+        config: highway-env config overrides, the same in every worker (highway-env
+            scenarios only).
         backend: ``"parallel"`` (a :class:`BranchParallelEnv`: one process per worker),
             ``"serial"`` (a :class:`~torchrl_grpo.envs.SnapshotSerialEnv`: the same
             API in this process, for debugging) or ``"single"`` (one plain env, no batch dimension).
@@ -301,9 +314,9 @@ def make_branch_env(
         mp_start_method: the ``ParallelEnv`` start method (``None``: TorchRL's
             default, ``spawn``). ``fork`` starts in well under a second instead of
             seconds, and is safe for these CPU-only workers.
-        **env_kwargs: more :class:`~torchrl_grpo.envs.HighwayEnv` arguments
-            (``max_vehicles``, ...). A ``return_state=True`` here returns states
-            as ``snapshots=True`` does (either one turns it on).
+        **env_kwargs: more arguments of the worker env (``max_vehicles``, ...). A
+            ``return_state=True`` here returns states as ``snapshots=True`` does
+            (either one turns it on).
 
     Returns:
         The env. The caller owns it: close it with :func:`shutdown_env` (or let a
@@ -314,6 +327,10 @@ def make_branch_env(
         >>> env.batch_size, "state" in env.observation_spec.keys()
         (torch.Size([2]), True)
         >>> shutdown_env(env)
+        >>> cartpole = make_branch_env("CartPole-v1", 2, backend="serial")  # any codec's env
+        >>> cartpole.batch_size
+        torch.Size([2])
+        >>> shutdown_env(cartpole)
     """
     if num_workers < 1:
         raise ValueError(f"num_workers must be >= 1, got {num_workers}")
@@ -321,9 +338,7 @@ def make_branch_env(
         raise ValueError(f"backend must be 'parallel', 'serial' or 'single', got {backend!r}")
     asked = bool(env_kwargs.pop("return_state", False))
     return_state = bool(snapshots) or asked
-    make = functools.partial(
-        HighwayEnv, scenario, config=config, return_state=return_state, **env_kwargs
-    )
+    make = _worker_factory(env, config, return_state, env_kwargs)
     if backend == "single":
         if num_workers != 1:
             raise ValueError(f"backend='single' runs one env, got num_workers={num_workers}")
@@ -334,6 +349,26 @@ def make_branch_env(
     if mp_start_method is not None:
         kwargs["mp_start_method"] = mp_start_method
     return BranchParallelEnv(num_workers, make, **kwargs)
+
+
+def _worker_factory(
+    env: str | Callable[..., EnvBase], config: dict | None, return_state: bool, kwargs: dict
+) -> Callable[[], EnvBase]:
+    """A picklable callable that builds one worker env."""
+    if callable(env) and not isinstance(env, str):
+        if config is not None:
+            raise ValueError("config= applies to highway-env scenario ids; pass it to the factory")
+        return functools.partial(env, return_state=return_state, **kwargs)
+    if not isinstance(env, str):
+        raise TypeError(f"env must be an env id or a factory, got {type(env).__name__}")
+    if env in HIGHWAY_SCENARIOS:
+        return functools.partial(
+            HighwayEnv, env, config=config, return_state=return_state, **kwargs
+        )
+    codec_for(env)  # raises a KeyError naming the registered ids
+    if config is not None:
+        raise ValueError(f"config= applies to highway-env scenario ids, not to {env!r}")
+    return functools.partial(SnapshotEnv, env, return_state=return_state, **kwargs)
 
 
 def shutdown_env(env: EnvBase, timeout: float = 10.0) -> None:
