@@ -26,7 +26,7 @@ import torchrl_grpo
 OPTIONFLAGS = doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE
 
 # The subpackages whose ``__all__`` is the public API.
-SUBPACKAGES = ("envs", "branching", "objectives", "modules", "training", "distributed")
+SUBPACKAGES = ("sim", "envs", "branching", "objectives", "modules", "training", "distributed")
 
 # Public names that are not classes or functions: constants and ``Literal`` type
 # aliases have no docstring of their own (``STATE_KEY.__doc__`` is ``str``'s), so

@@ -1,6 +1,6 @@
 import pytest
 
-from torchrl_grpo.envs.highway import tensor_params
+from torchrl_grpo.envs import tensor_params
 
 
 @pytest.fixture(scope="session")

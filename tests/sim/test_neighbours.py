@@ -5,7 +5,9 @@ import torch
 from torchrl_grpo.sim.neighbours import lane_index, neighbours
 from torchrl_grpo.sim.params import RoadParams
 
-ROAD = RoadParams(lanes_count=4, lane_width=4.0, lane_length=10000.0, speed_limit=30.0, margin_length=5.0)
+ROAD = RoadParams(
+    lanes_count=4, lane_width=4.0, lane_length=10000.0, speed_limit=30.0, margin_length=5.0
+)
 
 
 def scan(x, y, present, i, lane):

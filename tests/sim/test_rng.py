@@ -52,4 +52,6 @@ def test_too_many_draws_is_an_error():
     import pytest
 
     with pytest.raises(ValueError, match="draws"):
-        uniform(torch.zeros(1, dtype=torch.int64), torch.zeros(1, dtype=torch.int64), DRAWS_PER_CALL + 1)
+        uniform(
+            torch.zeros(1, dtype=torch.int64), torch.zeros(1, dtype=torch.int64), DRAWS_PER_CALL + 1
+        )

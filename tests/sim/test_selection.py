@@ -2,9 +2,9 @@
 
 import pytest
 import torch
+from sim_helpers import fresh_world
 
 from torchrl_grpo.sim import step
-from sim_helpers import fresh_world
 
 
 @pytest.mark.parametrize("scenario", ["fast", "v0"])

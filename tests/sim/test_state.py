@@ -1,9 +1,9 @@
 """check_world names every entry that does not fit, and admits what highway-env reaches."""
 
 import torch
+from sim_helpers import fresh_world
 
 from torchrl_grpo.sim import check_world, world_from_tensordict, world_to_tensordict
-from sim_helpers import fresh_world
 
 
 def test_a_fresh_world_fits(fast_params):

@@ -24,7 +24,15 @@ from torchrl_grpo.envs.core.errors import (
 )
 from torchrl_grpo.envs.core.registry import codec_for, register_codec
 from torchrl_grpo.envs.core.snapshot_env import STATE_KEY, SnapshotEnv
-from torchrl_grpo.envs.highway import HIGHWAY_SCENARIOS, HighwayEnv, HighwayStateCodec
+from torchrl_grpo.envs.highway import (
+    HIGHWAY_SCENARIOS,
+    TENSOR_SCENARIOS,
+    HighwayEnv,
+    HighwayStateCodec,
+    TensorHighwayEnv,
+    check_tensor_config,
+    tensor_params,
+)
 from torchrl_grpo.envs.highway.schema import (
     Field,
     register_class_parameter,
@@ -34,6 +42,7 @@ from torchrl_grpo.envs.highway.schema import (
 __all__ = [
     "HIGHWAY_SCENARIOS",
     "STATE_KEY",
+    "TENSOR_SCENARIOS",
     "CartPoleStateCodec",
     "Field",
     "HighwayEnv",
@@ -46,8 +55,10 @@ __all__ = [
     "StateCodec",
     "StateCorruptedError",
     "StateMismatchError",
+    "TensorHighwayEnv",
     "UnknownFieldError",
     "check_state_layout",
+    "check_tensor_config",
     "check_worker_states",
     "codec_for",
     "from_bits",
@@ -58,5 +69,6 @@ __all__ = [
     "stable_hash",
     "state_differences",
     "states_equal",
+    "tensor_params",
     "to_bits",
 ]

@@ -18,7 +18,7 @@ parity with highway-env, measured step by step.
 
 Example:
     >>> import torch
-    >>> from torchrl_grpo.envs.highway import tensor_params
+    >>> from torchrl_grpo.envs import tensor_params
     >>> params = tensor_params("highway-fast-v0")
     >>> world = empty_world(1024, params.num_vehicles)
     >>> world = reset_world(world._replace(rng_key=seed_keys(torch.arange(1024), 0)),
@@ -42,6 +42,7 @@ from torchrl_grpo.sim.params import (
 )
 from torchrl_grpo.sim.reset import reset_world
 from torchrl_grpo.sim.rng import seed_keys, uniform
+from torchrl_grpo.sim.simulate import observe_world, step
 from torchrl_grpo.sim.state import (
     Vehicles,
     World,
@@ -50,7 +51,6 @@ from torchrl_grpo.sim.state import (
     world_from_tensordict,
     world_to_tensordict,
 )
-from torchrl_grpo.sim.simulate import observe_world, step
 
 __all__ = [
     "ControlParams",

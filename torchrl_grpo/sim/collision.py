@@ -15,7 +15,7 @@ displacement over ``dt``:
 
 Example:
     >>> import torch
-    >>> from torchrl_grpo.envs.highway import tensor_params
+    >>> from torchrl_grpo.envs import tensor_params
     >>> from torchrl_grpo.sim.state import empty_world
     >>> params = tensor_params("highway-fast-v0")
     >>> v = empty_world(1, 3, torch.float64).vehicles
@@ -42,8 +42,12 @@ __all__ = ["collide", "separating_axes"]
 def _corners(x, y, heading, length, width):
     """The 4 corners ``[..., 4]`` (x and y) of each rectangle, in highway-env's order."""
     c, s = torch.cos(heading), torch.sin(heading)
-    px = torch.tensor([-length / 2, -length / 2, length / 2, length / 2], dtype=x.dtype, device=x.device)
-    py = torch.tensor([-width / 2, width / 2, width / 2, -width / 2], dtype=x.dtype, device=x.device)
+    px = torch.tensor(
+        [-length / 2, -length / 2, length / 2, length / 2], dtype=x.dtype, device=x.device
+    )
+    py = torch.tensor(
+        [-width / 2, width / 2, width / 2, -width / 2], dtype=x.dtype, device=x.device
+    )
     c, s = c.unsqueeze(-1), s.unsqueeze(-1)
     cx = (c * px + (-s) * py) + x.unsqueeze(-1)
     cy = (s * px + c * py) + y.unsqueeze(-1)
@@ -173,8 +177,14 @@ def _all_pairs(v: Vehicles, params: HighwayParams) -> Vehicles:
     rows, i, j = (near & checks & both & upper).nonzero(as_tuple=True)
     car_i = tuple(t[rows, i] for t in (v.x, v.y, v.heading, v.speed))
     car_j = tuple(t[rows, j] for t in (v.x, v.y, v.heading, v.speed))
-    hit, will, tx, ty = separating_axes(car_i, car_j, params.time.dt, params.vehicle.length, params.vehicle.width)
-    dense = lambda value, fill: torch.full((batch, n, n), fill, dtype=value.dtype, device=v.x.device).index_put_((rows, i, j), value)  # noqa: E731
+    hit, will, tx, ty = separating_axes(
+        car_i, car_j, params.time.dt, params.vehicle.length, params.vehicle.width
+    )
+
+    def dense(value: torch.Tensor, fill: float) -> torch.Tensor:
+        table = torch.full((batch, n, n), fill, dtype=value.dtype, device=v.x.device)
+        return table.index_put_((rows, i, j), value)
+
     hit, will = dense(hit, False), dense(will, False)
     tx, ty = dense(tx, 0.0), dense(ty, 0.0)
     crashed = v.crashed | hit.any(2) | hit.any(1)

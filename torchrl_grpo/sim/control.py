@@ -7,7 +7,7 @@ tracks its target speed with a proportional controller, and its meta-actions
 
 Example:
     >>> import torch
-    >>> from torchrl_grpo.envs.highway import tensor_params
+    >>> from torchrl_grpo.envs import tensor_params
     >>> params = tensor_params("highway-fast-v0")
     >>> z = torch.zeros(1, dtype=torch.float64)
     >>> steer = steering_control(z, z + 2.0, z + 25.0, z, torch.tensor([1]), params)
@@ -50,7 +50,7 @@ def steering_control(
     """``ControlledVehicle.steering_control(target_lane)``, clipped to the steering range.
 
     Example:
-        >>> from torchrl_grpo.envs.highway import tensor_params
+        >>> from torchrl_grpo.envs import tensor_params
         >>> params = tensor_params("highway-fast-v0")
         >>> z = torch.zeros(1, dtype=torch.float64)
         >>> float(steering_control(z, z, z + 20.0, z, torch.tensor([0]), params))
@@ -74,7 +74,8 @@ def speed_to_index(speed: torch.Tensor, target_speeds: tuple[float, ...]) -> tor
     """``MDPVehicle.speed_to_index``: the nearest target speed's index (half to even).
 
     Example:
-        >>> speed_to_index(torch.tensor([19.0, 25.0, 27.6], dtype=torch.float64), (20.0, 25.0, 30.0))
+        >>> speed = torch.tensor([19.0, 25.0, 27.6], dtype=torch.float64)
+        >>> speed_to_index(speed, (20.0, 25.0, 30.0))
         tensor([0, 1, 2])
     """
     n = len(target_speeds)
@@ -112,7 +113,7 @@ def apply_meta_action(
         ``(target_lane, speed_index, target_speed)``.
 
     Example:
-        >>> from torchrl_grpo.envs.highway import tensor_params
+        >>> from torchrl_grpo.envs import tensor_params
         >>> params = tensor_params("highway-fast-v0")
         >>> f = lambda *v: torch.tensor(v, dtype=torch.float64)
         >>> lane, idx, ts = apply_meta_action(f(10.0, 10.0), f(0.0, 0.0), f(25.0, 25.0),

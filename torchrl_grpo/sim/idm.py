@@ -10,7 +10,7 @@ so for the new follower). Pairs are gathered as :class:`Car` tensors of one shap
 
 Example:
     >>> import torch
-    >>> from torchrl_grpo.envs.highway import tensor_params
+    >>> from torchrl_grpo.envs import tensor_params
     >>> params = tensor_params("highway-fast-v0")
     >>> z = torch.tensor([0.0])
     >>> ego = Car(z, torch.tensor([20.0]), z + 1, z, torch.tensor([25.0]))
@@ -81,7 +81,7 @@ def desired_gap(ego: Car, front: Car, params: HighwayParams) -> torch.Tensor:
     docs/sim.md on where bit-exactness holds).
 
     Example:
-        >>> from torchrl_grpo.envs.highway import tensor_params
+        >>> from torchrl_grpo.envs import tensor_params
         >>> params = tensor_params("highway-fast-v0")
         >>> z = torch.tensor([0.0])
         >>> a = Car(z, torch.tensor([20.0]), z + 1, z, z)
@@ -106,7 +106,7 @@ def free_road(ego: Car, delta: torch.Tensor, params: HighwayParams) -> torch.Ten
     lanes with a speed limit.
 
     Example:
-        >>> from torchrl_grpo.envs.highway import tensor_params
+        >>> from torchrl_grpo.envs import tensor_params
         >>> params = tensor_params("highway-fast-v0")
         >>> z = torch.tensor([0.0])
         >>> car = Car(z, torch.tensor([30.0]), z + 1, z, torch.tensor([30.0]))
@@ -123,7 +123,7 @@ def interaction(ego: Car, front: Car, params: HighwayParams) -> torch.Tensor:
     """IDM's braking term of ``ego`` behind ``front`` (0 where either is missing).
 
     Example:
-        >>> from torchrl_grpo.envs.highway import tensor_params
+        >>> from torchrl_grpo.envs import tensor_params
         >>> params = tensor_params("highway-fast-v0")
         >>> z = torch.tensor([0.0])
         >>> ego = Car(z, torch.tensor([20.0]), z + 1, z, z)
@@ -154,7 +154,7 @@ def acceleration(
         The acceleration (m/s^2), unclipped.
 
     Example:
-        >>> from torchrl_grpo.envs.highway import tensor_params
+        >>> from torchrl_grpo.envs import tensor_params
         >>> params = tensor_params("highway-fast-v0")
         >>> z = torch.tensor([0.0])
         >>> ego = Car(z, torch.tensor([20.0]), z + 1, z, torch.tensor([20.0]))

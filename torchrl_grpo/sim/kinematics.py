@@ -16,7 +16,7 @@ Padding rows (``present`` False) are stepped too: nothing reads them.
 
 Example:
     >>> import torch
-    >>> from torchrl_grpo.envs.highway import tensor_params
+    >>> from torchrl_grpo.envs import tensor_params
     >>> from torchrl_grpo.sim.state import empty_world
     >>> params = tensor_params("highway-fast-v0")
     >>> v = empty_world(1, 2, torch.float64).vehicles
@@ -42,7 +42,7 @@ def clip_commands(v: Vehicles, params: HighwayParams) -> tuple[torch.Tensor, tor
     """``Vehicle.clip_actions``: the (steering, acceleration) a step applies.
 
     Example:
-        >>> from torchrl_grpo.envs.highway import tensor_params
+        >>> from torchrl_grpo.envs import tensor_params
         >>> from torchrl_grpo.sim.state import empty_world
         >>> params = tensor_params("highway-fast-v0")
         >>> v = empty_world(1, 1, torch.float64).vehicles

@@ -20,7 +20,7 @@ as the sequential loop would decide them.
 
 Example:
     >>> import torch
-    >>> from torchrl_grpo.envs.highway import tensor_params
+    >>> from torchrl_grpo.envs import tensor_params
     >>> from torchrl_grpo.sim.state import empty_world
     >>> from torchrl_grpo.sim.neighbours import lane_index
     >>> params = tensor_params("highway-fast-v0")
@@ -52,6 +52,7 @@ from torchrl_grpo.sim.selection import scatter, select
 from torchrl_grpo.sim.state import Vehicles, take
 
 __all__ = ["Drivers", "drivers_of", "lane_change_policy", "mobil_accepts"]
+
 
 class Drivers(NamedTuple):
     """What a substep computes once for every vehicle and the lane-change policy reuses.
@@ -126,7 +127,10 @@ def mobil_accepts(
     table = drivers.table
     new_front, new_rear = neighbours(index, rows, vehicle, candidate)
     me = gather_car(table, rows, vehicle)._replace(exists=None)
-    new_preceding, new_following = gather_car(table, rows, new_front), gather_car(table, rows, new_rear)
+    new_preceding, new_following = (
+        gather_car(table, rows, new_front),
+        gather_car(table, rows, new_rear),
+    )
     delta = v.delta[rows, vehicle]
     # The new follower is evaluated with the decider's exponent, as highway-env does.
     new_following_free = free_road(new_following, delta, params)
@@ -142,7 +146,9 @@ def mobil_accepts(
         old_following = gather_car(table, rows, drivers.rear[rows, vehicle])
         old_following_free = free_road(old_following, delta, params)
         old_following_a = old_following_free - interaction(old_following, me, params)
-        old_following_pred_a = old_following_free - interaction(old_following, old_preceding, params)
+        old_following_pred_a = old_following_free - interaction(
+            old_following, old_preceding, params
+        )
         others = new_following_pred_a - new_following_a + old_following_pred_a - old_following_a
         jerk = jerk + idm.politeness * others
     return ~unsafe & ~(jerk < idm.lane_change_min_acc_gain)

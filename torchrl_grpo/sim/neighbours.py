@@ -14,7 +14,7 @@ lane-change abort all read the same :class:`LaneIndex`.
 
 Example:
     >>> import torch
-    >>> from torchrl_grpo.envs.highway import tensor_params
+    >>> from torchrl_grpo.envs import tensor_params
     >>> road = tensor_params("highway-fast-v0").road
     >>> x = torch.tensor([[0.0, 30.0, -2.0, 10.0]])
     >>> y = torch.tensor([[0.0, 0.0, 0.0, 4.0]])
@@ -57,7 +57,9 @@ class LaneIndex(NamedTuple):
     prev_member: torch.Tensor
 
 
-def lane_index(x: torch.Tensor, y: torch.Tensor, present: torch.Tensor, road: RoadParams) -> LaneIndex:
+def lane_index(
+    x: torch.Tensor, y: torch.Tensor, present: torch.Tensor, road: RoadParams
+) -> LaneIndex:
     """Sort the vehicles and mark each lane's members.
 
     Args:
@@ -70,7 +72,7 @@ def lane_index(x: torch.Tensor, y: torch.Tensor, present: torch.Tensor, road: Ro
         The :class:`LaneIndex` of these positions.
 
     Example:
-        >>> from torchrl_grpo.envs.highway import tensor_params
+        >>> from torchrl_grpo.envs import tensor_params
         >>> road = tensor_params("highway-fast-v0").road
         >>> idx = lane_index(torch.tensor([[5.0, 1.0, 5.0]]), torch.zeros(1, 3),
         ...                  torch.ones(1, 3, dtype=torch.bool), road)
@@ -124,7 +126,7 @@ def neighbours(
         ``(front, rear)``: ``[Q]`` vehicle indices, -1 where there is none.
 
     Example:
-        >>> from torchrl_grpo.envs.highway import tensor_params
+        >>> from torchrl_grpo.envs import tensor_params
         >>> road = tensor_params("highway-fast-v0").road
         >>> idx = lane_index(torch.tensor([[5.0, 1.0, 5.0]]), torch.zeros(1, 3),
         ...                  torch.ones(1, 3, dtype=torch.bool), road)

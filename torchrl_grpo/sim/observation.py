@@ -8,7 +8,7 @@ row too) and clipped; missing rows are zeros. Velocities are ``speed (cos, sin)(
 
 Example:
     >>> import torch
-    >>> from torchrl_grpo.envs.highway import tensor_params
+    >>> from torchrl_grpo.envs import tensor_params
     >>> from torchrl_grpo.sim.state import empty_world
     >>> params = tensor_params("highway-fast-v0")
     >>> v = empty_world(1, 3, torch.float64).vehicles

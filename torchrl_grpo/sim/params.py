@@ -7,7 +7,7 @@ package (:func:`torchrl_grpo.envs.highway.tensor_params`), so that the simulator
 never retypes a constant of the model it re-implements.
 
 Example:
-    >>> from torchrl_grpo.envs.highway import tensor_params
+    >>> from torchrl_grpo.envs import tensor_params
     >>> params = tensor_params("highway-fast-v0")
     >>> params.road.lanes_count, params.time.frames, params.traffic.vehicles_count
     (3, 5, 20)
@@ -41,6 +41,12 @@ class RoadParams:
         speed_limit: every lane's speed limit (m/s), which caps IDM target speeds.
         margin_length: ``AbstractLane.VEHICLE_LENGTH``, the longitudinal margin of
             ``on_lane`` and ``is_reachable_from`` (m).
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> params = tensor_params("highway-fast-v0")
+        >>> params.road.lanes_count, params.road.lane_width
+        (3, 4.0)
     """
 
     lanes_count: int
@@ -59,6 +65,12 @@ class VehicleParams:
         width: body width (m).
         max_speed: above it, acceleration is clipped towards it (m/s).
         min_speed: below it, acceleration is clipped towards it (m/s).
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> params = tensor_params("highway-fast-v0")
+        >>> params.vehicle.length, params.vehicle.max_speed
+        (5.0, 40.0)
     """
 
     length: float
@@ -82,6 +94,12 @@ class IDMParams:
         lane_change_min_acc_gain: MOBIL's acceleration gain threshold (m/s^2).
         lane_change_max_braking_imposed: MOBIL's safety threshold (m/s^2).
         lane_change_delay: seconds between two lane-change decisions.
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> params = tensor_params("highway-fast-v0")
+        >>> params.idm.delta_range, params.idm.lane_change_delay
+        ((3.5, 4.5), 1.0)
     """
 
     acc_max: float
@@ -107,6 +125,12 @@ class ControlParams:
         tau_pursuit: look-ahead time of the lane heading (s).
         max_steering_angle: steering clip (rad).
         target_speeds: the ego's discrete target speeds (``DiscreteMetaAction``).
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> params = tensor_params("highway-fast-v0")
+        >>> params.control.kp_heading, params.control.target_speeds
+        (5.0, (20.0, 25.0, 30.0))
     """
 
     kp_a: float
@@ -124,6 +148,12 @@ class TimeParams:
     Attributes:
         simulation_frequency: substeps per second.
         policy_frequency: env steps (decisions) per second.
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> params = tensor_params("highway-fast-v0")
+        >>> params.time.frames, params.time.dt
+        (5, 0.2)
     """
 
     simulation_frequency: float
@@ -164,6 +194,12 @@ class TrafficParams:
         jitter: each offset is scaled by ``uniform(jitter[0], jitter[1])``.
         others_check_collisions: whether other vehicles check collisions among
             themselves (False in highway-fast-v0: only pairs with the ego are checked).
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> params = tensor_params("highway-fast-v0")
+        >>> params.traffic.vehicles_count, params.traffic.others_check_collisions
+        (20, False)
     """
 
     vehicles_count: int
@@ -194,6 +230,12 @@ class RewardParams:
         normalize_reward: map the sum to [0, 1] by the collision and best weights.
         offroad_terminal: leaving the road ends the episode.
         duration: the episode is truncated when ``time >= duration`` (s).
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> params = tensor_params("highway-fast-v0")
+        >>> params.reward.duration, params.reward.reward_speed_range
+        (30.0, (20.0, 30.0))
     """
 
     collision_reward: float
@@ -219,6 +261,12 @@ class ObservationParams:
         see_behind: include vehicles more than two lengths behind the ego.
         perception_distance: only vehicles closer than this are seen (m).
         features_range: ``((name, (low, high)), ...)`` for x, y, vx, vy.
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> params = tensor_params("highway-fast-v0")
+        >>> params.observation.vehicles_count, params.observation.features
+        (5, ('presence', 'x', 'y', 'vx', 'vy'))
     """
 
     vehicles_count: int
@@ -244,6 +292,12 @@ class HighwayParams:
         traffic: how worlds are drawn.
         reward: the reward and the episode's end.
         observation: the Kinematics table.
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> params = tensor_params("highway-v0")
+        >>> params.num_vehicles, params.time.frames, params.traffic.others_check_collisions
+        (51, 15, True)
     """
 
     road: RoadParams

@@ -14,7 +14,7 @@ numpy's generator: the distribution is highway-env's, the individual worlds are 
 
 Example:
     >>> import torch
-    >>> from torchrl_grpo.envs.highway import tensor_params
+    >>> from torchrl_grpo.envs import tensor_params
     >>> from torchrl_grpo.sim.state import empty_world
     >>> from torchrl_grpo.sim.rng import seed_keys
     >>> params = tensor_params("highway-fast-v0")
@@ -42,7 +42,7 @@ __all__ = ["reset_world"]
 
 
 def _between(u: torch.Tensor, low: float, high: float) -> torch.Tensor:
-    """numpy's ``Generator.uniform(low, high)`` from a draw in [0, 1)."""
+    """Numpy's ``Generator.uniform(low, high)`` from a draw in [0, 1)."""
     return low + (high - low) * u
 
 
@@ -60,15 +60,15 @@ def reset_world(world: World, mask: torch.Tensor, params: HighwayParams) -> Worl
     Example:
         >>> # see the module's example
     """
-    t, road, traffic = params.traffic, params.road, params.traffic
+    t, road = params.traffic, params.road
     n_lanes, others = road.lanes_count, t.vehicles_count
     v_old = world.vehicles
-    dtype, device = v_old.x.dtype, v_old.x.device
+    device = v_old.x.device
     u, counter = uniform(world.rng_key, world.rng_counter, 2 + 4 * others)
     ego_lane_u, ego_jitter = u[:, 0], u[:, 1]
     lane_u, speed_u, jitter_u, delta_u = u[:, 2:].view(-1, others, 4).unbind(-1)
 
-    decay = math.exp(-traffic.spacing_decay * n_lanes)
+    decay = math.exp(-t.spacing_decay * n_lanes)
     if t.initial_lane_id is None:
         ego_lane = torch.floor(ego_lane_u * n_lanes).to(torch.int64)
     else:

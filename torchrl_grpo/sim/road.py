@@ -8,7 +8,7 @@ operation by operation, so that thresholds flip where highway-env's do.
 
 Example:
     >>> import torch
-    >>> from torchrl_grpo.envs.highway import tensor_params
+    >>> from torchrl_grpo.envs import tensor_params
     >>> road = tensor_params("highway-fast-v0").road
     >>> closest_lane(torch.tensor([50.0]), torch.tensor([5.9]), torch.tensor([0.0]), road)
     tensor([1])
@@ -58,7 +58,7 @@ def lateral(y: torch.Tensor, lane: torch.Tensor, road: RoadParams) -> torch.Tens
     """The lateral coordinate of ``y`` in lane ``lane`` (m).
 
     Example:
-        >>> from torchrl_grpo.envs.highway import tensor_params
+        >>> from torchrl_grpo.envs import tensor_params
         >>> road = tensor_params("highway-fast-v0").road
         >>> lateral(torch.tensor([5.0]), torch.tensor([1]), road).tolist()
         [1.0]
@@ -72,7 +72,7 @@ def on_lane(
     """``lane.on_lane(position, margin=margin)``.
 
     Example:
-        >>> from torchrl_grpo.envs.highway import tensor_params
+        >>> from torchrl_grpo.envs import tensor_params
         >>> road = tensor_params("highway-fast-v0").road
         >>> on_lane(torch.tensor([1.0, 1.0]), torch.tensor([2.0, 2.5]), torch.tensor([0, 0]), road)
         tensor([ True, False])
@@ -85,17 +85,22 @@ def on_lane(
     )
 
 
-def is_reachable(x: torch.Tensor, y: torch.Tensor, lane: torch.Tensor, road: RoadParams) -> torch.Tensor:
+def is_reachable(
+    x: torch.Tensor, y: torch.Tensor, lane: torch.Tensor, road: RoadParams
+) -> torch.Tensor:
     """``lane.is_reachable_from(position)``: within two lane widths, and along the lane.
 
     Example:
-        >>> from torchrl_grpo.envs.highway import tensor_params
+        >>> from torchrl_grpo.envs import tensor_params
         >>> road = tensor_params("highway-fast-v0").road
-        >>> is_reachable(torch.tensor([1.0, -1.0]), torch.tensor([0.0, 0.0]), torch.tensor([2, 0]), road)
+        >>> x, y = torch.tensor([1.0, -1.0]), torch.tensor([0.0, 0.0])
+        >>> is_reachable(x, y, torch.tensor([2, 0]), road)
         tensor([ True, False])
     """
     lat = lateral(y, lane, road)
-    return (lat.abs() <= 2 * road.lane_width) & (x >= 0) & (x < road.lane_length + road.margin_length)
+    return (
+        (lat.abs() <= 2 * road.lane_width) & (x >= 0) & (x < road.lane_length + road.margin_length)
+    )
 
 
 def closest_lane(
@@ -108,7 +113,7 @@ def closest_lane(
     ``np.argmin`` picks it.
 
     Example:
-        >>> from torchrl_grpo.envs.highway import tensor_params
+        >>> from torchrl_grpo.envs import tensor_params
         >>> road = tensor_params("highway-fast-v0").road
         >>> closest_lane(torch.tensor([0.0, 0.0]), torch.tensor([2.0, 9.0]), torch.zeros(2), road)
         tensor([0, 2])

@@ -14,7 +14,7 @@ calls them eagerly or through ``torch.compile``.
 
 Example:
     >>> import torch
-    >>> from torchrl_grpo.envs.highway import tensor_params
+    >>> from torchrl_grpo.envs import tensor_params
     >>> from torchrl_grpo.sim.rng import seed_keys
     >>> from torchrl_grpo.sim.reset import reset_world
     >>> from torchrl_grpo.sim.state import empty_world
@@ -31,10 +31,10 @@ from __future__ import annotations
 
 import torch
 
+from torchrl_grpo.sim.collision import collide
 from torchrl_grpo.sim.control import apply_meta_action, steering_control
 from torchrl_grpo.sim.idm import gather_car, interaction
 from torchrl_grpo.sim.kinematics import step_vehicles
-from torchrl_grpo.sim.collision import collide
 from torchrl_grpo.sim.mobil import drivers_of, lane_change_policy
 from torchrl_grpo.sim.neighbours import lane_index, neighbours
 from torchrl_grpo.sim.observation import observe

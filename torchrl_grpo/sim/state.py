@@ -65,6 +65,11 @@ class Vehicles(NamedTuple):
         impact: whether ``impact_x, impact_y`` is pending (highway-env's ``impact is not None``).
         check_collisions: whether the vehicle checks its own collisions.
         present: the row holds a vehicle (padding rows are ignored everywhere).
+
+    Example:
+        >>> v = empty_world(2, 3).vehicles
+        >>> v.speed.shape, v.lane.dtype, v.present.all().item()
+        (torch.Size([2, 3]), torch.int64, True)
     """
 
     x: torch.Tensor
@@ -116,6 +121,11 @@ class World(NamedTuple):
         steps: ``[B]`` int64 substeps since reset (highway-env's ``env.steps``).
         rng_key: ``[B]`` int64 key of the world's random stream (see :mod:`.rng`).
         rng_counter: ``[B]`` int64 counter of that stream.
+
+    Example:
+        >>> world = empty_world(4, 21)
+        >>> world.time.dtype, world.vehicles.x.shape
+        (torch.float64, torch.Size([4, 21]))
     """
 
     vehicles: Vehicles
@@ -244,7 +254,7 @@ def check_world(world: World, params: HighwayParams) -> list[str]:
         Messages such as ``"vehicles.speed: not finite in rows [3]"``; empty if fit.
 
     Example:
-        >>> from torchrl_grpo.envs.highway import tensor_params
+        >>> from torchrl_grpo.envs import tensor_params
         >>> params = tensor_params("highway-fast-v0")
         >>> w = empty_world(2, params.num_vehicles, dtype=torch.float64)
         >>> w.vehicles.check_collisions[:, 0] = True
@@ -264,7 +274,9 @@ def check_world(world: World, params: HighwayParams) -> list[str]:
 
     n = params.num_vehicles
     if v.x.ndim != 2 or v.x.shape[1] != n:
-        return [f"vehicles: expected [B, {n}] rows (the ego and {n - 1} others), got {tuple(v.x.shape)}"]
+        return [
+            f"vehicles: expected [B, {n}] rows (the ego and {n - 1} others), got {tuple(v.x.shape)}"
+        ]
     for name in FLOAT_FIELDS:
         bad(f"vehicles.{name}", ~torch.isfinite(getattr(v, name)))
     lanes = params.road.lanes_count

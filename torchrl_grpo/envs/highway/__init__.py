@@ -7,6 +7,20 @@ field vocabulary and class registry are in :mod:`.schema`, its packed entity tab
 """
 
 from torchrl_grpo.envs.highway.codec import HIGHWAY_SCENARIOS, HighwayStateCodec
+from torchrl_grpo.envs.highway.tensor_env import TensorHighwayEnv
+from torchrl_grpo.envs.highway.tensor_params import (
+    TENSOR_SCENARIOS,
+    check_tensor_config,
+    tensor_params,
+)
 from torchrl_grpo.envs.highway.wrapper import HighwayEnv
 
-__all__ = ["HIGHWAY_SCENARIOS", "HighwayEnv", "HighwayStateCodec"]
+__all__ = [
+    "HIGHWAY_SCENARIOS",
+    "TENSOR_SCENARIOS",
+    "HighwayEnv",
+    "HighwayStateCodec",
+    "TensorHighwayEnv",
+    "check_tensor_config",
+    "tensor_params",
+]

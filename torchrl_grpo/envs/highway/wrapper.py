@@ -157,6 +157,30 @@ class HighwayEnv(SnapshotEnv):
             info = {**info, "rewards": dict.fromkeys(info["rewards"], 0.0)}
         return obs, info
 
+    def refresh_output(self) -> None:
+        """Recompute the output from the simulator as it stands, after its objects were edited.
+
+        The observation, flags and reward components the env reports (and that
+        :meth:`get_state` stores and a restore returns) are read again from highway-env's
+        objects. For code that writes a world into highway-env by hand, as the tensor
+        simulator's bridge does. A world at step 0 reports zero reward components, as a
+        fresh reset does. Observing draws from the simulator's generator with a shuffled
+        Kinematics order, so the bridge is for the sorted order only.
+
+        Example:
+            >>> env = HighwayEnv("highway-fast-v0", seed=0)
+            >>> env.gym_env.unwrapped.vehicle.speed = 20.0
+            >>> env.refresh_output()
+            >>> float(env.get_state()["output", "speed"].view(torch.float32))
+            20.0
+        """
+        core = self._env.unwrapped
+        obs = core.observation_type.observe()
+        info = core._info(obs, None)
+        if core.steps == 0 and "rewards" in info:
+            info = {**info, "rewards": dict.fromkeys(info["rewards"], 0.0)}
+        self._last_output = self._output_leaves(obs, info)
+
     def _remember_class_params(self) -> None:
         self._class_params = [getattr(c, n) for c, n in self._param_keys]
 

@@ -1,0 +1,191 @@
+"""TensorHighwayEnv's throughput beside HighwayEnv and EnvPool, and its snapshot cost.
+
+Usage: ``python benchmarks/bench_tensor_env.py [--sizes 1 64 1024 8192] [--threads 2]
+[--compile] [--device cpu]``
+
+For each batch size B, one run measures env steps per second of highway-fast-v0 in
+float32, side by side in alternating blocks (so that both sides of a ratio see the same
+machine load):
+
+* ``TensorHighwayEnv(num_envs=B)`` stepped through TorchRL's ``env.step`` (what a user
+  gets), always-IDLE actions, worlds reset as their episodes end;
+* ``HighwayEnv`` (highway-env itself) stepped in this one process;
+* EnvPool's C++ ``highway-fast-v0`` with ``num_envs=B`` and as many threads, when
+  ``envpool`` is installed (``pip install -e ".[bench]"``).
+
+Goals (issue #17): at B = 1,024 on 2 CPU cores, TensorHighwayEnv >= 200 x HighwayEnv;
+EnvPool's rate is the aim (the ratio is reported). Also reported: ``get_state`` plus a
+restore of B = 1,024 worlds against one ``copy.deepcopy`` of a highway-env env, and the
+state's bytes per world. With ``--compile``, the same figures for ``compile=True``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import importlib.util
+import statistics
+import time
+from collections.abc import Callable
+
+import torch
+from claims import claim
+from tensordict import TensorDict
+
+from torchrl_grpo.envs import HighwayEnv, TensorHighwayEnv
+
+IDLE = 1
+
+
+def rate(step: Callable[[], None], calls: int, per_call: int) -> float:
+    """Env steps per second over ``calls`` calls of ``step`` (each ``per_call`` env steps)."""
+    start = time.perf_counter()
+    for _ in range(calls):
+        step()
+    return calls * per_call / (time.perf_counter() - start)
+
+
+def interleaved(
+    runs: dict[str, tuple[Callable[[], None], int, int]], repeats: int
+) -> dict[str, float]:
+    """Median rate of each run, measured in alternating blocks."""
+    out: dict[str, list[float]] = {k: [] for k in runs}
+    for _ in range(repeats):
+        for name, (step, calls, per_call) in runs.items():
+            out[name].append(rate(step, calls, per_call))
+    return {k: statistics.median(v) for k, v in out.items()}
+
+
+def tensor_stepper(batch: int, compile: bool, device: str) -> Callable[[], None]:
+    """One ``env.step`` of B worlds, with TorchRL's auto-reset of finished rows."""
+    env = TensorHighwayEnv(
+        "highway-fast-v0", num_envs=batch, seed=0, compile=compile, device=device
+    )
+    td = env.reset()
+    action = torch.full((batch,), IDLE, device=env.device)
+
+    def step() -> None:
+        nonlocal td
+        td.set("action", action)
+        _, td = env.step_and_maybe_reset(td)
+
+    step()  # warm-up (and compilation)
+    if device == "cuda":
+        sync = torch.cuda.synchronize
+
+        def synced() -> None:
+            step()
+            sync()
+
+        return synced
+    return step
+
+
+def highway_stepper() -> Callable[[], None]:
+    """One step of highway-env, reset at the end of an episode."""
+    env = HighwayEnv("highway-fast-v0", seed=0)
+    env.reset()
+    action = TensorDict(action=torch.tensor(IDLE))
+
+    def step() -> None:
+        out = env.step(action.clone())
+        if bool(out["next", "done"]):
+            env.reset()
+
+    return step
+
+
+def envpool_stepper(batch: int, threads: int) -> Callable[[], None] | None:
+    """One step of EnvPool's C++ highway-fast-v0 with B envs, or None without envpool."""
+    if importlib.util.find_spec("envpool") is None:
+        return None
+    import envpool
+    import numpy as np
+
+    env = envpool.make(
+        "highway-fast-v0",
+        env_type="gymnasium",
+        num_envs=batch,
+        batch_size=batch,
+        num_threads=threads,
+    )
+    env.reset()
+    action = np.full(batch, IDLE, dtype=np.int32)
+    return lambda: env.step(action)  # EnvPool resets finished envs itself
+
+
+def snapshot_cost(batch: int, repeats: int) -> None:
+    """``get_state`` + restore of B worlds against one deepcopy of a highway-env env."""
+    env = TensorHighwayEnv("highway-fast-v0", num_envs=batch, seed=0)
+    env.reset()
+    hw = HighwayEnv("highway-fast-v0", seed=0)
+    hw.reset()
+    core = hw.gym_env.unwrapped
+
+    def snap() -> None:
+        state = env.get_state()
+        env.reset(TensorDict(state=state, batch_size=[batch]), set_state=True)
+
+    times: dict[str, list[float]] = {"tensor": [], "deepcopy": []}
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for _ in range(10):
+            snap()
+        times["tensor"].append((time.perf_counter() - start) / 10)
+        start = time.perf_counter()
+        for _ in range(10):
+            copy.deepcopy(core)
+        times["deepcopy"].append((time.perf_counter() - start) / 10)
+    tensor, deep = statistics.median(times["tensor"]), statistics.median(times["deepcopy"])
+    claim(f"get_state + restore of {batch} worlds / one deepcopy of a highway-env env", tensor / deep,
+          note=f"{tensor * 1e3:.2f} ms vs {deep * 1e3:.2f} ms")  # fmt: skip
+    state = env.get_state()
+    size = sum(t.numel() * t.element_size() for t in state.values(True, True))
+    claim("state bytes per world (highway-fast-v0, float32)", size / batch)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[1, 64, 1024, 8192])
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--compile", action="store_true")
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    hw = highway_stepper()
+    for batch in args.sizes:
+        # Blocks of about a second each: fewer calls for larger batches.
+        calls = max(2, min(200, 20000 // batch))
+        runs = {"tensor": (tensor_stepper(batch, False, args.device), calls, batch)}
+        if args.compile:
+            runs["compiled"] = (tensor_stepper(batch, True, args.device), calls, batch)
+        runs["highway"] = (hw, 30, 1)
+        pool = envpool_stepper(batch, args.threads)
+        if pool is not None:
+            runs["envpool"] = (pool, calls, batch)
+        rates = interleaved(runs, args.repeats)
+        where = f"highway-fast-v0, B={batch}, {args.threads} threads, {args.device}"
+        note = ", ".join(f"{k} {v:,.0f}/s" for k, v in rates.items())
+        goal = ">=200" if batch == 1024 and args.device == "cpu" else None
+        claim(
+            f"{where}: TensorHighwayEnv / HighwayEnv env-steps/s",
+            rates["tensor"] / rates["highway"],
+            goal,
+            note=note,
+        )
+        if "compiled" in rates:
+            claim(
+                f"{where}: compiled TensorHighwayEnv / HighwayEnv env-steps/s",
+                rates["compiled"] / rates["highway"],
+            )
+        if "envpool" in rates:
+            claim(
+                f"{where}: TensorHighwayEnv / EnvPool env-steps/s",
+                rates["tensor"] / rates["envpool"],
+            )
+    snapshot_cost(1024, args.repeats)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,103 @@
+"""The parity ladder (docs/sim.md): the tensor simulator against highway-env itself.
+
+Rungs a-c on worlds recorded from highway-env runs (rule, random and always-FASTER
+policies), imported through the bridge; rung d on fresh worlds against highway-env's
+statistics recorded by scripts/highway_reference.py. benchmarks/bench_parity.py runs
+the same ladder at full size.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from torchrl_grpo.envs.highway.parity import (
+    fresh_resets,
+    one_step,
+    record_worlds,
+    same_world,
+    whole_episodes,
+)
+
+from torchrl_grpo.envs import TensorHighwayEnv
+from torchrl_grpo.modules import (
+    ConstantActionPolicy,
+    KinematicsLayout,
+    RandomPolicy,
+    make_scripted_policy,
+)
+
+REFERENCE = Path(__file__).resolve().parents[1] / "data" / "highway_reference"
+
+
+def policies(env):
+    """The recording policies: the rule policy, random and always-FASTER."""
+    layout = KinematicsLayout.from_highway_config(env.config)
+    return [make_scripted_policy("rule", layout), RandomPolicy(seed=0), ConstantActionPolicy(3)]
+
+
+def reference_policies(config):
+    """The policies scripts/highway_reference.py drove highway-env with, by name."""
+    layout = KinematicsLayout.from_highway_config(config)
+    return {
+        "idle": make_scripted_policy("idle"),
+        "slower": make_scripted_policy("slower"),
+        "random": make_scripted_policy("random", seed=1),
+        "rule": make_scripted_policy("rule", layout),
+    }
+
+
+@pytest.fixture(scope="module")
+def fast_worlds():
+    env = TensorHighwayEnv("highway-fast-v0", num_envs=100, dtype=torch.float64)
+    states, kinds = record_worlds("highway-fast-v0", policies(env), 100, seed=0)
+    return env, states, kinds
+
+
+def test_the_recorded_worlds_hold_the_hard_cases(fast_worlds):
+    _, _, kinds = fast_worlds
+    assert kinds["changing"] > 0 and kinds["near_miss"] > 0 and kinds["crashed"] > 0
+
+
+def test_a_same_world(fast_worlds):
+    env, states, _ = fast_worlds
+    worst = same_world(env, states)
+    assert worst["observation"] <= 1e-9 and worst["reward"] <= 1e-9 and worst["flags"] == 0
+
+
+def test_b_one_step_every_action(fast_worlds):
+    env, states, _ = fast_worlds
+    report = one_step(env, states)
+    assert report.pairs == 500
+    assert report.agreement >= 0.995, report.misses
+
+
+def test_c_whole_episodes(fast_worlds):
+    env, states, _ = fast_worlds
+    small = TensorHighwayEnv("highway-fast-v0", num_envs=30, dtype=torch.float64)
+    horizons = whole_episodes(small, states[::3][:30], policies(env)[0])
+    assert float((horizons == -1).double().mean()) >= 0.95, horizons
+
+
+def test_d_fresh_resets_match_highway_env_statistics():
+    reference = json.loads((REFERENCE / "highway-fast-v0.json").read_text())
+    env = TensorHighwayEnv("highway-fast-v0", num_envs=1)
+    table = fresh_resets("highway-fast-v0", reference, reference_policies(env.config), episodes=300)
+    threshold = 0.01 / len(table)  # Bonferroni over every comparison
+    assert all(row["p"] >= threshold for row in table), table
+
+
+@pytest.mark.slow
+def test_ladder_on_highway_v0():
+    env = TensorHighwayEnv("highway-v0", num_envs=40, dtype=torch.float64)
+    states, _ = record_worlds("highway-v0", policies(env), 40, seed=0)
+    worst = same_world(env, states)
+    assert worst["observation"] <= 1e-9 and worst["flags"] == 0
+    assert one_step(env, states).agreement >= 0.995
+    reference = json.loads((REFERENCE / "highway-v0.json").read_text())
+    table = fresh_resets(
+        "highway-v0", reference, reference_policies(env.config), episodes=reference["episodes"]
+    )
+    assert all(row["p"] >= 0.01 / len(table) for row in table), table

@@ -1,0 +1,337 @@
+"""What the batched simulator covers of highway-env, and its constants read from highway-env.
+
+:func:`tensor_params` checks a scenario and config against what
+:mod:`torchrl_grpo.sim` simulates and returns the :class:`~torchrl_grpo.sim.HighwayParams`
+read from a live highway-env env of that config: lane geometry and speed limit from
+its road, vehicle and controller constants from its classes (the IDM constants that
+intersection-v0 overwrites process-wide from their pristine values), the target
+speeds from its ego, the observation's ranges from its observation type. The few
+numbers that highway-env writes as literals inside ``_create_vehicles`` and
+``Vehicle.create_random`` are named here, with where they come from.
+
+Example:
+    >>> params = tensor_params("highway-v0", {"lanes_count": 3, "vehicles_count": 10})
+    >>> params.road.lanes_count, params.num_vehicles, params.time.frames
+    (3, 11, 15)
+    >>> try:
+    ...     tensor_params("highway-fast-v0", {"manual_control": True})
+    ... except ValueError as err:
+    ...     print(str(err)[:60])
+    highway-fast-v0 config: manual_control=True is not supported
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import functools
+import json
+import math
+from typing import Any
+
+import gymnasium as gym
+import highway_env  # noqa: F401 - registers the scenarios
+from highway_env.road.lane import AbstractLane
+from highway_env.vehicle.behavior import IDMVehicle
+from highway_env.vehicle.controller import ControlledVehicle
+from highway_env.vehicle.kinematics import Vehicle
+
+from torchrl_grpo.envs.highway import schema
+from torchrl_grpo.sim import (
+    ControlParams,
+    HighwayParams,
+    IDMParams,
+    ObservationParams,
+    RewardParams,
+    RoadParams,
+    TimeParams,
+    TrafficParams,
+    VehicleParams,
+)
+from torchrl_grpo.sim.observation import FEATURES
+
+__all__ = ["TENSOR_SCENARIOS", "check_tensor_config", "tensor_params"]
+
+#: The scenarios the batched simulator covers.
+TENSOR_SCENARIOS = ("highway-v0", "highway-fast-v0")
+
+# Config keys the simulator reads, and keys that only change rendering
+# (show_trajectories is not among them: it makes highway-env keep a per-vehicle history,
+# which the tensor state does not carry).
+_SUPPORTED = (
+    "observation", "action", "lanes_count", "vehicles_count", "vehicles_density",
+    "ego_spacing", "initial_lane_id", "duration", "simulation_frequency", "policy_frequency",
+    "collision_reward", "right_lane_reward", "high_speed_reward", "lane_change_reward",
+    "reward_speed_range", "normalize_reward", "offroad_terminal",
+)  # fmt: skip
+_RENDERING = (
+    "screen_width", "screen_height", "centering_position", "scaling",
+    "render_agent", "offscreen_rendering", "real_time_rendering",
+    # One straight road segment has no connected lanes: the flag changes nothing.
+    "neighbour_vehicles_connected_lanes",
+)  # fmt: skip
+_OBSERVATION = ("type", "vehicles_count", "features", "normalize", "absolute", "clip", "see_behind")
+_ACTION = ("type", "target_speeds")
+
+# Literals of highway-env 1.12.1's reset code (no class holds them):
+# Vehicle.create_random: speed ~ uniform(0.7, 0.8) * speed_limit; default_spacing =
+# 12 + 1.0 * speed; offset = spacing * default_spacing * exp(-5 / 40 * lanes); the
+# rearmost vehicle at 3 * offset; each offset scaled by uniform(0.9, 1.1).
+_CREATE_RANDOM = {
+    "speed_low": 0.7, "speed_high": 0.8, "spacing_base": 12.0, "spacing_per_speed": 1.0,
+    "spacing_decay": 5 / 40, "first_offsets": 3.0, "jitter": (0.9, 1.1),
+}  # fmt: skip
+
+
+def check_tensor_config(scenario: str, config: dict | None = None) -> dict:
+    """The scenario's full config with ``config`` applied; a ``ValueError`` for what is not covered.
+
+    Args:
+        scenario: a highway-env scenario name.
+        config: overrides, applied as highway-env's ``configure`` applies them (a
+            top-level update: an ``observation`` dict replaces the default one).
+
+    Returns:
+        The full config.
+
+    Raises:
+        ValueError: the scenario, a key or a value is outside the simulator's scope;
+            the message names it and lists what is supported.
+
+    Example:
+        >>> check_tensor_config("highway-fast-v0")["lanes_count"]
+        3
+        >>> try:
+        ...     check_tensor_config("merge-v0")
+        ... except ValueError as err:
+        ...     print(str(err)[:62])
+        the tensor simulator covers ('highway-v0', 'highway-fast-v0'),
+    """
+    if scenario not in TENSOR_SCENARIOS:
+        raise ValueError(
+            f"the tensor simulator covers {TENSOR_SCENARIOS}, not {scenario!r}; "
+            "use HighwayEnv (highway-env itself) for other scenarios"
+        )
+    module_name, class_name = gym.spec(scenario).entry_point.split(":")
+    env_class = getattr(__import__(module_name, fromlist=[class_name]), class_name)
+    defaults = env_class.default_config()
+    full = copy.deepcopy(defaults)
+    full.update(copy.deepcopy(dict(config or {})))
+
+    def refuse(key: str, why: str) -> None:
+        raise ValueError(
+            f"{scenario} config: {key}={_lookup(full, key)!r} is not supported by the "
+            f"tensor simulator ({why}). Supported keys: {', '.join(_SUPPORTED)}; observation "
+            f"options {_OBSERVATION} with features among {FEATURES} and order 'sorted'; "
+            f"action options {_ACTION}"
+        )
+
+    for key in sorted(set(full) - set(_SUPPORTED) - set(_RENDERING)):
+        if key not in defaults:
+            close = difflib.get_close_matches(key, list(defaults), n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise ValueError(f"unknown config key {key!r} for {scenario}{hint}")
+        if full[key] != defaults[key]:
+            refuse(key, f"only its default {defaults[key]!r} is simulated")
+    _check_observation(full, refuse)
+    _check_action(full, refuse)
+    _check_values(full, refuse)
+    return full
+
+
+def _lookup(config: dict, key: str) -> Any:
+    value: Any = config
+    for part in key.split("."):
+        value = value.get(part) if isinstance(value, dict) else None
+    return value
+
+
+def _check_observation(full: dict, refuse) -> None:
+    obs = full["observation"]
+    if not isinstance(obs, dict) or obs.get("type") != "Kinematics":
+        refuse("observation.type", "only the Kinematics observation is simulated")
+    for key in obs:
+        if key not in _OBSERVATION and not (key == "order" and obs[key] == "sorted"):
+            why = (
+                "'shuffled' draws from numpy's generator every step"
+                if key == "order"
+                else "not among the simulated options"
+            )
+            refuse(f"observation.{key}", why)
+    features = obs.get("features", ["presence", "x", "y", "vx", "vy"])
+    if not features or any(f not in FEATURES for f in features):
+        refuse("observation.features", f"features must be among {FEATURES}")
+    count = obs.get("vehicles_count", 5)
+    if not isinstance(count, int) or count < 2:
+        refuse(
+            "observation.vehicles_count",
+            "at least 2 rows (highway-env's table with 1 row varies in size)",
+        )
+
+
+def _check_action(full: dict, refuse) -> None:
+    action = full["action"]
+    if not isinstance(action, dict) or action.get("type") != "DiscreteMetaAction":
+        refuse("action.type", "only DiscreteMetaAction is simulated")
+    for key in action:
+        if key not in _ACTION:
+            refuse(f"action.{key}", "not among the simulated options")
+    speeds = action.get("target_speeds")
+    if speeds is not None:
+        values = [float(s) for s in speeds]
+        if len(values) < 2 or any(b <= a for a, b in zip(values, values[1:], strict=False)):
+            refuse("action.target_speeds", "at least two increasing speeds")
+
+
+def _check_values(full: dict, refuse) -> None:
+    def number(key: str, low: float | None = None, integer: bool = False) -> None:
+        value = full[key]
+        ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+        if ok and integer:
+            ok = float(value).is_integer()
+        if not ok or (low is not None and value < low):
+            refuse(key, f"expected a finite {'integer' if integer else 'number'}"
+                   + (f" >= {low}" if low is not None else ""))  # fmt: skip
+
+    number("lanes_count", 1, integer=True)
+    number("vehicles_count", 1, integer=True)
+    for key in (
+        "vehicles_density",
+        "ego_spacing",
+        "duration",
+        "simulation_frequency",
+        "policy_frequency",
+    ):
+        number(key, 1e-9)
+    for key in ("collision_reward", "right_lane_reward", "high_speed_reward", "lane_change_reward"):
+        number(key)
+    if full["simulation_frequency"] // full["policy_frequency"] < 1:
+        refuse("simulation_frequency", "at least one substep per policy step")
+    lane = full["initial_lane_id"]
+    if lane is not None and (not isinstance(lane, int) or not 0 <= lane < full["lanes_count"]):
+        refuse("initial_lane_id", "None or a lane of the road")
+    rng = full["reward_speed_range"]
+    if len(rng) != 2 or not float(rng[1]) > float(rng[0]):
+        refuse("reward_speed_range", "two speeds, low < high")
+    for key in ("normalize_reward", "offroad_terminal"):
+        if not isinstance(full[key], bool):
+            refuse(key, "expected a bool")
+    if full["normalize_reward"] and (
+        full["high_speed_reward"] + full["right_lane_reward"] == full["collision_reward"]
+    ):
+        refuse(
+            "collision_reward", "normalize_reward divides by high_speed + right_lane - collision"
+        )
+
+
+def tensor_params(scenario: str = "highway-fast-v0", config: dict | None = None) -> HighwayParams:
+    """The simulator's constants for a scenario and config (checked by :func:`check_tensor_config`).
+
+    Args:
+        scenario: ``"highway-v0"`` or ``"highway-fast-v0"``.
+        config: overrides of the scenario's default config.
+
+    Returns:
+        The :class:`~torchrl_grpo.sim.HighwayParams`.
+
+    Raises:
+        ValueError: see :func:`check_tensor_config`.
+
+    Example:
+        >>> tensor_params("highway-fast-v0").control.target_speeds
+        (20.0, 25.0, 30.0)
+    """
+    full = check_tensor_config(scenario, config)
+    return _params(scenario, json.dumps(full, sort_keys=True, default=_jsonable))
+
+
+def _jsonable(value: Any) -> Any:
+    return value.tolist() if hasattr(value, "tolist") else str(value)
+
+
+@functools.lru_cache(maxsize=64)
+def _params(scenario: str, config_json: str) -> HighwayParams:
+    full = json.loads(config_json)
+    env = gym.make(scenario, config=full, disable_env_checker=True)
+    try:
+        env.reset(seed=0)
+        core = env.unwrapped
+        road, ego = core.road, core.vehicle
+        lane = road.network.get_lane(("0", "1", 0))
+        pristine = {name: v for (_, name), v in schema.PRISTINE_CLASS_PARAMETERS.items()}
+        idm_const = lambda name: float(pristine.get(name, getattr(IDMVehicle, name)))  # noqa: E731
+        others = [v for v in road.vehicles if v is not ego]
+        obs = core.observation_type
+        config = core.config
+        return HighwayParams(
+            road=RoadParams(
+                lanes_count=len(road.network.graph["0"]["1"]),
+                lane_width=float(lane.width),
+                lane_length=float(lane.length),
+                speed_limit=float(lane.speed_limit),
+                margin_length=float(AbstractLane.VEHICLE_LENGTH),
+            ),
+            vehicle=VehicleParams(
+                length=float(Vehicle.LENGTH),
+                width=float(Vehicle.WIDTH),
+                max_speed=float(Vehicle.MAX_SPEED),
+                min_speed=float(Vehicle.MIN_SPEED),
+            ),
+            idm=IDMParams(
+                acc_max=idm_const("ACC_MAX"),
+                comfort_acc_max=idm_const("COMFORT_ACC_MAX"),
+                comfort_acc_min=idm_const("COMFORT_ACC_MIN"),
+                distance_wanted=idm_const("DISTANCE_WANTED"),
+                time_wanted=idm_const("TIME_WANTED"),
+                delta_range=tuple(float(d) for d in IDMVehicle.DELTA_RANGE),
+                politeness=idm_const("POLITENESS"),
+                lane_change_min_acc_gain=idm_const("LANE_CHANGE_MIN_ACC_GAIN"),
+                lane_change_max_braking_imposed=idm_const("LANE_CHANGE_MAX_BRAKING_IMPOSED"),
+                lane_change_delay=idm_const("LANE_CHANGE_DELAY"),
+            ),
+            control=ControlParams(
+                kp_a=float(ControlledVehicle.KP_A),
+                kp_heading=float(ControlledVehicle.KP_HEADING),
+                kp_lateral=float(ControlledVehicle.KP_LATERAL),
+                tau_pursuit=float(ControlledVehicle.TAU_PURSUIT),
+                max_steering_angle=float(ControlledVehicle.MAX_STEERING_ANGLE),
+                target_speeds=tuple(float(s) for s in ego.target_speeds),
+            ),
+            time=TimeParams(
+                simulation_frequency=float(config["simulation_frequency"]),
+                policy_frequency=float(config["policy_frequency"]),
+            ),
+            traffic=TrafficParams(
+                vehicles_count=int(config["vehicles_count"]),
+                vehicles_density=float(config["vehicles_density"]),
+                ego_spacing=float(config["ego_spacing"]),
+                initial_lane_id=config["initial_lane_id"],
+                ego_speed=float(ego.speed),
+                others_check_collisions=bool(others[0].check_collisions) if others else True,
+                **_CREATE_RANDOM,
+            ),
+            reward=RewardParams(
+                collision_reward=float(config["collision_reward"]),
+                right_lane_reward=float(config["right_lane_reward"]),
+                high_speed_reward=float(config["high_speed_reward"]),
+                on_road_reward=float(config.get("on_road_reward", 0)),
+                reward_speed_range=tuple(float(s) for s in config["reward_speed_range"]),
+                normalize_reward=bool(config["normalize_reward"]),
+                offroad_terminal=bool(config["offroad_terminal"]),
+                duration=float(config["duration"]),
+            ),
+            observation=ObservationParams(
+                vehicles_count=int(obs.vehicles_count),
+                features=tuple(obs.features),
+                normalize=bool(obs.normalize),
+                absolute=bool(obs.absolute),
+                clip=bool(obs.clip),
+                see_behind=bool(obs.see_behind),
+                perception_distance=float(core.PERCEPTION_DISTANCE),
+                features_range=tuple(
+                    (k, (float(r[0]), float(r[1]))) for k, r in (obs.features_range or {}).items()
+                ),
+            ),
+        )
+    finally:
+        env.close()
