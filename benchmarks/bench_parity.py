@@ -103,15 +103,14 @@ def main() -> None:
         "rule": rule,
     }
     table = fresh_resets(scenario, reference, policies, episodes=args.fresh)
-    threshold = 0.01 / len(table)
+    n = len(table)
+    threshold = 0.01 / n
     for row in table:
         print(
             f"    {row['what']:<22} tensor {row['tensor']:9.4f}  highway-env "
             f"{row['highway']:9.4f}  statistic {row['statistic']:7.4f}  p {row['p']:.3g}"
         )
-    what = (
-        f"{scenario} d: smallest p of {len(table)} fresh-reset tests (Bonferroni 0.01/{len(table)})"
-    )
+    what = f"{scenario} d: smallest p of {n} fresh-reset tests (Bonferroni 0.01/{n})"
     note = f"{args.fresh} tensor episodes per policy, {reference['episodes']} highway-env"
     claim(what, min(r["p"] for r in table), f">={threshold:.6f}", note=note)
 

@@ -1,4 +1,5 @@
 """Mean return and crash rate of scripted policies on highway-fast-v0 (default config)."""
+
 import argparse
 import logging
 import time
@@ -37,7 +38,12 @@ for name in args.policies:
     rets_t = torch.tensor(rets)
     log.info(
         "%-12s return %.2f +- %.2f  crash %.0f%%  len %.1f  actions %s  (%.1fs)",
-        name, rets_t.mean(), rets_t.std(), 100 * sum(crashes) / len(crashes),
-        sum(lens) / len(lens), (actions / actions.sum()).numpy().round(2), time.time() - t0,
+        name,
+        rets_t.mean(),
+        rets_t.std(),
+        100 * sum(crashes) / len(crashes),
+        sum(lens) / len(lens),
+        (actions / actions.sum()).numpy().round(2),
+        time.time() - t0,
     )
     log.info("  returns %s", [round(r, 2) for r in rets])

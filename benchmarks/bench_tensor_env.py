@@ -137,8 +137,8 @@ def snapshot_cost(batch: int, repeats: int) -> None:
             copy.deepcopy(core)
         times["deepcopy"].append((time.perf_counter() - start) / 10)
     tensor, deep = statistics.median(times["tensor"]), statistics.median(times["deepcopy"])
-    claim(f"get_state + restore of {batch} worlds / one deepcopy of a highway-env env", tensor / deep,
-          note=f"{tensor * 1e3:.2f} ms vs {deep * 1e3:.2f} ms")  # fmt: skip
+    what = f"get_state + restore of {batch} worlds / one deepcopy of a highway-env env"
+    claim(what, tensor / deep, note=f"{tensor * 1e3:.2f} ms vs {deep * 1e3:.2f} ms")
     state = env.get_state()
     size = sum(t.numel() * t.element_size() for t in state.values(True, True))
     claim("state bytes per world (highway-fast-v0, float32)", size / batch)

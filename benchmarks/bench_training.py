@@ -11,6 +11,7 @@ scripted baselines evaluated on the same seeds.
     # 2. the curves and the table
     python benchmarks/bench_training.py multirun/<day>/<time>/* --out docs/img
 """
+
 import argparse
 import json
 import logging
@@ -31,17 +32,30 @@ p = argparse.ArgumentParser()
 p.add_argument("runs", nargs="+", type=Path, help="run folders (config.yaml + eval_history.jsonl)")
 p.add_argument("--out", type=Path, default=Path("docs/img"))
 p.add_argument("--baseline-episodes", type=int, default=30)
-p.add_argument("--baselines", nargs="*", default=["idle", "slower", "rule"],
-               help="scripted policies beside the curves; 'slower' also for the claim")
-p.add_argument("--max-frames", type=int, default=None,
-               help="cut every curve here (default: the shortest run of each env)")
-p.add_argument("--labels", nargs="*", default=None,
-               help="one curve label per run, in the order given (default: the run's algo); "
-                    "runs with one label are seeds of one curve")
+p.add_argument(
+    "--baselines",
+    nargs="*",
+    default=["idle", "slower", "rule"],
+    help="scripted policies beside the curves; 'slower' also for the claim",
+)
+p.add_argument(
+    "--max-frames",
+    type=int,
+    default=None,
+    help="cut every curve here (default: the shortest run of each env)",
+)
+p.add_argument(
+    "--labels",
+    nargs="*",
+    default=None,
+    help="one curve label per run, in the order given (default: the run's algo); "
+    "runs with one label are seeds of one curve",
+)
 args = p.parse_args()
 if args.labels is not None and len(args.labels) != len(args.runs):
-    raise SystemExit(f"--labels takes one label per run: {len(args.runs)} runs, "
-                     f"{len(args.labels)} labels")
+    raise SystemExit(
+        f"--labels takes one label per run: {len(args.runs)} runs, {len(args.labels)} labels"
+    )
 labels = dict(zip(args.runs, args.labels, strict=True)) if args.labels else {}
 
 curves = defaultdict(lambda: defaultdict(list))  # env -> algo -> [history]
@@ -65,9 +79,11 @@ args.out.mkdir(parents=True, exist_ok=True)
 print("| env | algo | seed | frames | return | crash rate | speed | episodes |")
 print("|---|---|---|---|---|---|---|---|")
 for env, algo, seed, last in rows:
-    print(f"| {env} | {algo} | {seed} | {last['frames']} | {last['return']:.2f} ± "
-          f"{last['return_std']:.2f} | {100 * last['crash_rate']:.1f}% | {last['speed']:.1f} | "
-          f"{int(last['episodes'])} |")
+    print(
+        f"| {env} | {algo} | {seed} | {last['frames']} | {last['return']:.2f} ± "
+        f"{last['return_std']:.2f} | {100 * last['crash_rate']:.1f}% | {last['speed']:.1f} | "
+        f"{int(last['episodes'])} |"
+    )
 
 for env, by_algo in curves.items():
     # Compare at the same frames: cut every run where the shortest one stops.
@@ -76,17 +92,24 @@ for env, by_algo in curves.items():
     by_algo = {a: [[r for r in h if r["frames"] <= cut] for h in hs] for a, hs in by_algo.items()}
     hlines = {}
     if args.baselines:
-        base_cfg = OmegaConf.create({
-            "env": OmegaConf.to_container(envs[env]), "checkpoint": None,
-            "episodes": args.baseline_episodes, "seed": None,
-            "baselines": list(args.baselines), "video": False,
-        })
+        base_cfg = OmegaConf.create(
+            {
+                "env": OmegaConf.to_container(envs[env]),
+                "checkpoint": None,
+                "episodes": args.baseline_episodes,
+                "seed": None,
+                "baselines": list(args.baselines),
+                "video": False,
+            }
+        )
         report = evaluate_checkpoint(base_cfg, args.out / f"baselines_{env}")
         print(f"\nbaselines on {env}:\n{report.table}")
         hlines = {r.name: r.summary()["return"] for r in report.results}
     for metric in ("return", "crash_rate"):
         path = plot_learning_curve(
-            dict(by_algo), args.out / f"curve_{env}_{metric}.png", metric=metric,
+            dict(by_algo),
+            args.out / f"curve_{env}_{metric}.png",
+            metric=metric,
             title=f"{envs[env].scenario}: deterministic evaluation ({metric})",
             hlines=hlines if metric == "return" else None,
         )
@@ -94,9 +117,11 @@ for env, by_algo in curves.items():
     # The claim: how soon each algorithm's greedy policy beats always-SLOWER. A run beats
     # it at its first evaluation whose return is above always-SLOWER's on the same
     # episodes (evaluation i of n episodes uses seed eval_seed + i, and so do baselines).
-    slower = next((r for r in report.results if r.name == "always-SLOWER"), None) if (
-        args.baselines
-    ) else None
+    slower = (
+        next((r for r in report.results if r.name == "always-SLOWER"), None)
+        if (args.baselines)
+        else None
+    )
     if slower is None:
         continue
 

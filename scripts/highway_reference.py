@@ -75,6 +75,7 @@ def run(job: tuple[str, str, list[int]]) -> dict:
 
 
 def main() -> None:
+    """Run every policy's episodes in ``--workers`` processes and write the reference."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scenario", default="highway-fast-v0")
     parser.add_argument("--episodes", type=int, default=1000)
