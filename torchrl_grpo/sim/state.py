@@ -47,7 +47,7 @@ __all__ = [
 class Vehicles(NamedTuple):
     """The vehicle table, every field ``[B, N]``; row 0 is the ego.
 
-    Attributes:
+    Fields (a named tuple's, so listed here rather than as attributes):
         x: longitudinal position (m).
         y: lateral position (m); lane ``i`` is centred on ``y = i * lane_width``.
         heading: heading (rad), not wrapped.
@@ -114,7 +114,7 @@ BOOL_FIELDS = ("crashed", "impact", "check_collisions", "present")
 class World(NamedTuple):
     """B worlds.
 
-    Attributes:
+    Fields (a named tuple's, so listed here rather than as attributes):
         vehicles: the ``[B, N]`` vehicle table.
         speed_index: ``[B]`` int64, the ego's index into the target speeds.
         time: ``[B]`` float64 seconds since reset (highway-env's ``env.time``).

@@ -84,6 +84,9 @@ class TensorHighwayEnv(EnvBase):
 
     _supports_set_state = True
     batch_locked = True
+    #: Rows are independent worlds restored and stepped together: branch rollouts run
+    #: all their branches as rows of one batched rollout (see torchrl_grpo.branching).
+    batched_worlds = True
 
     def __init__(
         self,
