@@ -31,17 +31,22 @@ def main(cfg: DictConfig) -> float:
     print(f"\n{status}: {result.frames} env frames, {result.iterations} iterations")
     if result.final:
         f = result.final
-        print(f"final evaluation: return {f['return']:.2f} ± {f['return_std']:.2f}, "
-              f"crash rate {100 * f['crash_rate']:.1f}%, speed {f['speed']:.1f} m/s "
-              f"({int(f['episodes'])} episodes)")
+        print(
+            f"final evaluation: return {f['return']:.2f} ± {f['return_std']:.2f}, "
+            f"crash rate {100 * f['crash_rate']:.1f}%, speed {f['speed']:.1f} m/s "
+            f"({int(f['episodes'])} episodes)"
+        )
     print(f"run folder:  {result.run_dir}")
     print(f"checkpoint:  {result.checkpoint}")
     if result.logs is not None:
         print(f"logs:        {result.logs}")
         if str(cfg.logger.backend) == "wandb" and str(cfg.logger.mode) == "offline":
             print(f"             upload with: wandb sync {result.logs}")
-    for label, path in (("results:", result.results_table), ("curve:", result.curve),
-                        ("video:", result.video)):
+    for label, path in (
+        ("results:", result.results_table),
+        ("curve:", result.curve),
+        ("video:", result.video),
+    ):
         if path is not None:
             print(f"{label:<12} {path}")
     plots = Path(result.run_dir) / "plots"
