@@ -41,7 +41,13 @@ log = logging.getLogger(__name__)
 
 
 class TrainerView(Protocol):
-    """What hooks read and call of the trainer (a protocol: hooks do not import it)."""
+    """What hooks read and call of the trainer (a protocol: hooks do not import it).
+
+    Example:
+        >>> from torchrl_grpo.training import Trainer
+        >>> all(callable(getattr(Trainer, name)) for name in ("save", "wall_seconds"))
+        True
+    """
 
     cfg: DictConfig
     run_dir: Path

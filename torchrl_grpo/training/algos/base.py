@@ -72,12 +72,11 @@ class Algorithm:
     collector (:meth:`make_collector`) delivers. :meth:`state_dict` is its part of a
     checkpoint.
 
-    Attributes:
-        names: the values of ``algo.name`` it runs.
-        config_class: its schema, a subclass of :class:`AlgoConfig`.
-        config_name: the schema's name in Hydra's ConfigStore, which the defaults of
-            ``conf/algo/<name>.yaml`` start from.
-        supports_ray: whether it collects with ``rollout.backend=ray``.
+    Its class attributes: ``names``, the values of ``algo.name`` it runs;
+    ``config_class``, its schema (a subclass of :class:`AlgoConfig`); ``config_name``,
+    the schema's name in Hydra's ConfigStore, which the defaults of
+    ``conf/algo/<name>.yaml`` start from; ``supports_ray``, whether it collects with
+    ``rollout.backend=ray``.
 
     Args:
         cfg: the composed config.

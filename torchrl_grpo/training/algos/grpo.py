@@ -151,7 +151,7 @@ class GRPO(Algorithm):
             episode_step_limit(env, int(cfg.env.max_episode_steps)), str(algo.bootstrap)
         ).set_keys(train_reward=TRAIN_REWARD)
         self.ref_sync = self.make_reference_sync(algo, self.loss)
-        self.tail_policy = make_tail_policy(algo, policy, env)
+        self.tail_policy = _tail_policy(algo, policy, env)
         self.replay = make_replay(algo)
 
     @classmethod
@@ -328,7 +328,7 @@ class GRPO(Algorithm):
         if self.tail_policy is not None and checkpoint.get("tail_policy") is not None:
             self.tail_policy.load_state_dict(checkpoint["tail_policy"])
         if self.replay is not None and checkpoint.get("replay") is not None:
-            saved = replay_rows(OmegaConf.create(checkpoint["config"]["algo"]))
+            saved = _replay_rows(OmegaConf.create(checkpoint["config"]["algo"]))
             if saved != self.replay.storage.max_size:
                 # A loaded storage keeps its saved size: the first write past it would fail.
                 raise ValueError(
@@ -341,7 +341,7 @@ class GRPO(Algorithm):
             self.ref_sync.counter = int(checkpoint["ref_sync_counter"])
 
 
-def make_tail_policy(algo: DictConfig, policy: nn.Module, env: EnvBase) -> nn.Module | None:
+def _tail_policy(algo: DictConfig, policy: nn.Module, env: EnvBase) -> nn.Module | None:
     """The actor of greedy tails when it is not ``policy`` itself, or ``None``.
 
     A scripted base policy (``algo.tail_policy``), or a frozen copy of ``policy``
@@ -366,11 +366,11 @@ def make_replay(algo: DictConfig) -> ReplayBuffer | None:
         >>> make_replay(cfg).storage.max_size
         50
     """
-    rows = replay_rows(algo)
+    rows = _replay_rows(algo)
     return None if rows is None else ReplayBuffer(storage=LazyTensorStorage(rows), batch_size=None)
 
 
-def replay_rows(algo: DictConfig) -> int | None:
+def _replay_rows(algo: DictConfig) -> int | None:
     """Trained steps the replay holds: one per explored step of each of the groups' branches."""
     groups = algo.get("replay_groups")
     if groups is None:
