@@ -7,11 +7,13 @@ says ``roots: continuation``, today's ``continue``) and a PPO run.
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 import torch
-from conftest import TINY, compose_config
+from conftest import ROOT, TINY, compose_config
 from omegaconf import OmegaConf
 
 from torchrl_grpo.training import (
@@ -24,7 +26,8 @@ from torchrl_grpo.training import (
 )
 from torchrl_grpo.training.evaluation import evaluate_checkpoint
 
-DATA = Path(__file__).parent / "data"
+HERE = Path(__file__).resolve().parent
+DATA = HERE / "data"
 # The overrides each run was written with (beside experiment=smoke, logger=none).
 RUNS = {
     "grpo_branch": [],
@@ -61,14 +64,14 @@ def test_an_old_config_validates_against_todays_schemas(run):
     assert OmegaConf.load(DATA / f"v1_{run}.yaml") == OmegaConf.create(ckpt["config"])
 
 
-@pytest.mark.parametrize("run", sorted(RUNS))
-def test_an_old_checkpoint_resumes_bit_for_bit_and_trains_on(tmp_path, run):
+def resume_and_train_on(run: str, run_dir: str) -> None:
+    """Resume ``run``'s checkpoint, compare what was loaded with it, train one iteration."""
     path = DATA / f"v1_{run}.pt"
     ckpt = load_checkpoint(path)
     overrides = [*TINY, *RUNS[run], f"resume={path}"]
     # One more iteration than the checkpoint's.
     cfg = compose_config([*overrides, f"experiment.total_frames={ckpt['frames'] + 1}"])
-    trainer = Trainer(cfg, run_dir=tmp_path / run)
+    trainer = Trainer(cfg, run_dir=run_dir)
     _assert_equal_state(ckpt["policy"], trainer.policy.state_dict())
     _assert_equal_state(ckpt["loss"], trainer.algo.loss.state_dict())
     _assert_equal_optimizer(ckpt["optimizer"], trainer.algo.optimizer.state_dict())
@@ -85,6 +88,22 @@ def test_an_old_checkpoint_resumes_bit_for_bit_and_trains_on(tmp_path, run):
     assert new["version"] == ckpt["version"] and new.keys() == ckpt.keys()
     # The control: training went on from the loaded parameters.
     assert any(not torch.equal(v, new["policy"][k]) for k, v in ckpt["policy"].items())
+
+
+@pytest.mark.parametrize("run", sorted(RUNS))
+def test_an_old_checkpoint_resumes_bit_for_bit_and_trains_on(tmp_path, run):
+    # In a fresh interpreter, as a user's: the checkpoint's queued roots hold simulator
+    # states whose layout follows the vehicle classes registered in the process, and
+    # other tests register some.
+    code = (
+        f"import sys; sys.path.insert(0, {str(HERE)!r}); "
+        "from test_old_checkpoints import resume_and_train_on; "
+        f"resume_and_train_on({run!r}, {str(tmp_path / run)!r})"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=ROOT
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
 
 
 @pytest.mark.parametrize("run", ["grpo_continuation", "ppo"])
