@@ -43,8 +43,11 @@ from torchrl_grpo.training.logging_builder import log_metrics, make_logger
 from torchrl_grpo.training.metrics import PhaseTimer, progress_bar, progress_postfix
 from torchrl_grpo.training.model_builder import make_policy
 from torchrl_grpo.training.optim_builder import anneal_lr
+from torchrl_grpo.training.plots import plot_learning_curve
 
-__all__ = ["TrainResult", "Trainer", "seed_everything"]
+# PhaseTimer and plot_learning_curve lived here before metrics.py and plots.py: still
+# importable from here.
+__all__ = ["PhaseTimer", "TrainResult", "Trainer", "plot_learning_curve", "seed_everything"]
 
 log = logging.getLogger(__name__)
 
