@@ -4,7 +4,8 @@ The tables come from the code and the YAML files, never from hand-written text:
 
 * the schemas are the dataclasses registered in Hydra's ConfigStore by
   :func:`torchrl_grpo.training.config.register_configs` (``base_<group>`` in each group,
-  ``base_config`` and ``base_evaluate`` at the top); every key's type comes from the
+  ``base_config`` and ``base_evaluate`` at the top; the ``algo`` group's schemas are in
+  ``torchrl_grpo/training/algos/``, one file per algorithm); every key's type comes from the
   dataclass's type hints, its default from :func:`dataclasses.fields` (``str`` enums list
   their choices, nested dataclasses such as ``rollout.ray`` are expanded);
 * a key's meaning is the inline comment of that key in ``conf/<group>/*.yaml`` (the
@@ -12,8 +13,8 @@ The tables come from the code and the YAML files, never from hand-written text:
   docstring of its enum or nested dataclass; every option file of a group gets a column
   with the values it sets, and its leading comment as a description.
 
-The page that holds the directive depends on ``torchrl_grpo/training/config.py`` and on
-every file under ``conf/``, and is re-read at every build (``env-get-outdated``), so an
+The page that holds the directive depends on every module of ``torchrl_grpo/training/``
+and on every file under ``conf/``, and is re-read at every build (``env-get-outdated``), so an
 incremental build cannot serve a stale reference.
 
 :func:`generate_rst` is the generator on its own (no Sphinx needed):
@@ -38,6 +39,8 @@ import yaml
 ROOT = Path(__file__).resolve().parents[2]
 CONF_DIR = ROOT / "conf"
 SCHEMA_MODULE = "torchrl_grpo.training.config"
+# The schemas are dataclasses of the training package (the algorithms' in their files).
+SCHEMA_PACKAGE = "torchrl_grpo.training"
 # Where the schema classes are documented in the API reference (if they are listed there).
 API_MODULE = "torchrl_grpo.training"
 # YAML keys that belong to Hydra, not to the schemas.
@@ -193,6 +196,7 @@ class SchemaKey:
     required: bool
     doc: str  # the enum's or nested dataclass's docstring summary, a fallback meaning
     nested: bool = False
+    aliases: dict[str, str] = field(default_factory=dict)  # older spelling -> choice
 
 
 def _summary(obj: Any) -> str:
@@ -214,10 +218,17 @@ def schema_keys(schema: type, prefix: str = "") -> list[SchemaKey]:
             default = OMEGACONF_MISSING
         required = isinstance(default, str) and default == OMEGACONF_MISSING
         choices = None
+        aliases: dict[str, str] = {}
         doc = ""
         enum_type = _enum_in(tp)
         if enum_type is not None:
             choices = [str(member.value) for member in enum_type]
+            # Extra names of a member: spellings that still validate.
+            aliases = {
+                name: str(member.value)
+                for name, member in enum_type.__members__.items()
+                if name != member.name
+            }
             doc = _summary(enum_type)
         name = prefix + f.name
         if _is_dataclass_type(tp):
@@ -233,6 +244,7 @@ def schema_keys(schema: type, prefix: str = "") -> list[SchemaKey]:
                 default=OMEGACONF_MISSING if required else format_value(default),
                 required=required,
                 doc=doc,
+                aliases=aliases,
             )
         )
     return keys
@@ -254,7 +266,7 @@ def registered_schemas() -> tuple[dict[str, type], dict[str, dict[str, type]]]:
     def schema_of(path: str) -> type | None:
         node = store.load(path).node
         tp = OmegaConf.get_type(node)
-        if _is_dataclass_type(tp) and tp.__module__ == SCHEMA_MODULE:
+        if _is_dataclass_type(tp) and tp.__module__.startswith(SCHEMA_PACKAGE + "."):
             return tp
         return None
 
@@ -425,6 +437,15 @@ def schema_table(
             type_cell = literal(key.type)
             if key.choices:
                 type_cell += ": one of " + ", ".join(literal(c) for c in key.choices)
+            if key.aliases:
+                type_cell += (
+                    " (also "
+                    + ", ".join(
+                        f"{literal(alias)} for {literal(choice)}"
+                        for alias, choice in key.aliases.items()
+                    )
+                    + ")"
+                )
             default_cell = "required" if key.required else literal(key.default)
         comment = comment_of(key.key)
         meaning = inline(comment) if comment else key.doc  # the docstring is RST already
@@ -500,7 +521,9 @@ def generate_rst(conf_dir: Path = CONF_DIR) -> str:
     out += [_docstring_paragraphs(module), ""]
     out += [
         "Generated at every build from the dataclasses of "
-        f"{literal(_relative(Path(module.__file__)))} (types and defaults, as registered "
+        f"{literal(_relative(Path(module.__file__)))} and "
+        f"{literal(_relative(Path(module.__file__).parent / 'algos'))} (types and defaults, "
+        "as registered "
         "in Hydra's ConfigStore) and from the YAML files of "
         f"{literal(_relative(conf_dir))} (values and the inline comment of every key). "
         "Set a key on the command line with "
@@ -620,7 +643,8 @@ def setup(app: Any) -> dict:
 
         def run(self) -> list:
             module = importlib.import_module(SCHEMA_MODULE)
-            self.env.note_dependency(module.__file__)
+            for path in sorted(Path(module.__file__).parent.rglob("*.py")):
+                self.env.note_dependency(str(path))
             for path in sorted(CONF_DIR.rglob("*.yaml")):
                 self.env.note_dependency(str(path))
             docs = getattr(self.env, "config_reference_docs", set())

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import shutil
+from typing import get_args
 
 import pytest
 from conftest import CONF, compose_config
@@ -16,6 +17,7 @@ from torchrl_grpo.training.config import (
     PPOConfig,
     RolloutConfig,
     check_config,
+    to_container,
 )
 
 GROUPS = ["env", "model", "algo", "optim", "logger", "experiment"]
@@ -197,3 +199,37 @@ def test_policy_action_weights_need_enumerated_actions():
 def test_evaluate_config_composes():
     cfg = compose_config(["checkpoint=x.pt", "env=merge"], config_name="evaluate")
     assert cfg.checkpoint == "x.pt" and cfg.env.scenario == "merge-v0" and cfg.episodes >= 30
+
+
+@pytest.mark.parametrize("spelling", ["continue", "continuation"])
+def test_roots_continue_keeps_its_older_spelling(spelling):
+    cfg = compose_config([f"algo.roots={spelling}"])
+    assert str(cfg.algo.roots) == "continue"
+    assert to_container(cfg)["algo"]["roots"] == "continue"  # what checkpoints now record
+    with pytest.raises(ConfigCompositionException):
+        compose_config(["algo.roots=continues"])
+
+
+def test_the_choices_are_the_librarys_literals():
+    from torchrl_grpo import branching, objectives
+    from torchrl_grpo.modules import SCRIPTED_POLICIES, NetworkKind
+    from torchrl_grpo.modules.greedy_tail import FirstAction
+    from torchrl_grpo.training import config
+
+    for enum, literal in [
+        (config.RootKindName, branching.RootKind),
+        (config.SelectionName, branching.Selection),
+        (config.WorkerBackend, branching.Backend),
+        (config.AggregationName, objectives.Aggregation),
+        (config.KLEstimatorName, objectives.KLEstimator),
+        (config.BootstrapName, objectives.BootstrapMode),
+        (config.FirstActionName, FirstAction),
+    ]:
+        assert [member.value for member in enum] == list(get_args(literal)), enum.__name__
+    assert [m.value for m in config.Backend] == [*get_args(branching.Backend), "ray"]
+    assert [m.value for m in config.ModelKind] == [*get_args(NetworkKind), "scene"]
+    # The scripted base policies a prior or a greedy tail may name exist.
+    assert {m.value for m in config.PriorName} < set(SCRIPTED_POLICIES)
+    assert {m.value for m in config.TailPolicyName} == {"learner"} | {
+        m.value for m in config.PriorName
+    }

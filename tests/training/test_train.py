@@ -21,7 +21,8 @@ from torchrl.modules import ProbabilisticActor
 from torchrl_grpo.modules import EXPLORED, SLOWER
 from torchrl_grpo.objectives import GRPOLoss
 from torchrl_grpo.training import Trainer, load_checkpoint, make_collector, make_rollout_env
-from torchrl_grpo.training.trainer import _changed_keys, _policy_weighted
+from torchrl_grpo.training.algos.grpo import policy_weighted
+from torchrl_grpo.training.checkpoint import changed_keys
 
 
 def _csv_scalars(run_dir) -> dict[str, list[float]]:
@@ -101,7 +102,7 @@ _REPLAY = [
 
 
 def _params(trainer: Trainer) -> dict[str, torch.Tensor]:
-    return {k: v.clone() for k, v in trainer.loss.state_dict().items()}
+    return {k: v.clone() for k, v in trainer.algo.loss.state_dict().items()}
 
 
 @pytest.mark.parametrize(
@@ -144,7 +145,7 @@ def test_resume_restores_the_lagging_tail_policy(tmp_path):
     ]
     stopped = _train(tmp_path, "stopped", [*common, "experiment.total_frames=70"])
     assert stopped.iteration == 3
-    tail, policy = stopped.tail_policy.state_dict(), stopped.policy.state_dict()
+    tail, policy = stopped.algo.tail_policy.state_dict(), stopped.policy.state_dict()
     assert any(not torch.equal(tail[k], policy[k]) for k in tail)  # it lags one batch
     cfg = compose_config(
         [
@@ -154,7 +155,7 @@ def test_resume_restores_the_lagging_tail_policy(tmp_path):
             f"resume={tmp_path / 'stopped' / 'last.pt'}",
         ]
     )
-    resumed = Trainer(cfg, run_dir=tmp_path / "resumed").tail_policy.state_dict()
+    resumed = Trainer(cfg, run_dir=tmp_path / "resumed").algo.tail_policy.state_dict()
     for key, value in tail.items():
         assert torch.equal(resumed[key], value), key
 
@@ -172,7 +173,9 @@ def test_a_scripted_tail_scores_every_first_action_from_the_learners_trunks(tmp_
     assert trainer.iteration >= 1
     cfg = trainer.cfg
     env = make_rollout_env(cfg.env, cfg.rollout, snapshots=True)
-    collector = make_collector(cfg, env, trainer.policy, seed=0, tail_policy=trainer.tail_policy)
+    collector = make_collector(
+        cfg, env, trainer.policy, seed=0, tail_policy=trainer.algo.tail_policy
+    )
     try:
         batch = next(iter(collector))
         assert collector.root_source.policy is trainer.policy  # trunks: the learner, not the base
@@ -187,19 +190,19 @@ def test_a_scripted_tail_scores_every_first_action_from_the_learners_trunks(tmp_
 
 def test_replayed_groups_accumulate_and_get_the_current_policys_log_probs(tmp_path):
     trainer = _train(tmp_path, "replay", [*_REPLAY, "experiment.total_frames=60"])
-    rows = len(trainer.replay)
+    rows = len(trainer.algo.replay)
     assert trainer.iteration >= 2 and rows > 5  # more than one batch's rows
-    old = trainer.replay[:]
+    old = trainer.algo.replay[:]
     fresh = old[:3].clone()
     fresh["action_log_prob"] = torch.zeros(3)  # a stale value, overwritten
-    data = trainer._replayed(fresh)
+    data = trainer.algo.replayed(fresh)
     assert data.shape[0] == rows + 3
     logits = trainer.policy.module[0](data.select("observation").clone())["logits"]
     expected = torch.log_softmax(logits, -1).gather(-1, data["action"].unsqueeze(-1)).squeeze(-1)
     torch.testing.assert_close(data["action_log_prob"], expected)
     # FIFO: 50 groups of 5 branches, one trained step each.
-    trainer.replay.extend(torch.cat([old] * (300 // rows + 1)))
-    assert len(trainer.replay) == 250
+    trainer.algo.replay.extend(torch.cat([old] * (300 // rows + 1)))
+    assert len(trainer.algo.replay) == 250
     # A resume with another replay size is refused when it loads, not mid-run.
     bigger = [*_REPLAY, "algo.replay_groups=60", f"resume={tmp_path / 'replay' / 'last.pt'}"]
     with pytest.raises(ValueError, match="algo.replay_groups"):
@@ -209,13 +212,13 @@ def test_replayed_groups_accumulate_and_get_the_current_policys_log_probs(tmp_pa
 def test_policy_weights_scale_advantages_by_n_pi_and_leave_the_replay_alone(tmp_path):
     overrides = [*_REPLAY, "algo.action_weights=policy", "experiment.total_frames=60"]
     trainer = _train(tmp_path, "weighted", overrides)
-    stored = trainer.replay[:].clone()
-    data = _policy_weighted(trainer._replayed(stored[:1].clone()), 5)
+    stored = trainer.algo.replay[:].clone()
+    data = policy_weighted(trainer.algo.replayed(stored[:1].clone()), 5)
     plain = torch.cat([stored["advantage"], stored["advantage"][:1]])
     logits = trainer.policy.module[0](data.select("observation").clone())["logits"]
     prob = torch.softmax(logits, -1).gather(-1, data["action"].unsqueeze(-1))
     torch.testing.assert_close(data["advantage"], plain * 5 * prob)
-    assert torch.equal(trainer.replay[:]["advantage"], plain)  # stored unweighted
+    assert torch.equal(trainer.algo.replay[:]["advantage"], plain)  # stored unweighted
 
 
 def test_policy_weights_give_the_expected_surrogates_gradient():
@@ -241,7 +244,7 @@ def test_policy_weights_give_the_expected_surrogates_gradient():
         batch_size=[n_states * n_actions],
     )
     loss = GRPOLoss(actor, entropy_bonus=False)
-    loss(_policy_weighted(data, n_actions))["loss_objective"].backward()
+    loss(policy_weighted(data, n_actions))["loss_objective"].backward()
     reference = table.detach().clone().requires_grad_(True)
     expected = -(torch.softmax(reference, -1) * advantage).sum() * n_actions / data.numel()
     expected.backward()
@@ -273,8 +276,8 @@ def test_changed_keys_compares_only_keys_both_configs_hold():
     saved = {"kind": "mlp", "cells": [64], "sub": {"a": 1, "old": 2}}
     current = {"kind": "mlp", "cells": [32], "sub": {"a": 3}, "prior": None}
     # "old" left the schema and "prior" joined it: neither is a change of this run.
-    assert _changed_keys(saved, current) == {"cells": ([64], [32]), "sub.a": (1, 3)}
-    assert _changed_keys(saved, saved) == {}
+    assert changed_keys(saved, current) == {"cells": ([64], [32]), "sub.a": (1, 3)}
+    assert changed_keys(saved, saved) == {}
 
 
 def test_ctrl_c_saves_and_leaves_no_worker(tmp_path):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
-from typing import Literal
+from typing import Literal, get_args
 
 import torch
 from tensordict import NestedKey, TensorDictBase
@@ -17,7 +17,14 @@ from torchrl_grpo.objectives._segments import (
     trajectory_index,
 )
 
-__all__ = ["GroupRelativeAdvantage"]
+__all__ = ["Baseline", "GroupRelativeAdvantage", "Returns", "RewardScaling"]
+
+#: A branch's return (``"branch"``) or each step's reward-to-go (``"step"``).
+Returns = Literal["branch", "step"]
+#: The group mean (GRPO, ``"mean"``) or the mean of the other members (RLOO, ``"loo"``).
+Baseline = Literal["mean", "loo"]
+#: What the centred returns are divided by: the group's std, the batch's, or nothing.
+RewardScaling = Literal["group", "batch", "none"]
 
 # Below this, gamma ** position underflows float64 and the reward-to-go
 # rescaling (which divides by gamma ** position) would return inf / NaN.
@@ -116,16 +123,16 @@ class GroupRelativeAdvantage(TensorDictModuleBase):
     def __init__(
         self,
         *,
-        returns: Literal["branch", "step"] = "branch",
-        baseline: Literal["mean", "loo"] = "mean",
-        scale_rewards: Literal["group", "batch", "none"] = "group",
+        returns: Returns = "branch",
+        baseline: Baseline = "mean",
+        scale_rewards: RewardScaling = "group",
         gamma: float = 1.0,
         eps: float = 1e-4,
     ) -> None:
         super().__init__()
-        _check_choice("returns", returns, ("branch", "step"))
-        _check_choice("baseline", baseline, ("mean", "loo"))
-        _check_choice("scale_rewards", scale_rewards, ("group", "batch", "none"))
+        _check_choice("returns", returns, get_args(Returns))
+        _check_choice("baseline", baseline, get_args(Baseline))
+        _check_choice("scale_rewards", scale_rewards, get_args(RewardScaling))
         if not 0.0 < gamma <= 1.0:
             raise ValueError(f"gamma must be in (0, 1], got {gamma}.")
         if eps < 0:

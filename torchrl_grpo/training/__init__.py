@@ -1,9 +1,20 @@
-"""Hydra-configured training: builders per config group, the loop, evaluation, checkpoints.
+"""Hydra-configured training: the loop, one file per algorithm, hooks, builders per config group.
 
 ``scripts/train.py`` and ``scripts/evaluate.py`` are thin wrappers around this
 package. Nothing in the rest of the library imports it.
 """
 
+from torchrl_grpo.training.algos import (
+    ALGORITHMS,
+    GRPO,
+    PPO,
+    AlgoConfig,
+    Algorithm,
+    GRPOConfig,
+    PPOConfig,
+    algorithm_for,
+    register_algorithm,
+)
 from torchrl_grpo.training.checkpoint import load_checkpoint, save_checkpoint
 from torchrl_grpo.training.collect import (
     collector_state,
@@ -12,48 +23,52 @@ from torchrl_grpo.training.collect import (
     make_collector,
 )
 from torchrl_grpo.training.config import (
-    AlgoConfig,
     Config,
     EnvConfig,
     ExperimentConfig,
-    GRPOConfig,
     LoggerConfig,
     ModelConfig,
     OptimConfig,
-    PPOConfig,
     RolloutConfig,
     check_config,
+    compose_config,
     register_configs,
     to_container,
+    typed_config,
 )
 from torchrl_grpo.training.env_builder import make_env, make_layout, make_rollout_env
-from torchrl_grpo.training.evaluation import (
-    BASELINE_LABELS,
-    EvalResult,
-    baseline_policy,
-    evaluate,
-    format_table,
-    save_gif,
-)
+from torchrl_grpo.training.evaluation import BASELINE_LABELS, baseline_policy, evaluate
+from torchrl_grpo.training.hooks import CheckpointHook, EvaluationHook, GroupPlotHook, Hook
 from torchrl_grpo.training.logging_builder import log_metrics, log_video, make_logger
 from torchrl_grpo.training.loss_builder import (
     is_grpo,
     make_advantage,
     make_loss,
-    make_optimizer,
     make_reference_sync,
 )
+from torchrl_grpo.training.metrics import PhaseTimer
 from torchrl_grpo.training.model_builder import make_net, make_policy, make_value
-from torchrl_grpo.training.trainer import PhaseTimer, Trainer, TrainResult, plot_learning_curve
+from torchrl_grpo.training.optim_builder import make_optimizer
+from torchrl_grpo.training.plots import plot_comparison, plot_learning_curve, save_gif
+from torchrl_grpo.training.results import EvalResult, format_table
+from torchrl_grpo.training.trainer import Trainer, TrainResult
 
 __all__ = [
+    "ALGORITHMS",
     "BASELINE_LABELS",
+    "GRPO",
+    "PPO",
     "AlgoConfig",
+    "Algorithm",
+    "CheckpointHook",
     "Config",
     "EnvConfig",
     "EvalResult",
+    "EvaluationHook",
     "ExperimentConfig",
     "GRPOConfig",
+    "GroupPlotHook",
+    "Hook",
     "LoggerConfig",
     "ModelConfig",
     "OptimConfig",
@@ -62,9 +77,11 @@ __all__ = [
     "RolloutConfig",
     "TrainResult",
     "Trainer",
+    "algorithm_for",
     "baseline_policy",
     "check_config",
     "collector_state",
+    "compose_config",
     "env_frames",
     "evaluate",
     "format_table",
@@ -85,9 +102,12 @@ __all__ = [
     "make_reference_sync",
     "make_rollout_env",
     "make_value",
+    "plot_comparison",
     "plot_learning_curve",
+    "register_algorithm",
     "register_configs",
     "save_checkpoint",
     "save_gif",
     "to_container",
+    "typed_config",
 ]

@@ -2,22 +2,28 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 from omegaconf import DictConfig, OmegaConf
 from torchrl.envs import EnvBase
 
-from torchrl_grpo.branching import make_branch_env
+from torchrl_grpo.branching import Backend, make_branch_env
 from torchrl_grpo.envs import HighwayEnv
 from torchrl_grpo.modules import KinematicsLayout
 
 __all__ = [
+    "RolloutBackend",
     "env_overrides",
     "episode_step_limit",
     "make_env",
     "make_layout",
     "make_rollout_env",
 ]
+
+#: How the rollout workers run (``rollout.backend``): a :data:`~torchrl_grpo.branching.Backend`
+#: of :func:`~torchrl_grpo.branching.make_branch_env`, or ``"ray"`` (GRPO groups collected
+#: on Ray actors, :class:`~torchrl_grpo.distributed.RayGroupCollector`).
+RolloutBackend = Literal[Backend, "ray"]
 
 
 def env_overrides(env_cfg: DictConfig) -> dict[str, Any]:

@@ -1,4 +1,4 @@
-"""Deterministic evaluation on fixed seeds, scripted baselines, results table and video.
+"""Deterministic evaluation on fixed seeds, the scripted baselines, and a checkpoint's report.
 
 Episode ``i`` of an evaluation starts from ``env.set_seed(eval_seed + i)``: every
 policy, every evaluation of a run and every run with the same ``eval_seed`` drive
@@ -10,9 +10,8 @@ from __future__ import annotations
 
 import json
 import logging
-import math
-from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +23,12 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_grpo.modules import DeterministicActor, KinematicsLayout, make_scripted_policy
+from torchrl_grpo.training.checkpoint import load_checkpoint
+from torchrl_grpo.training.config import typed_config
+from torchrl_grpo.training.env_builder import make_env, make_layout
+from torchrl_grpo.training.model_builder import make_policy
+from torchrl_grpo.training.plots import plot_comparison, plot_learning_curve, save_gif
+from torchrl_grpo.training.results import EvalResult, format_table
 
 __all__ = [
     "BASELINE_LABELS",
@@ -46,65 +51,6 @@ BASELINE_LABELS = {
     "slower": "always-SLOWER",
     "rule": "rule policy",
 }
-
-
-@dataclass
-class EvalResult:
-    """Per-episode outcomes of one policy.
-
-    Attributes:
-        name: the policy's label.
-        returns: undiscounted return of each episode.
-        crashed: whether the ego crashed.
-        lengths: steps of each episode.
-        speeds: mean ego speed of each episode (m/s).
-        seeds: the episodes' seeds.
-
-    Example:
-        >>> from torchrl_grpo.envs import HighwayEnv
-        >>> from torchrl_grpo.modules import ConstantActionPolicy
-        >>> result, _ = evaluate(HighwayEnv("merge-v0"), ConstantActionPolicy("SLOWER"),
-        ...                      episodes=2, seed=0, max_steps=2, name="always-SLOWER")
-        >>> result.name, result.episodes, result.lengths, result.seeds, result.crashed
-        ('always-SLOWER', 2, [2, 2], [0, 1], [False, False])
-    """
-
-    name: str
-    returns: list[float] = field(default_factory=list)
-    crashed: list[bool] = field(default_factory=list)
-    lengths: list[int] = field(default_factory=list)
-    speeds: list[float] = field(default_factory=list)
-    seeds: list[int] = field(default_factory=list)
-
-    @property
-    def episodes(self) -> int:
-        """Number of episodes."""
-        return len(self.returns)
-
-    def summary(self) -> dict[str, float]:
-        """Means (and the return's std and standard error) over episodes.
-
-        Example:
-            >>> r = EvalResult("x", [1.0, 3.0], [False, True], [2, 4], [20.0, 30.0], [0, 1])
-            >>> r.summary()["crash_rate"], r.summary()["return"]
-            (0.5, 2.0)
-        """
-        returns = np.asarray(self.returns, dtype=np.float64)
-        n = max(len(returns), 1)
-        std = float(returns.std(ddof=1)) if len(returns) > 1 else 0.0
-        return {
-            "return": float(returns.mean()) if len(returns) else math.nan,
-            "return_std": std,
-            "return_sem": std / math.sqrt(n),
-            "crash_rate": float(np.mean(self.crashed)) if self.crashed else math.nan,
-            "speed": float(np.mean(self.speeds)) if self.speeds else math.nan,
-            "length": float(np.mean(self.lengths)) if self.lengths else math.nan,
-            "episodes": float(len(returns)),
-        }
-
-    def to_dict(self) -> dict:
-        """Plain data for JSON."""
-        return {**asdict(self), "summary": self.summary()}
 
 
 def baseline_policy(
@@ -213,89 +159,6 @@ def _replay_video(env: EnvBase, data: TensorDictBase, seed: int) -> torch.Tensor
     return video.unsqueeze(0)
 
 
-def save_gif(video: torch.Tensor, path: str | Path, fps: int = 5) -> Path:
-    """Write a ``(1, T, 3, H, W)`` or ``(T, 3, H, W)`` uint8 video as a GIF (Pillow).
-
-    Example:
-        >>> import tempfile, os
-        >>> p = save_gif(torch.zeros(2, 3, 8, 8, dtype=torch.uint8), tempfile.mkdtemp() + "/v.gif")
-        >>> os.path.getsize(p) > 0
-        True
-    """
-    from PIL import Image
-
-    frames = video.reshape(-1, *video.shape[-3:]).permute(0, 2, 3, 1).numpy()
-    images = [Image.fromarray(f) for f in frames]
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    images[0].save(path, save_all=True, append_images=images[1:], duration=int(1000 / fps), loop=0)
-    return path
-
-
-def format_table(results: Sequence[EvalResult]) -> str:
-    """A Markdown table: return (mean ± std), crash rate, mean speed, episode length.
-
-    Example:
-        >>> r = EvalResult("slower", [20.0, 22.0], [False, False], [30, 30], [20.0, 20.0])
-        >>> print(format_table([r]).splitlines()[2])
-        | slower | 21.00 ± 1.41 | 0.0% | 20.0 | 30.0 | 2 |
-    """
-    lines = [
-        "| policy | return | crash rate | speed (m/s) | length (steps) | episodes |",
-        "|---|---|---|---|---|---|",
-    ]
-    for res in results:
-        s = res.summary()
-        lines.append(
-            f"| {res.name} | {s['return']:.2f} ± {s['return_std']:.2f} | "
-            f"{100 * s['crash_rate']:.1f}% | {s['speed']:.1f} | {s['length']:.1f} | "
-            f"{int(s['episodes'])} |"
-        )
-    return "\n".join(lines)
-
-
-def plot_comparison(results: Sequence[EvalResult], path: str | Path, title: str = "") -> Path:
-    """Bar charts of return (mean ± std) and crash rate, one bar per policy.
-
-    Example:
-        >>> import tempfile
-        >>> r = EvalResult("a", [1.0, 2.0], [False, True], [3, 3], [20.0, 21.0])
-        >>> plot_comparison([r], tempfile.mkdtemp() + "/bars.png").suffix
-        '.png'
-    """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(9, 3.8), dpi=100)
-    FigureCanvasAgg(fig)
-    ax_ret, ax_crash, ax_speed = fig.subplots(1, 3)
-    names = [r.name for r in results]
-    summaries = [r.summary() for r in results]
-    x = np.arange(len(results))
-    ax_ret.bar(
-        x,
-        [s["return"] for s in summaries],
-        yerr=[s["return_std"] for s in summaries],
-        color="tab:blue",
-        capsize=3,
-    )
-    ax_ret.set_ylabel("return")
-    ax_crash.bar(x, [100 * s["crash_rate"] for s in summaries], color="tab:red")
-    ax_crash.set_ylabel("crash rate (%)")
-    ax_speed.bar(x, [s["speed"] for s in summaries], color="tab:green")
-    ax_speed.set_ylabel("mean speed (m/s)")
-    for ax in (ax_ret, ax_crash, ax_speed):
-        ax.set_xticks(x)
-        ax.set_xticklabels(names, rotation=30, ha="right", fontsize=8)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    return path
-
-
 @dataclass
 class EvalReport:
     """What :func:`evaluate_checkpoint` wrote.
@@ -331,12 +194,6 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
         >>> evaluate_checkpoint(cfg, tempfile.mkdtemp()).results[0].name
         'always-SLOWER'
     """
-    from omegaconf import OmegaConf
-
-    from torchrl_grpo.training.checkpoint import load_checkpoint
-    from torchrl_grpo.training.env_builder import make_env, make_layout
-    from torchrl_grpo.training.model_builder import make_policy
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     env_cfg = cfg.env
@@ -346,7 +203,8 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
     ckpt = None
     if cfg.checkpoint:
         ckpt = load_checkpoint(cfg.checkpoint)
-        run_cfg = OmegaConf.create(ckpt["config"])
+        # Typed by today's schemas: older spellings (roots=continuation) read as today's.
+        run_cfg = typed_config(ckpt["config"])
         env_cfg = run_cfg.env
         history = list(ckpt.get("eval_history") or [])
         if seed is None:
@@ -401,8 +259,6 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
     if results:
         files["bars"] = plot_comparison(results, out_dir / "comparison.png", title=header)
     if history:
-        from torchrl_grpo.training.trainer import plot_learning_curve
-
         hlines = {r.name: r.summary()["return"] for r in results[1:]}
         files["curve"] = plot_learning_curve(
             {str(run_cfg.algo.name): [history]},

@@ -14,15 +14,20 @@ import importlib.util
 import logging
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, get_args
 
 import torch
 from omegaconf import DictConfig
 from torchrl.record.loggers import CSVLogger, Logger, WandbLogger
 
-__all__ = ["log_hparams", "log_metrics", "log_video", "make_logger"]
+__all__ = ["LoggerKind", "WandbRunMode", "log_hparams", "log_metrics", "log_video", "make_logger"]
 
 log = logging.getLogger(__name__)
+
+#: Where metrics go (``logger.backend``): TorchRL's wandb or CSV logger, or nowhere.
+LoggerKind = Literal["wandb", "csv", "none"]
+#: wandb's mode (``logger.mode``): ``offline`` writes a run folder to ``wandb sync`` later.
+WandbRunMode = Literal["offline", "online"]
 
 
 def make_logger(
@@ -70,7 +75,9 @@ def make_logger(
             log_env_packages=False,
         )
     else:
-        raise ValueError(f"logger.backend must be wandb, csv or none, got {backend!r}")
+        raise ValueError(
+            f"logger.backend must be one of {', '.join(get_args(LoggerKind))}, got {backend!r}"
+        )
     log_hparams(logger, config)
     return logger
 

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from omegaconf import DictConfig
 from torch import nn
 from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, ValueOperator
 
 from torchrl_grpo.modules import (
+    NetworkKind,
     PriorLogits,
     SceneMLP,
     ScriptedPolicy,
@@ -18,7 +21,21 @@ from torchrl_grpo.modules import (
 )
 from torchrl_grpo.training.env_builder import make_layout
 
-__all__ = ["make_base_policy", "make_net", "make_policy", "make_value"]
+__all__ = [
+    "BasePolicyName",
+    "ModelArchitecture",
+    "make_base_policy",
+    "make_net",
+    "make_policy",
+    "make_value",
+]
+
+#: The network of ``model.kind``: one of :func:`~torchrl_grpo.modules.make_network`'s
+#: kinds, or ``"scene"`` (:class:`~torchrl_grpo.modules.SceneMLP`).
+ModelArchitecture = Literal[NetworkKind, "scene"]
+#: The scripted policies that drive deterministically (names of
+#: :data:`~torchrl_grpo.modules.SCRIPTED_POLICIES`): a prior's, or a greedy tail's base.
+BasePolicyName = Literal["idle", "slower", "rule", "conservative", "cautious"]
 
 
 def _table_shape(env: EnvBase) -> tuple[int, int]:

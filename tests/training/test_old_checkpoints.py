@@ -1,0 +1,128 @@
+"""Checkpoints written before the training/ split still load: resume, evaluate, their config.
+
+The files of ``data/`` were written by the code before ``training/algos/`` (see
+``data/README.md``): a GRPO run on trunk roots, one on continuation roots (its config
+says ``roots: continuation``, today's ``continue``) and a PPO run.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import ROOT, TINY, compose_config
+from omegaconf import OmegaConf
+
+from torchrl_grpo.training import (
+    Trainer,
+    evaluate,
+    load_checkpoint,
+    make_env,
+    make_policy,
+    typed_config,
+)
+from torchrl_grpo.training.evaluation import evaluate_checkpoint
+
+HERE = Path(__file__).resolve().parent
+DATA = HERE / "data"
+# The overrides each run was written with (beside experiment=smoke, logger=none).
+RUNS = {
+    "grpo_branch": [],
+    "grpo_continuation": ["algo.roots=continuation"],
+    "ppo": ["algo=ppo"],
+}
+
+
+def _assert_equal_state(saved: dict, loaded: dict) -> None:
+    assert saved.keys() == loaded.keys()
+    for key, value in saved.items():
+        assert torch.equal(value, loaded[key]), key
+
+
+def _assert_equal_optimizer(saved: dict, loaded: dict) -> None:
+    assert saved["param_groups"] == loaded["param_groups"]
+    assert saved["state"].keys() == loaded["state"].keys()
+    for index, state in saved["state"].items():
+        for name, value in state.items():
+            assert torch.equal(value, loaded["state"][index][name]), (index, name)
+
+
+@pytest.mark.parametrize("run", sorted(RUNS))
+def test_an_old_config_validates_against_todays_schemas(run):
+    ckpt = load_checkpoint(DATA / f"v1_{run}.pt")
+    cfg = typed_config(ckpt["config"])
+    schema = "PPOConfig" if run == "ppo" else "GRPOConfig"
+    assert OmegaConf.get_type(cfg.algo).__name__ == schema
+    assert OmegaConf.to_container(cfg.model) == ckpt["config"]["model"]
+    if run == "grpo_continuation":
+        assert ckpt["config"]["algo"]["roots"] == "continuation"
+        assert str(cfg.algo.roots) == "continue"
+    # The run folder's config.yaml holds the same config.
+    assert OmegaConf.load(DATA / f"v1_{run}.yaml") == OmegaConf.create(ckpt["config"])
+
+
+def resume_and_train_on(run: str, run_dir: str) -> None:
+    """Resume ``run``'s checkpoint, compare what was loaded with it, train one iteration."""
+    path = DATA / f"v1_{run}.pt"
+    ckpt = load_checkpoint(path)
+    overrides = [*TINY, *RUNS[run], f"resume={path}"]
+    # One more iteration than the checkpoint's.
+    cfg = compose_config([*overrides, f"experiment.total_frames={ckpt['frames'] + 1}"])
+    trainer = Trainer(cfg, run_dir=run_dir)
+    _assert_equal_state(ckpt["policy"], trainer.policy.state_dict())
+    _assert_equal_state(ckpt["loss"], trainer.algo.loss.state_dict())
+    _assert_equal_optimizer(ckpt["optimizer"], trainer.algo.optimizer.state_dict())
+    if ckpt["value"] is not None:
+        _assert_equal_state(ckpt["value"], trainer.algo.value.state_dict())
+    assert (trainer.iteration, trainer.frames, trainer.algo.updates) == (
+        ckpt["iteration"],
+        ckpt["frames"],
+        ckpt["updates"],
+    )
+    result = trainer.train()
+    assert result.iterations == ckpt["iteration"] + 1 and result.frames > ckpt["frames"]
+    new = load_checkpoint(result.checkpoint)
+    assert new["version"] == ckpt["version"] and new.keys() == ckpt.keys()
+    # The control: training went on from the loaded parameters.
+    assert any(not torch.equal(v, new["policy"][k]) for k, v in ckpt["policy"].items())
+
+
+@pytest.mark.parametrize("run", sorted(RUNS))
+def test_an_old_checkpoint_resumes_bit_for_bit_and_trains_on(tmp_path, run):
+    # In a fresh interpreter, as a user's: the checkpoint's queued roots hold simulator
+    # states whose layout follows the vehicle classes registered in the process, and
+    # other tests register some.
+    code = (
+        f"import sys; sys.path.insert(0, {str(HERE)!r}); "
+        "from test_old_checkpoints import resume_and_train_on; "
+        f"resume_and_train_on({run!r}, {str(tmp_path / run)!r})"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=ROOT
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+
+
+@pytest.mark.parametrize("run", ["grpo_continuation", "ppo"])
+def test_an_old_checkpoint_evaluates_its_own_policy(tmp_path, run):
+    path = DATA / f"v1_{run}.pt"
+    cfg = compose_config(
+        [f"checkpoint={path}", "episodes=2", "baselines=[slower]", "video=false"],
+        config_name="evaluate",
+    )
+    report = evaluate_checkpoint(cfg, tmp_path)
+    ckpt = load_checkpoint(path)
+    trained = report.results[0]
+    assert trained.name == f"{ckpt['config']['algo']['name']} ({ckpt['frames']} frames)"
+    assert [r.name for r in report.results[1:]] == ["always-SLOWER"]
+    # The same episodes driven by hand with the saved parameters.
+    env_cfg = OmegaConf.create(ckpt["config"]["env"])
+    env = make_env(env_cfg, seed=0)
+    policy = make_policy(OmegaConf.create(ckpt["config"]["model"]), env)
+    policy.load_state_dict(ckpt["policy"])
+    seed = ckpt["config"]["experiment"]["eval_seed"]
+    expected, _ = evaluate(env, policy, episodes=2, seed=seed, max_steps=env_cfg.max_episode_steps)
+    assert (trained.returns, trained.seeds) == (expected.returns, expected.seeds)

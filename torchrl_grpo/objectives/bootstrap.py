@@ -1,0 +1,154 @@
+"""The horizon bootstrap: the reward a branch cut by the horizon would still have earned.
+
+Critic-free, for batches of branches laid out ``[..., T]`` (time last), as
+:func:`~torchrl_grpo.branching.branch_rollout` and the group collectors write them. It
+runs before the group-relative advantage, which then reads the training reward.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+from typing import Literal
+
+import torch
+from tensordict import NestedKey, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+__all__ = ["BootstrapMode", "HorizonBootstrap"]
+
+#: ``"batch_mean"``: credit truncated branches with the batch's mean reward per step for
+#: the episode steps left; ``"none"``: the training reward is the env's reward.
+BootstrapMode = Literal["none", "batch_mean"]
+
+
+class HorizonBootstrap(TensorDictModuleBase):
+    """Writes the training reward: the env's, plus a tail for branches cut by the horizon.
+
+    A branch truncated by the horizon would go on collecting reward until its episode
+    ends; a branch that the env ended (a crash: ``terminated``) would not. Without a
+    critic, the tail is estimated as the batch's mean reward per valid step times the
+    episode steps left, ``step_limit - (root_step + length)`` (at least 0), and added to
+    the reward of the branch's last valid step. It is the same for every surviving
+    branch of a group, so within the group it is the return a crash forfeits: without
+    it, a crash late in a branch costs almost nothing and a policy learns to speed and
+    crash. The env's reward is left untouched.
+
+    Args:
+        step_limit: the episode length in steps (e.g. a highway-env scenario's
+            ``duration`` times its ``policy_frequency``).
+        mode: ``"batch_mean"`` (the tail above) or ``"none"`` (the training reward is a
+            copy of the env's).
+
+    Keys (change them with :meth:`set_keys`): ``reward`` (``("next", "reward")``),
+    ``terminated`` (``("next", "terminated")``), ``mask`` (``"mask"``: valid steps),
+    ``root_step`` (``"root_step"``: the episode step of the branch's root), written:
+    ``train_reward`` (``("next", "train_reward")``) and ``bootstrap`` (``"bootstrap"``:
+    what was added to each step's reward, shaped like the reward).
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_grpo.objectives import HorizonBootstrap
+        >>> # Two branches of 3 steps from a root at episode step 4, in a 10-step episode:
+        >>> # the first survives the horizon, the second crashes at its second step.
+        >>> reward = torch.tensor([[1.0, 1.0, 1.0], [1.0, 0.0, 0.0]])
+        >>> terminated = torch.tensor([[False, False, False], [False, True, False]])
+        >>> td = TensorDict(
+        ...     {
+        ...         "mask": torch.tensor([[True, True, True], [True, True, False]]),
+        ...         "root_step": torch.full((2, 3), 4),
+        ...         ("next", "reward"): reward.unsqueeze(-1),
+        ...         ("next", "terminated"): terminated.unsqueeze(-1),
+        ...     },
+        ...     batch_size=[2, 3],
+        ... )
+        >>> out = HorizonBootstrap(step_limit=10)(td)
+        >>> out["next", "train_reward"].squeeze(-1)  # mean reward 0.8 x (10 - 7) steps left
+        tensor([[1.0000, 1.0000, 3.4000],
+                [1.0000, 0.0000, 0.0000]])
+        >>> out["bootstrap"].sum((-2, -1))  # the tail of each branch
+        tensor([2.4000, 0.0000])
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Tensordict keys read and written by :class:`HorizonBootstrap`.
+
+        Attributes:
+            reward: per-step reward, shape ``[..., T]`` or ``[..., T, 1]``.
+            terminated: whether the env ended the episode at that step.
+            mask: boolean, ``True`` on valid steps (a branch's steps come first).
+            root_step: episode step of the branch's root, on every step.
+            train_reward: written, the reward plus the tail (shaped like ``reward``).
+            bootstrap: written, the tail added to each step (shaped like ``reward``).
+        """
+
+        reward: NestedKey = ("next", "reward")
+        terminated: NestedKey = ("next", "terminated")
+        mask: NestedKey = "mask"
+        root_step: NestedKey = "root_step"
+        train_reward: NestedKey = ("next", "train_reward")
+        bootstrap: NestedKey = "bootstrap"
+
+    default_keys = _AcceptedKeys
+
+    def __init__(self, step_limit: int, mode: BootstrapMode = "batch_mean") -> None:
+        super().__init__()
+        if mode not in ("none", "batch_mean"):
+            raise ValueError(f"mode must be 'none' or 'batch_mean', got {mode!r}.")
+        if step_limit < 1:
+            raise ValueError(f"step_limit must be >= 1, got {step_limit}.")
+        self.step_limit = int(step_limit)
+        self.mode = mode
+        self.tensor_keys = self._AcceptedKeys()
+
+    def set_keys(self, **keys: NestedKey) -> HorizonBootstrap:
+        """Renames the keys read and written, e.g. ``set_keys(train_reward="r")``.
+
+        Raises:
+            ValueError: for a name that is not one of the accepted keys.
+        """
+        accepted = sorted(f.name for f in fields(self._AcceptedKeys))
+        unknown = sorted(set(keys) - set(accepted))
+        if unknown:
+            raise ValueError(
+                f"{unknown} are not accepted keys of {type(self).__name__}: {accepted}."
+            )
+        self.tensor_keys = replace(self.tensor_keys, **keys)
+        return self
+
+    @property
+    def in_keys(self) -> list[NestedKey]:  # noqa: D102
+        k = self.tensor_keys
+        return [k.reward, k.terminated, k.mask, k.root_step]
+
+    @property
+    def out_keys(self) -> list[NestedKey]:  # noqa: D102
+        return [self.tensor_keys.train_reward, self.tensor_keys.bootstrap]
+
+    @torch.no_grad()
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Writes the training reward and the tail into ``tensordict`` and returns it."""
+        keys = self.tensor_keys
+        reward = tensordict.get(keys.reward)
+        mask = tensordict.get(keys.mask)
+        shape = mask.shape
+        train = reward.clone()
+        bonus = torch.zeros_like(reward)
+        if self.mode == "batch_mean" and bool(mask.any()):
+            rate = float(reward.reshape(shape)[mask].mean())
+            lengths = mask.sum(-1)
+            last = (lengths - 1).clamp(min=0).unsqueeze(-1)
+            terminated = tensordict.get(keys.terminated).reshape(shape)
+            ended_by_env = terminated.gather(-1, last).squeeze(-1)
+            step_end = tensordict.get(keys.root_step).reshape(shape)[..., 0] + lengths
+            left = (self.step_limit - step_end).clamp(min=0)
+            tail = (rate * left * (~ended_by_env & (lengths > 0))).unsqueeze(-1)
+            train.view(shape).scatter_add_(-1, last, tail.to(train.dtype))
+            bonus.view(shape).scatter_(-1, last, tail.to(bonus.dtype))
+        tensordict.set(keys.train_reward, train)
+        tensordict.set(keys.bootstrap, bonus)
+        return tensordict
+
+    def extra_repr(self) -> str:  # noqa: D102
+        return f"step_limit={self.step_limit}, mode={self.mode!r}"

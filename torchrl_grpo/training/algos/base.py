@@ -1,0 +1,302 @@
+"""What an algorithm is to the trainer, and the registry that names them.
+
+An algorithm is one file of this package: its config dataclass (a subclass of
+:class:`AlgoConfig`), its builders (loss, advantage, ...), its collector, its update
+of a batch and its batch metrics, in a subclass of :class:`Algorithm` registered with
+:func:`register_algorithm`. The registry feeds Hydra's ConfigStore
+(:func:`~torchrl_grpo.training.register_configs` stores each schema as
+``algo/<config_name>``), so ``conf/algo/<name>.yaml`` starting from that schema is
+all the config an algorithm adds. See ``docs/training.md`` for a worked example.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import torch
+from omegaconf import MISSING, DictConfig, OmegaConf
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.collectors import BaseCollector
+from torchrl.envs import EnvBase
+from torchrl.modules import ProbabilisticActor, ValueOperator
+from torchrl.objectives import LossModule
+
+from torchrl_grpo.training.collect import make_collector
+from torchrl_grpo.training.env_builder import make_rollout_env
+from torchrl_grpo.training.metrics import PhaseTimer, metric_name
+from torchrl_grpo.training.optim_builder import make_optimizer
+
+__all__ = ["ALGORITHMS", "AlgoConfig", "Algorithm", "algorithm_for", "register_algorithm"]
+
+#: The registered algorithms by ``algo.name`` (:func:`register_algorithm` fills it).
+ALGORITHMS: dict[str, type[Algorithm]] = {}
+
+
+@dataclass
+class AlgoConfig:
+    """``algo`` group: fields every algorithm has.
+
+    Each algorithm's schema extends it (:class:`~torchrl_grpo.training.GRPOConfig`,
+    :class:`~torchrl_grpo.training.PPOConfig`) and types ``name`` with its own choices.
+
+    Example:
+        >>> from torchrl_grpo.training import Config, PPOConfig
+        >>> cfg = OmegaConf.structured(Config)
+        >>> cfg.algo = PPOConfig(name="ppo")
+        >>> OmegaConf.get_type(cfg.algo).__name__, cfg.algo.epochs, cfg.algo.minibatch_size
+        ('PPOConfig', 4, 256)
+        >>> try:
+        ...     cfg.algo.name = "sac"  # not a name of PPO
+        ... except Exception as err:
+        ...     print(type(err).__name__)
+        ValidationError
+    """
+
+    name: str = MISSING
+    entropy_coeff: float = 0.01
+    epochs: int = 4
+    minibatch_size: int = 256
+
+
+class Algorithm:
+    """One training algorithm: what it builds from the config, collects and updates.
+
+    A subclass sets the class attributes and implements :meth:`make_loss` and
+    :meth:`update`; everything else has a default. The trainer builds it after the
+    policy (``algo(cfg, policy, env)``) and, each iteration, calls
+    :meth:`batch_metrics`, :meth:`update` and :meth:`after_batch` on the batch its
+    collector (:meth:`make_collector`) delivers. :meth:`state_dict` is its part of a
+    checkpoint.
+
+    Its class attributes: ``names``, the values of ``algo.name`` it runs;
+    ``config_class``, its schema (a subclass of :class:`AlgoConfig`); ``config_name``,
+    the schema's name in Hydra's ConfigStore, which the defaults of
+    ``conf/algo/<name>.yaml`` start from; ``supports_ray``, whether it collects with
+    ``rollout.backend=ray``.
+
+    Args:
+        cfg: the composed config.
+        policy: the policy being trained.
+        env: an env of the scenario in this process, for specs.
+
+    Example:
+        >>> from torchrl_grpo.training import Algorithm, algorithm_for
+        >>> cls = algorithm_for(OmegaConf.create({"name": "grpo_episode"}))
+        >>> cls.__name__, cls.config_name, issubclass(cls, Algorithm)
+        ('GRPO', 'base_grpo', True)
+    """
+
+    names: ClassVar[tuple[str, ...]] = ()
+    config_class: ClassVar[type[AlgoConfig]] = AlgoConfig
+    config_name: ClassVar[str] = ""
+    supports_ray: ClassVar[bool] = False
+
+    def __init__(self, cfg: DictConfig, policy: ProbabilisticActor, env: EnvBase) -> None:
+        self.cfg = cfg
+        self.policy = policy
+        self.env = env
+        # The value network draws its initial weights right after the policy's.
+        self.value = self.make_value(cfg.model, env)
+        self.loss = self.make_loss(cfg.algo, policy, self.value)
+        self.optimizer = make_optimizer(cfg.optim, self.loss)
+        self.updates = 0
+
+    # ---------------------------------------------------------------- builders
+    @classmethod
+    def make_value(cls, model_cfg: DictConfig, env: EnvBase) -> ValueOperator | None:
+        """The critic (``None``: the algorithm has none)."""
+        return None
+
+    @classmethod
+    def make_loss(
+        cls, algo_cfg: DictConfig, policy: ProbabilisticActor, value: ValueOperator | None = None
+    ) -> LossModule:
+        """The loss module, over the policy (and the critic)."""
+        raise NotImplementedError(f"{cls.__name__} builds no loss")
+
+    @classmethod
+    def make_advantage(
+        cls, algo_cfg: DictConfig, value: ValueOperator | None = None
+    ) -> TensorDictModuleBase | None:
+        """The advantage module (``None``: the update computes its own)."""
+        return None
+
+    @classmethod
+    def make_reference_sync(cls, algo_cfg: DictConfig, loss: LossModule) -> Any | None:
+        """The reference-policy updater of the loss (``None``: no reference)."""
+        return None
+
+    @classmethod
+    def check_config(cls, cfg: DictConfig) -> None:
+        """Refuses relations between keys that types alone cannot express.
+
+        Raises:
+            ValueError: naming the offending key.
+        """
+        rollout = cfg.get("rollout")
+        if not cls.supports_ray and rollout is not None and str(rollout.backend) == "ray":
+            raise ValueError(
+                f"rollout.backend=ray collects GRPO groups; algo={cfg.algo.name} is not GRPO"
+            )
+
+    def make_collector(self, seed: int) -> BaseCollector:
+        """TorchRL's ``Collector`` of ``rollout.frames_per_batch`` steps over the workers.
+
+        The workers write their simulator state after each step, so that a checkpoint
+        restores them mid-episode (:func:`~torchrl_grpo.training.collector_state`).
+        """
+        env = make_rollout_env(self.cfg.env, self.cfg.rollout, snapshots=False, return_state=True)
+        return make_collector(self.cfg, env, self.policy, seed=seed)
+
+    # ---------------------------------------------------------------- per batch
+    def batch_metrics(self, batch: TensorDictBase) -> dict[str, float]:
+        """What the collected batch shows (``train/``, ``group/`` metrics)."""
+        return {}
+
+    def update(self, batch: TensorDictBase, timer: PhaseTimer) -> dict[str, float]:
+        """Learn from a batch; the metrics of the update."""
+        raise NotImplementedError(f"{type(self).__name__} has no update")
+
+    def after_batch(self, iteration: int) -> None:
+        """Called once the batch of ``iteration`` (counted from 1) is learnt from."""
+
+    def on_optimizer_step(self) -> None:
+        """Called after every optimiser step of :meth:`optimise`."""
+
+    def optimise(
+        self, data: TensorDictBase, refresh: Callable[[], TensorDictBase] | None = None
+    ) -> dict[str, float]:
+        """``algo.epochs`` passes of shuffled minibatches of ``data`` through the loss.
+
+        Args:
+            data: flat training steps.
+            refresh: called before every epoch but the first, gives the data of that
+                epoch (PPO recomputes its advantages with the updated critic).
+
+        Returns:
+            The mean of every scalar the loss returns (``loss_*`` under ``loss/``, the
+            rest under ``diag/``), ``loss/total``, ``diag/grad_norm``, ``diag/lr`` and
+            ``diag/minibatches``.
+        """
+        algo = self.cfg.algo
+        params = [p for group in self.optimizer.param_groups for p in group["params"]]
+        n = data.shape[0]
+        mb = min(int(algo.minibatch_size), n)
+        sums: dict[str, float] = defaultdict(float)
+        count = 0
+        for epoch in range(int(algo.epochs)):
+            if refresh is not None and epoch > 0:
+                data = refresh()
+            perm = torch.randperm(n)
+            for start in range(0, n - mb + 1, mb):
+                out = self.loss(data[perm[start : start + mb]])
+                loss = sum(v for k, v in out.items() if k.startswith("loss_"))
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                grad_norm = torch.nn.utils.clip_grad_norm_(
+                    params, float(self.cfg.optim.max_grad_norm)
+                )
+                self.optimizer.step()
+                self.updates += 1
+                self.on_optimizer_step()
+                for key, value in out.items():
+                    if isinstance(value, torch.Tensor) and value.numel() == 1:
+                        sums[metric_name(key)] += float(value.detach())
+                sums["diag/grad_norm"] += float(grad_norm)
+                sums["loss/total"] += float(loss.detach())
+                count += 1
+        means = {k: v / max(count, 1) for k, v in sums.items()}
+        means["diag/lr"] = self.optimizer.param_groups[0]["lr"]
+        means["diag/minibatches"] = float(count)
+        return means
+
+    # ---------------------------------------------------------------- checkpoints
+    def state_dict(self) -> dict[str, Any]:
+        """Its part of a checkpoint (top-level keys of the checkpoint's dict)."""
+        return {
+            "loss": self.loss.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "updates": self.updates,
+            "value": None if self.value is None else self.value.state_dict(),
+        }
+
+    def load_state_dict(self, checkpoint: dict[str, Any], source: str = "") -> None:
+        """Restores :meth:`state_dict` from a checkpoint (``source``: its path, for errors)."""
+        self.loss.load_state_dict(checkpoint["loss"])
+        if self.value is not None and checkpoint.get("value") is not None:
+            self.value.load_state_dict(checkpoint["value"])
+        self.optimizer.load_state_dict(checkpoint["optimizer"])
+        self.updates = int(checkpoint["updates"])
+
+
+def register_algorithm(cls: type[Algorithm]) -> type[Algorithm]:
+    """Registers an :class:`Algorithm` under its ``names`` (a class decorator).
+
+    Call :func:`~torchrl_grpo.training.register_configs` after it, so that Hydra knows
+    its schema. Registering the same class again is a no-op.
+
+    Raises:
+        ValueError: the class has no names or config name, or a name is taken.
+
+    Example:
+        >>> from dataclasses import dataclass
+        >>> from torchrl_grpo.training import ALGORITHMS, PPO, PPOConfig
+        >>> @dataclass
+        ... class MyPPOConfig(PPOConfig):
+        ...     name: str = "my_ppo"
+        >>> @register_algorithm
+        ... class MyPPO(PPO):
+        ...     names = ("my_ppo",)
+        ...     config_class = MyPPOConfig
+        ...     config_name = "base_my_ppo"
+        >>> ALGORITHMS["my_ppo"] is MyPPO
+        True
+        >>> del ALGORITHMS["my_ppo"]  # leave the registry as it was
+    """
+    if not cls.names or not cls.config_name:
+        raise ValueError(f"{cls.__name__} needs names and a config_name to be registered")
+    for name in cls.names:
+        taken = ALGORITHMS.get(name)
+        if taken is not None and _qualified(taken) != _qualified(cls):
+            raise ValueError(f"algo.name={name!r} is taken by {_qualified(taken)}")
+    for name in cls.names:
+        ALGORITHMS[name] = cls
+    return cls
+
+
+def _qualified(cls: type) -> str:
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
+def algorithm_for(algo_cfg: Any) -> type[Algorithm]:
+    """The registered algorithm of an ``algo`` config: by its name, else by its schema.
+
+    Raises:
+        ValueError: no registered algorithm has that name (or schema).
+
+    Example:
+        >>> algorithm_for(OmegaConf.create({"name": "ppo"})).__name__
+        'PPO'
+    """
+    name = None
+    if isinstance(algo_cfg, DictConfig):
+        if "name" in algo_cfg and not OmegaConf.is_missing(algo_cfg, "name"):
+            name = str(algo_cfg.name)
+        schema = OmegaConf.get_type(algo_cfg)
+    else:
+        name = algo_cfg.get("name")
+        schema = type(algo_cfg)
+    if name is None:
+        found = {cls for cls in ALGORITHMS.values() if cls.config_class is schema}
+        if len(found) == 1:
+            return found.pop()
+    elif name in ALGORITHMS:
+        return ALGORITHMS[name]
+    raise ValueError(
+        f"algo.name={name!r} is not a registered algorithm "
+        f"({', '.join(sorted(ALGORITHMS))}); see register_algorithm"
+    )

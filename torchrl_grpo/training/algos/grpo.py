@@ -1,0 +1,398 @@
+"""GRPO: group-relative advantages of branch groups, ``GRPOLoss``, no critic.
+
+Two variants (``algo.name``): ``grpo_branch`` branches groups from decision points along
+trunk episodes, ``grpo_episode`` rolls whole episodes from one reset. A batch is
+``[R, G, T]`` (roots, branches, steps).
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from typing import Any, Literal, get_args
+
+import torch
+from omegaconf import MISSING, DictConfig, OmegaConf
+from tensordict import TensorDictBase
+from torch import nn
+from torchrl.collectors import BaseCollector
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.envs import EnvBase
+from torchrl.modules import ProbabilisticActor, ValueOperator
+from torchrl.objectives import LossModule
+
+from torchrl_grpo.branching import GROUP_ID, MASK
+from torchrl_grpo.modules import EXPLORED
+from torchrl_grpo.objectives import (
+    GroupRelativeAdvantage,
+    GRPOLoss,
+    HorizonBootstrap,
+    ReferenceSync,
+)
+from torchrl_grpo.training.algos.base import AlgoConfig, Algorithm, register_algorithm
+from torchrl_grpo.training.choices import (
+    AggregationName,
+    BaselineName,
+    BootstrapName,
+    FirstActionName,
+    KLEstimatorName,
+    ReturnsName,
+    RootKindName,
+    ScaleRewards,
+    SelectionName,
+    choice_enum,
+)
+from torchrl_grpo.training.collect import make_collector
+from torchrl_grpo.training.env_builder import episode_step_limit, make_rollout_env
+from torchrl_grpo.training.metrics import PhaseTimer, group_metrics
+from torchrl_grpo.training.model_builder import BasePolicyName, make_base_policy
+
+__all__ = ["GRPO", "TRAIN_REWARD", "GRPOConfig", "GRPOVariant", "make_replay", "policy_weighted"]
+
+#: The GRPO variants (``algo.name``).
+GRPOVariant = Literal["grpo_branch", "grpo_episode"]
+#: Who acts on greedy-tail branches after their explored steps (``algo.tail_policy``):
+#: the learner, or a scripted base policy whose ``Q(s, a)`` the groups then score.
+TailPolicy = Literal["learner", BasePolicyName]
+#: How the policy acts on the trunks decision points are taken from (``algo.trunk``).
+TrunkPolicy = Literal["sample", "greedy"]
+#: Weight of each enumerated first action in the objective (``algo.action_weights``):
+#: once each, or ``n * pi(a|s)`` (the expected clipped surrogate over all actions).
+ActionWeights = Literal["uniform", "policy"]
+
+#: The reward GRPO advantages are computed from: the env's reward plus, on the last step
+#: of a branch cut by the horizon, the bootstrap of the episode steps left.
+TRAIN_REWARD = ("next", "train_reward")
+
+# Keys the updates read: everything else of a batch (states, positions) is dropped early.
+_TRAINED_KEYS = ("observation", "action", "action_log_prob", "advantage", MASK, GROUP_ID, "branch")
+
+
+def _choices(name: str, choices: Any, doc: str) -> Any:
+    return choice_enum(name, choices, doc, module=__name__)
+
+
+GRPOName = _choices("GRPOName", GRPOVariant, "The GRPO variant.")
+TrunkPolicyName = _choices("TrunkPolicyName", TrunkPolicy, "How the policy acts on trunks.")
+ActionWeightsName = _choices(
+    "ActionWeightsName", ActionWeights, "Weight of an enumerated first action in the objective."
+)
+TailPolicyName = _choices("TailPolicyName", TailPolicy, "Who acts on greedy-tail branches.")
+
+
+@dataclass
+class GRPOConfig(AlgoConfig):
+    """GRPO (``grpo_branch``, ``grpo_episode``): group-relative advantage, no critic.
+
+    Example:
+        >>> from torchrl_grpo.training import GRPOConfig
+        >>> cfg = OmegaConf.structured(GRPOConfig(name="grpo_branch", group_size=4))
+        >>> print(cfg.group_size, cfg.roots, cfg.clip_epsilon_low, cfg.clip_epsilon_high)
+        4 trunk 0.2 0.28
+        >>> cfg.roots = "continuation"  # the older spelling of "continue"
+        >>> print(cfg.roots)
+        continue
+    """
+
+    name: GRPOName = MISSING
+    group_size: int = 8
+    roots: RootKindName = RootKindName["trunk"]
+    select: SelectionName = SelectionName["best"]
+    returns: ReturnsName = ReturnsName["branch"]
+    bootstrap: BootstrapName = BootstrapName["batch_mean"]
+    baseline: BaselineName = BaselineName["mean"]
+    scale_rewards: ScaleRewards = ScaleRewards["group"]
+    gamma: float = 1.0
+    clip_epsilon_low: float = 0.2
+    clip_epsilon_high: float = 0.28
+    dual_clip: float | None = None
+    kl_to_ref_coeff: float | None = 0.01
+    kl_estimator: KLEstimatorName = KLEstimatorName["k3"]
+    aggregation: AggregationName = AggregationName["dapo"]
+    ref_model_sync_steps: int | None = 64
+    ref_model_mixup_alpha: float = 1.0
+    explore_steps: int | None = None
+    first_action: FirstActionName = FirstActionName["sample"]
+    action_weights: ActionWeightsName = ActionWeightsName["uniform"]
+    tail_sync_batches: int | None = None
+    tail_policy: TailPolicyName = TailPolicyName["learner"]
+    replay_groups: int | None = None
+    trunk: TrunkPolicyName = TrunkPolicyName["sample"]
+
+
+@register_algorithm
+class GRPO(Algorithm):
+    """GRPO on branch groups: the bootstrap, the group-relative advantage and ``GRPOLoss``.
+
+    Builds, beside the loss: the advantage, the horizon bootstrap, the reference sync,
+    the actor of greedy tails (a copy of the policy or a base policy) and the replay.
+
+    Example:
+        >>> from torchrl_grpo.training import GRPO, compose_config
+        >>> cfg = compose_config(["experiment=smoke", "algo.explore_steps=1",
+        ...                       "algo.tail_sync_batches=2"])
+        >>> from torchrl_grpo.training import make_env, make_policy
+        >>> env = make_env(cfg.env, seed=0)
+        >>> grpo = GRPO(cfg, make_policy(cfg.model, env), env)
+        >>> type(grpo.loss).__name__, grpo.bootstrap.step_limit, grpo.tail_policy is not None
+        ('GRPOLoss', 30, True)
+    """
+
+    names = get_args(GRPOVariant)
+    config_class = GRPOConfig
+    config_name = "base_grpo"
+    supports_ray = True
+
+    def __init__(self, cfg: DictConfig, policy: ProbabilisticActor, env: EnvBase) -> None:
+        super().__init__(cfg, policy, env)
+        algo = cfg.algo
+        self.advantage = self.make_advantage(algo)
+        self.bootstrap = HorizonBootstrap(
+            episode_step_limit(env, int(cfg.env.max_episode_steps)), str(algo.bootstrap)
+        ).set_keys(train_reward=TRAIN_REWARD)
+        self.ref_sync = self.make_reference_sync(algo, self.loss)
+        self.tail_policy = _tail_policy(algo, policy, env)
+        self.replay = make_replay(algo)
+
+    @classmethod
+    def make_loss(
+        cls, algo_cfg: DictConfig, policy: ProbabilisticActor, value: ValueOperator | None = None
+    ) -> GRPOLoss:
+        """``GRPOLoss`` with the clip range, KL term, entropy bonus and aggregation of ``algo``."""
+        kl = algo_cfg.kl_to_ref_coeff
+        return GRPOLoss(
+            policy,
+            clip_epsilon=(float(algo_cfg.clip_epsilon_low), float(algo_cfg.clip_epsilon_high)),
+            dual_clip=algo_cfg.dual_clip,
+            kl_to_ref_coeff=None if kl is None else float(kl),
+            kl_estimator=str(algo_cfg.kl_estimator),
+            entropy_bonus=float(algo_cfg.entropy_coeff) > 0,
+            entropy_coeff=float(algo_cfg.entropy_coeff),
+            aggregation=str(algo_cfg.aggregation),
+        )
+
+    @classmethod
+    def make_advantage(
+        cls, algo_cfg: DictConfig, value: ValueOperator | None = None
+    ) -> GroupRelativeAdvantage:
+        """The group-relative advantage of the training reward (:data:`TRAIN_REWARD`)."""
+        # The env's reward stays untouched for the metrics; the bootstrap writes its own.
+        return GroupRelativeAdvantage(
+            returns=str(algo_cfg.returns),
+            baseline=str(algo_cfg.baseline),
+            scale_rewards=str(algo_cfg.scale_rewards),
+            gamma=float(algo_cfg.gamma),
+        ).set_keys(reward=TRAIN_REWARD)
+
+    @classmethod
+    def make_reference_sync(cls, algo_cfg: DictConfig, loss: LossModule) -> ReferenceSync | None:
+        """The reference updater, or ``None`` without a KL term or with a frozen reference.
+
+        ``algo.ref_model_sync_steps=null`` keeps the reference frozen at the initial
+        policy: with ``model.prior``, the KL then holds the learner to the base policy.
+        """
+        if algo_cfg.kl_to_ref_coeff is None or algo_cfg.ref_model_sync_steps is None:
+            return None
+        return ReferenceSync(
+            loss,
+            ref_model_sync_steps=int(algo_cfg.ref_model_sync_steps),
+            ref_model_mixup_alpha=float(algo_cfg.ref_model_mixup_alpha),
+        )
+
+    @classmethod
+    def check_config(cls, cfg: DictConfig) -> None:
+        """Greedy tails, replay and Ray: the relations between keys types cannot express."""
+        algo = cfg.algo
+        if algo.group_size < 2:
+            raise ValueError(f"algo.group_size must be >= 2, got {algo.group_size}")
+        explore = algo.explore_steps
+        tail_sync = algo.tail_sync_batches
+        if tail_sync is not None and (tail_sync < 1 or explore is None):
+            raise ValueError(
+                f"algo.tail_sync_batches={tail_sync}: must be >= 1, and applies to "
+                "greedy-tail branches only (set algo.explore_steps too)"
+            )
+        tail_policy = str(algo.tail_policy)
+        if tail_policy != "learner" and (explore is None or tail_sync is not None):
+            raise ValueError(
+                f"algo.tail_policy={tail_policy} is the base policy of greedy-tail "
+                "branches: set algo.explore_steps too (e.g. 1), and leave "
+                "algo.tail_sync_batches null (it refreshes a learner's copy)"
+            )
+        replay = algo.replay_groups
+        if replay is not None:
+            if replay < 1:
+                raise ValueError(f"algo.replay_groups must be >= 1, got {replay}")
+            if str(algo.first_action) != "enumerate" or tail_policy == "learner":
+                raise ValueError(
+                    f"algo.replay_groups={replay} replays old groups, which is sound only when "
+                    "their advantages do not depend on the policy that collected them: set "
+                    "algo.first_action=enumerate and a scripted algo.tail_policy (e.g. rule)"
+                )
+        first_action = str(algo.first_action)
+        if str(algo.action_weights) != "uniform" and first_action != "enumerate":
+            raise ValueError(
+                f"algo.action_weights={algo.action_weights} weighs enumerated first actions: set "
+                "algo.first_action=enumerate (sampled actions are already drawn from the policy)"
+            )
+        if first_action != "sample" and explore is None:
+            raise ValueError(
+                f"algo.first_action={first_action} chooses the first action of "
+                "greedy-tail branches: set algo.explore_steps too (e.g. 1)"
+            )
+        rollout = cfg.get("rollout")
+        if rollout is not None and str(rollout.backend) == "ray" and tail_policy != "learner":
+            raise ValueError(
+                f"algo.tail_policy={tail_policy} is not supported with rollout.backend=ray "
+                "yet; use the parallel, serial or single backend"
+            )
+
+    def make_collector(self, seed: int) -> BaseCollector:
+        """A ``GroupCollector`` (``RayGroupCollector`` with ``rollout.backend=ray``)."""
+        cfg = self.cfg
+        env = None
+        if str(cfg.rollout.backend) != "ray":
+            # With the Ray backend every actor builds its own env workers.
+            env = make_rollout_env(cfg.env, cfg.rollout, snapshots=True)
+        return make_collector(cfg, env, self.policy, seed=seed, tail_policy=self.tail_policy)
+
+    def batch_metrics(self, batch: TensorDictBase) -> dict[str, float]:
+        """Statistics of a ``[R, G, T]`` batch of branch groups."""
+        return group_metrics(batch)
+
+    def update(self, batch: TensorDictBase, timer: PhaseTimer) -> dict[str, float]:
+        """Bootstrap, advantage, the trained steps (and replay), then the epochs."""
+        with timer("advantage"):
+            self.bootstrap(batch)
+            self.advantage(batch)
+            data = batch.select(*_TRAINED_KEYS, EXPLORED, strict=False).reshape(-1)
+            train = data.get(MASK)
+            if EXPLORED in data.keys():
+                # Greedy-tail steps score the sampled ones; their actions were not sampled.
+                train = train & data.get(EXPLORED)
+            data = data[train]
+        adv = data.get("advantage")
+        shape = batch.get(MASK).shape
+        stats = {
+            "advantage/mean": float(adv.mean()),
+            "advantage/std": float(adv.std()) if adv.numel() > 1 else 0.0,
+            "advantage/abs_mean": float(adv.abs().mean()),
+            "advantage/nonzero_fraction": float((adv != 0).float().mean()),
+            "group/bootstrap_mean": float(batch.get("bootstrap").reshape(shape).sum(-1).mean()),
+        }
+        if self.replay is not None:
+            data = self.replayed(data)
+            stats["replay/steps"] = float(data.shape[0])
+        if str(self.cfg.algo.action_weights) == "policy":
+            data = policy_weighted(data, int(self.env.action_spec.n))
+        with timer("update"):
+            stats.update(self.optimise(data))
+        return stats
+
+    def replayed(self, data: TensorDictBase) -> TensorDictBase:
+        """This batch's trained steps plus the replayed ones, log-probs of the current policy.
+
+        With enumerated first actions and a scripted tail, a step's advantage compares
+        every action under a fixed base policy: it does not depend on the policy that
+        collected it, so old groups stay valid targets (DAgger's aggregated dataset).
+        The "old" log-probs of the clipped ratio are the current policy's, so each
+        update is a trust region around the policy it starts from.
+        """
+        self.replay.extend(data.exclude("action_log_prob"))
+        data = self.replay[:]
+        with torch.no_grad():
+            dist = self.policy.get_dist(data.select(*self.policy.in_keys).clone())
+            data.set("action_log_prob", dist.log_prob(data.get("action")))
+        return data
+
+    def on_optimizer_step(self) -> None:  # noqa: D102
+        if self.ref_sync is not None:
+            self.ref_sync.step()
+
+    def after_batch(self, iteration: int) -> None:
+        """Copy the policy into the tail policy every ``algo.tail_sync_batches`` batches."""
+        sync = self.cfg.algo.tail_sync_batches
+        if self.tail_policy is not None and sync is not None and iteration % int(sync) == 0:
+            self.tail_policy.load_state_dict(self.policy.state_dict())
+
+    def state_dict(self) -> dict[str, Any]:  # noqa: D102
+        return {
+            **super().state_dict(),
+            "tail_policy": None if self.tail_policy is None else self.tail_policy.state_dict(),
+            "replay": None if self.replay is None else self.replay.state_dict(),
+            "ref_sync_counter": None if self.ref_sync is None else self.ref_sync.counter,
+        }
+
+    def load_state_dict(self, checkpoint: dict[str, Any], source: str = "") -> None:  # noqa: D102
+        super().load_state_dict(checkpoint, source)
+        if self.tail_policy is not None and checkpoint.get("tail_policy") is not None:
+            self.tail_policy.load_state_dict(checkpoint["tail_policy"])
+        if self.replay is not None and checkpoint.get("replay") is not None:
+            saved = _replay_rows(OmegaConf.create(checkpoint["config"]["algo"]))
+            if saved != self.replay.storage.max_size:
+                # A loaded storage keeps its saved size: the first write past it would fail.
+                raise ValueError(
+                    f"resume={source} replays {saved} trained steps and this config "
+                    f"{self.replay.storage.max_size}: resume with the run's algo.replay_groups, "
+                    "algo.group_size and algo.explore_steps"
+                )
+            self.replay.load_state_dict(checkpoint["replay"])
+        if self.ref_sync is not None and checkpoint.get("ref_sync_counter") is not None:
+            self.ref_sync.counter = int(checkpoint["ref_sync_counter"])
+
+
+def _tail_policy(algo: DictConfig, policy: nn.Module, env: EnvBase) -> nn.Module | None:
+    """The actor of greedy tails when it is not ``policy`` itself, or ``None``.
+
+    A scripted base policy (``algo.tail_policy``), or a frozen copy of ``policy``
+    (``algo.tail_sync_batches``).
+    """
+    # check_config has refused both settings without explore_steps, and together.
+    base = str(algo.tail_policy)
+    if base != "learner":
+        return make_base_policy(base, env, "algo.tail_policy")
+    if algo.tail_sync_batches is None:
+        return None
+    tail = copy.deepcopy(policy)
+    tail.requires_grad_(False)
+    return tail
+
+
+def make_replay(algo: DictConfig) -> ReplayBuffer | None:
+    """The FIFO buffer of the trained steps of ``algo.replay_groups`` groups, or ``None``.
+
+    Example:
+        >>> cfg = OmegaConf.create({"replay_groups": 10, "group_size": 5, "explore_steps": 1})
+        >>> make_replay(cfg).storage.max_size
+        50
+    """
+    rows = _replay_rows(algo)
+    return None if rows is None else ReplayBuffer(storage=LazyTensorStorage(rows), batch_size=None)
+
+
+def _replay_rows(algo: DictConfig) -> int | None:
+    """Trained steps the replay holds: one per explored step of each of the groups' branches."""
+    groups = algo.get("replay_groups")
+    if groups is None:
+        return None
+    return int(groups) * int(algo.group_size) * int(algo.explore_steps)
+
+
+def policy_weighted(data: TensorDictBase, n_actions: int) -> TensorDictBase:
+    """Scale each enumerated step's advantage by ``n * pi(a|s)`` (``algo.action_weights``).
+
+    The clipped surrogate is linear in the advantage, so this weighs each action's
+    term by the probability the policy gives it: the sum over a group is then
+    ``n`` times the expected surrogate over all actions of its root.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> data = TensorDict(advantage=torch.ones(2, 1),
+        ...                   action_log_prob=torch.tensor([0.5, 0.25]).log(), batch_size=[2])
+        >>> policy_weighted(data, 4)["advantage"].squeeze(-1)
+        tensor([2., 1.])
+    """
+    weight = n_actions * data.get("action_log_prob").exp()
+    advantage = data.get("advantage")
+    weighted = advantage * weight.reshape(advantage.shape)
+    return data.clone(recurse=False).set("advantage", weighted)

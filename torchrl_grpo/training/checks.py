@@ -1,0 +1,106 @@
+"""Checks of the relations between config keys that types alone cannot express.
+
+The shared groups are checked here; the ``algo`` group by its algorithm
+(:meth:`~torchrl_grpo.training.Algorithm.check_config`).
+"""
+
+from __future__ import annotations
+
+from omegaconf import DictConfig, OmegaConf
+
+from torchrl_grpo.training.algos import algorithm_for
+
+__all__ = ["check_config"]
+
+
+def check_config(cfg: DictConfig) -> None:
+    """Checks the relations between keys that types alone cannot express.
+
+    The shared groups' here; the ``algo`` group's by its algorithm
+    (:meth:`~torchrl_grpo.training.Algorithm.check_config`).
+
+    Raises:
+        ValueError: naming the offending key.
+
+    Example:
+        >>> from torchrl_grpo.training import Config, RolloutConfig
+        >>> cfg = OmegaConf.structured(Config(rollout=RolloutConfig(horizon=0)))
+        >>> try:
+        ...     check_config(cfg)
+        ... except ValueError as err:
+        ...     print(err)
+        rollout.horizon must be >= 1, got 0
+    """
+    for key, low in _LOWER_BOUNDS.items():
+        group, name = key.split(".")
+        node = _group(cfg, group)
+        if node is None or name not in node or OmegaConf.is_missing(node, name):
+            continue
+        value = node[name]
+        if value is not None and value < low:
+            raise ValueError(f"{key} must be >= {low}, got {value}")
+    model = _group(cfg, "model")
+    if model is not None:
+        weight = model.get("prior_weight")
+        if weight is not None and not weight > 0:
+            raise ValueError(f"model.prior_weight must be > 0, got {weight}")
+    rollout = _group(cfg, "rollout")
+    if rollout is not None:
+        _check_rollout(rollout)
+    algo = _group(cfg, "algo")
+    if algo is not None:
+        algorithm_for(algo).check_config(cfg)
+
+
+# Lower bounds of the keys that have one.
+_LOWER_BOUNDS = {
+    "rollout.horizon": 1,
+    "rollout.decision_interval": 1,
+    "rollout.groups_per_batch": 1,
+    "rollout.frames_per_batch": 1,
+    "rollout.num_workers": 1,
+    "experiment.total_frames": 1,
+    "experiment.eval_every": 0,
+    "experiment.eval_episodes": 0,
+    "experiment.final_eval_episodes": 0,
+    "experiment.checkpoint_every": 0,
+    "experiment.plot_every": 0,
+    "algo.epochs": 1,
+    "algo.minibatch_size": 1,
+}
+
+
+def _group(cfg: DictConfig, group: str) -> DictConfig | None:
+    if OmegaConf.is_missing(cfg, group):
+        return None
+    return cfg.get(group)
+
+
+def _check_rollout(rollout: DictConfig) -> None:
+    """The ``rollout`` keys, ``rollout.ray`` only with ``rollout.backend=ray``."""
+    backend = str(rollout.backend)
+    if backend == "single" and rollout.num_workers != 1:
+        raise ValueError(
+            f"rollout.num_workers must be 1 with rollout.backend=single, got {rollout.num_workers}"
+        )
+    ray = rollout.get("ray")
+    if backend != "ray" or ray is None:
+        return
+    if ray.num_actors < 1:
+        raise ValueError(f"rollout.ray.num_actors must be >= 1, got {ray.num_actors}")
+    if ray.num_actors > rollout.groups_per_batch:
+        raise ValueError(
+            f"rollout.ray.num_actors ({ray.num_actors}) must be <= rollout.groups_per_batch "
+            f"({rollout.groups_per_batch}): every actor collects at least one group"
+        )
+    if ray.num_cpus_per_actor <= 0:
+        raise ValueError(
+            f"rollout.ray.num_cpus_per_actor must be > 0, got {ray.num_cpus_per_actor}"
+        )
+    if ray.workers_per_actor < 1:
+        raise ValueError(f"rollout.ray.workers_per_actor must be >= 1, got {ray.workers_per_actor}")
+    if str(ray.env_backend) == "single" and ray.workers_per_actor != 1:
+        raise ValueError(
+            f"rollout.ray.workers_per_actor must be 1 with rollout.ray.env_backend=single, "
+            f"got {ray.workers_per_actor}"
+        )

@@ -1,0 +1,286 @@
+"""The side jobs of the training loop, as hooks: evaluation, plots, checkpoints.
+
+A :class:`Hook` is called by the :class:`~torchrl_grpo.training.Trainer` at three
+points: after each iteration's update when it is :meth:`~Hook.due` (timed as its
+``phase``, its metrics logged with the iteration's), once the loop has ended while the
+collector still runs (:meth:`~Hook.on_loop_end`), and when training is done and not
+interrupted (:meth:`~Hook.on_train_end`). :func:`default_hooks` are the trainer's;
+pass more with ``Trainer(cfg, hooks=[...])`` (BenchMARL's callbacks).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any, Protocol
+
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
+from torchrl.envs import EnvBase
+from torchrl.record.loggers import Logger
+
+from torchrl_grpo.branching import BRANCH_RETURN, plot_group
+from torchrl_grpo.training.checkpoint import Progress
+from torchrl_grpo.training.env_builder import make_env, make_layout
+from torchrl_grpo.training.evaluation import BASELINE_LABELS, baseline_policy, evaluate
+from torchrl_grpo.training.logging_builder import log_metrics, log_video
+from torchrl_grpo.training.plots import plot_learning_curve, save_gif
+from torchrl_grpo.training.results import EvalResult, format_table
+
+__all__ = [
+    "CheckpointHook",
+    "EvaluationHook",
+    "GroupPlotHook",
+    "Hook",
+    "TrainerView",
+    "default_hooks",
+]
+
+log = logging.getLogger(__name__)
+
+
+class TrainerView(Protocol):
+    """What hooks read and call of the trainer (a protocol: hooks do not import it).
+
+    Example:
+        >>> from torchrl_grpo.training import Trainer
+        >>> all(callable(getattr(Trainer, name)) for name in ("save", "wall_seconds"))
+        True
+    """
+
+    cfg: DictConfig
+    run_dir: Path
+    policy: Any
+    eval_env: EnvBase
+    seed: int
+    logger: Logger | None
+    progress: Progress
+    stop_requested: bool
+
+    def save(self, collector: Any = None, name: str = "last.pt") -> Path:
+        """Write a checkpoint of the run (and of ``collector``) into the run folder."""
+
+    def wall_seconds(self) -> float:
+        """Seconds of training so far, the iteration in progress included."""
+
+
+class Hook:
+    """A side job of the training loop; every method does nothing by default.
+
+    Attributes:
+        phase: the name of its time metric (``time/<phase>``).
+
+    Example:
+        >>> class CountIterations(Hook):
+        ...     phase = "count"
+        ...     def __init__(self):
+        ...         self.calls = 0
+        ...     def due(self, trainer, batch):
+        ...         return True
+        ...     def on_iteration(self, trainer, batch, result):
+        ...         self.calls += 1
+        ...         return {"count/calls": float(self.calls)}
+        >>> CountIterations().on_iteration(None, None, None)
+        {'count/calls': 1.0}
+    """
+
+    phase = "hook"
+
+    def due(self, trainer: TrainerView, batch: TensorDictBase) -> bool:
+        """Whether :meth:`on_iteration` runs after this iteration's update."""
+        return False
+
+    def on_iteration(
+        self, trainer: TrainerView, batch: TensorDictBase, result: Any
+    ) -> dict[str, float]:
+        """The job of an iteration; metrics to log with the iteration's."""
+        return {}
+
+    def on_loop_end(self, trainer: TrainerView, result: Any) -> None:
+        """The loop has ended (budget or Ctrl-C); the collector still runs."""
+
+    def on_train_end(self, trainer: TrainerView, result: Any) -> None:
+        """Training is done, not interrupted; the collector is shut down."""
+
+
+def _every(trainer: TrainerView, every: int) -> bool:
+    return every > 0 and trainer.progress.iteration % every == 0
+
+
+class GroupPlotHook(Hook):
+    """Every ``experiment.plot_every`` iterations, plot the batch's most informative group.
+
+    The group with the widest spread of returns goes to ``<run>/plots/`` and, as a
+    video, to the logger (``media/branch_group``), with ``logger.group_plots``. Only
+    batches of branch groups are plotted.
+
+    Example:
+        >>> GroupPlotHook().phase
+        'plot'
+    """
+
+    phase = "plot"
+
+    def due(self, trainer: TrainerView, batch: TensorDictBase) -> bool:  # noqa: D102
+        every = int(trainer.cfg.experiment.plot_every)
+        return every > 0 and BRANCH_RETURN in batch.keys() and _every(trainer, every)
+
+    def on_iteration(  # noqa: D102
+        self, trainer: TrainerView, batch: TensorDictBase, result: Any
+    ) -> dict[str, float]:
+        if not trainer.cfg.logger.group_plots:
+            return {}
+        returns = batch.get(BRANCH_RETURN)[:, :, 0, 0]
+        group = int(returns.std(1).argmax())
+        iteration = trainer.progress.iteration
+        path = trainer.run_dir / "plots" / f"group_it{iteration:05d}.png"
+        fig = plot_group(batch, group, path=path)
+        log_video(trainer.logger, "media/branch_group", fig.video, step=trainer.progress.frames)
+        return {}
+
+
+class CheckpointHook(Hook):
+    """Every ``experiment.checkpoint_every`` iterations, on Ctrl-C and at the end: ``last.pt``.
+
+    Example:
+        >>> hook = CheckpointHook()
+        >>> hook.phase
+        'checkpoint'
+    """
+
+    phase = "checkpoint"
+
+    def due(self, trainer: TrainerView, batch: TensorDictBase) -> bool:  # noqa: D102
+        return _every(trainer, int(trainer.cfg.experiment.checkpoint_every)) or (
+            trainer.stop_requested
+        )
+
+    def on_iteration(  # noqa: D102
+        self, trainer: TrainerView, batch: TensorDictBase, result: Any
+    ) -> dict[str, float]:
+        result.checkpoint = trainer.save()
+        return {}
+
+    def on_loop_end(self, trainer: TrainerView, result: Any) -> None:  # noqa: D102
+        result.checkpoint = trainer.save()
+
+
+class EvaluationHook(Hook):
+    """Deterministic evaluations during training, and the final one beside the baselines.
+
+    Every ``experiment.eval_every`` iterations: ``eval_episodes`` episodes (``eval/``
+    metrics, a row of ``eval_history.jsonl``). At the end: ``final_eval_episodes``
+    episodes of the policy and of every baseline of ``experiment.baselines`` on the
+    same seeds (``results.md``, ``results.json``), the first episode as a GIF (with
+    ``logger.video``), and the learning curve of the evaluation history.
+
+    Example:
+        >>> hook = EvaluationHook()
+        >>> hook.phase
+        'eval'
+    """
+
+    phase = "eval"
+
+    def __init__(self) -> None:
+        self._render: EnvBase | None = None
+
+    def due(self, trainer: TrainerView, batch: TensorDictBase) -> bool:  # noqa: D102
+        exp = trainer.cfg.experiment
+        return _every(trainer, int(exp.eval_every)) and exp.eval_episodes > 0
+
+    def on_iteration(  # noqa: D102
+        self, trainer: TrainerView, batch: TensorDictBase, result: Any
+    ) -> dict[str, float]:
+        return self.evaluate(trainer, int(trainer.cfg.experiment.eval_episodes))[0]
+
+    def evaluate(
+        self, trainer: TrainerView, episodes: int, record: bool = False
+    ) -> tuple[dict[str, float], EvalResult, Any]:
+        """Evaluate the policy, append the row to the history; metrics, results, video."""
+        cfg = trainer.cfg
+        if record and self._render is None:
+            self._render = make_env(cfg.env, render_mode="rgb_array")
+        res, video = evaluate(
+            trainer.eval_env,
+            trainer.policy,
+            episodes=episodes,
+            seed=int(cfg.experiment.eval_seed),
+            max_steps=int(cfg.env.max_episode_steps),
+            name=str(cfg.algo.name),
+            record=self._render if record else None,
+        )
+        summary = res.summary()
+        progress = trainer.progress
+        row = {"iteration": progress.iteration, "frames": progress.frames}
+        progress.eval_history.append({**row, "wall_seconds": trainer.wall_seconds(), **summary})
+        with open(trainer.run_dir / "eval_history.jsonl", "a") as f:
+            f.write(json.dumps(progress.eval_history[-1]) + "\n")
+        metrics = {f"eval/{k}": v for k, v in summary.items() if k != "episodes"}
+        return metrics, res, video
+
+    def on_train_end(self, trainer: TrainerView, result: Any) -> None:  # noqa: D102
+        cfg, exp = trainer.cfg, trainer.cfg.experiment
+        episodes = int(exp.final_eval_episodes)
+        frames = trainer.progress.frames
+        video = None
+        if episodes > 0:
+            metrics, trained, video = self.evaluate(trainer, episodes, bool(cfg.logger.video))
+            trained.name = f"{cfg.algo.name} (trained)"
+            final = {f"final/{k[5:]}": v for k, v in metrics.items()}
+            log_metrics(trainer.logger, final, step=frames)
+            summary = trainer.progress.eval_history[-1]
+            result.final = {k: v for k, v in summary.items() if k != "iteration"}
+            results = [trained, *self._baselines(trainer, episodes)]
+            table = format_table(results)
+            result.results_table = trainer.run_dir / "results.md"
+            result.results_table.write_text(
+                f"{cfg.env.scenario}, {episodes} episodes from seed {exp.eval_seed}, "
+                f"after {frames} env frames\n\n{table}\n"
+            )
+            result.results_json = trainer.run_dir / "results.json"
+            payload = {"frames": frames, "results": [r.to_dict() for r in results]}
+            result.results_json.write_text(json.dumps(payload, indent=1))
+            log.info("final evaluation:\n%s", table)
+        if video is not None:
+            result.video = save_gif(video, trainer.run_dir / "eval_episode.gif")
+            log_video(trainer.logger, "media/eval_episode", video, step=frames)
+        if trainer.progress.eval_history:
+            result.curve = plot_learning_curve(
+                {str(cfg.algo.name): [trainer.progress.eval_history]},
+                trainer.run_dir / "learning_curve.png",
+                title=f"{cfg.env.scenario}: deterministic evaluation",
+            )
+
+    def _baselines(self, trainer: TrainerView, episodes: int) -> list[EvalResult]:
+        """The scripted baselines of ``experiment.baselines``, on the evaluation's seeds."""
+        cfg = trainer.cfg
+        env = trainer.eval_env
+        layout, n_actions = make_layout(env), int(env.action_spec.n)
+        results = []
+        for name in cfg.experiment.baselines:
+            policy = baseline_policy(name, layout, n_actions, seed=trainer.seed)
+            if policy is None:
+                log.warning("baseline %r does not apply to %s", name, cfg.env.scenario)
+                continue
+            res, _ = evaluate(
+                env,
+                policy,
+                episodes=episodes,
+                seed=int(cfg.experiment.eval_seed),
+                max_steps=int(cfg.env.max_episode_steps),
+                name=BASELINE_LABELS.get(name, name),
+            )
+            results.append(res)
+        return results
+
+
+def default_hooks() -> list[Hook]:
+    """The trainer's hooks, in the order they run: plots, evaluation, checkpoints.
+
+    Example:
+        >>> [type(hook).__name__ for hook in default_hooks()]
+        ['GroupPlotHook', 'EvaluationHook', 'CheckpointHook']
+    """
+    return [GroupPlotHook(), EvaluationHook(), CheckpointHook()]

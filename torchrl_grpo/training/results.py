@@ -1,0 +1,97 @@
+"""The outcomes of evaluation episodes: one :class:`EvalResult` per policy, and their table."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+__all__ = ["EvalResult", "format_table"]
+
+
+@dataclass
+class EvalResult:
+    """Per-episode outcomes of one policy.
+
+    Attributes:
+        name: the policy's label.
+        returns: undiscounted return of each episode.
+        crashed: whether the ego crashed.
+        lengths: steps of each episode.
+        speeds: mean ego speed of each episode (m/s).
+        seeds: the episodes' seeds.
+
+    :func:`~torchrl_grpo.training.evaluate` fills one, episode after episode.
+
+    Example:
+        >>> result = EvalResult("always-SLOWER")
+        >>> for seed, ret in enumerate([20.5, 21.5]):
+        ...     result.returns.append(ret)
+        ...     result.crashed.append(False)
+        ...     result.lengths.append(30)
+        ...     result.speeds.append(20.0)
+        ...     result.seeds.append(seed)
+        >>> result.name, result.episodes, result.summary()["return"]
+        ('always-SLOWER', 2, 21.0)
+    """
+
+    name: str
+    returns: list[float] = field(default_factory=list)
+    crashed: list[bool] = field(default_factory=list)
+    lengths: list[int] = field(default_factory=list)
+    speeds: list[float] = field(default_factory=list)
+    seeds: list[int] = field(default_factory=list)
+
+    @property
+    def episodes(self) -> int:
+        """Number of episodes."""
+        return len(self.returns)
+
+    def summary(self) -> dict[str, float]:
+        """Means (and the return's std and standard error) over episodes.
+
+        Example:
+            >>> r = EvalResult("x", [1.0, 3.0], [False, True], [2, 4], [20.0, 30.0], [0, 1])
+            >>> r.summary()["crash_rate"], r.summary()["return"]
+            (0.5, 2.0)
+        """
+        returns = np.asarray(self.returns, dtype=np.float64)
+        n = max(len(returns), 1)
+        std = float(returns.std(ddof=1)) if len(returns) > 1 else 0.0
+        return {
+            "return": float(returns.mean()) if len(returns) else math.nan,
+            "return_std": std,
+            "return_sem": std / math.sqrt(n),
+            "crash_rate": float(np.mean(self.crashed)) if self.crashed else math.nan,
+            "speed": float(np.mean(self.speeds)) if self.speeds else math.nan,
+            "length": float(np.mean(self.lengths)) if self.lengths else math.nan,
+            "episodes": float(len(returns)),
+        }
+
+    def to_dict(self) -> dict:
+        """Plain data for JSON."""
+        return {**asdict(self), "summary": self.summary()}
+
+
+def format_table(results: Sequence[EvalResult]) -> str:
+    """A Markdown table: return (mean ± std), crash rate, mean speed, episode length.
+
+    Example:
+        >>> r = EvalResult("slower", [20.0, 22.0], [False, False], [30, 30], [20.0, 20.0])
+        >>> print(format_table([r]).splitlines()[2])
+        | slower | 21.00 ± 1.41 | 0.0% | 20.0 | 30.0 | 2 |
+    """
+    lines = [
+        "| policy | return | crash rate | speed (m/s) | length (steps) | episodes |",
+        "|---|---|---|---|---|---|",
+    ]
+    for res in results:
+        s = res.summary()
+        lines.append(
+            f"| {res.name} | {s['return']:.2f} ± {s['return_std']:.2f} | "
+            f"{100 * s['crash_rate']:.1f}% | {s['speed']:.1f} | {s['length']:.1f} | "
+            f"{int(s['episodes'])} |"
+        )
+    return "\n".join(lines)
