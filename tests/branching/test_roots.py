@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import torch
 from branching_helpers import branch_env, plain_env
 from tensordict import TensorDict
@@ -161,3 +163,47 @@ def test_a_trunk_policy_given_to_the_source_drives_the_trunks():
     assert not states_equal(
         other.next_roots(plain_env("highway-fast-v0"), idle, 3)["state"][2], expected["state"][2]
     )
+
+
+def test_a_trunk_source_continues_exactly_from_its_state_dict():
+    env, idle = plain_env("highway-fast-v0"), ConstantActionPolicy("IDLE")
+    src = TrunkRoots(every=3, max_steps=7)
+    src.set_seed(0)
+    assert src.next_roots(env, idle, 2)["root_step"].tolist() == [0, 3]  # one left queued
+    state = copy.deepcopy(src.state_dict())
+    assert set(state) == {"seed", "trunk_steps", "queue"}
+    resumed = TrunkRoots(every=3, max_steps=7)
+    resumed.load_state_dict(state)
+    want = src.next_roots(env, idle, 4)  # the reference: the source itself, going on
+    got = resumed.next_roots(plain_env("highway-fast-v0"), idle, 4)
+    assert got["root_step"].tolist() == want["root_step"].tolist() == [6, 0, 3, 6]
+    assert states_equal(got["state"], want["state"])
+    assert (resumed.trunk_steps, resumed.seed) == (src.trunk_steps, src.seed)
+    # The control: a fresh source with the same seed starts over.
+    fresh = TrunkRoots(every=3, max_steps=7)
+    fresh.set_seed(0)
+    assert fresh.next_roots(env, idle, 1)["root_step"].tolist() == [0]
+
+
+def test_a_partial_state_dict_leaves_the_rest_of_the_source_as_it_is():
+    env = plain_env("highway-fast-v0")
+    src = TrunkRoots(every=3, max_steps=7)
+    src.set_seed(0)
+    src.next_roots(env, ConstantActionPolicy("IDLE"), 2)
+    before = copy.deepcopy(src.state_dict())
+    src.load_state_dict({})  # a state saved before the source recorded anything
+    src.load_state_dict({"trunk_steps": 2})
+    after = src.state_dict()
+    assert after["trunk_steps"] == 2
+    assert after["seed"] == before["seed"]
+    assert torch.equal(after["queue"]["root_step"], before["queue"]["root_step"])
+
+
+def test_stored_roots_state_dict_holds_the_read_position():
+    roots = reset_roots(plain_env("merge-v0", seed=0), 3)
+    src = StoredRoots(roots)
+    src.next_roots(None, None, 2)
+    resumed = StoredRoots(roots)
+    resumed.load_state_dict(src.state_dict())
+    assert src.state_dict() == {"seed": None, "pos": 2}
+    assert states_equal(resumed.next_roots(None, None, 2)["state"], roots["state"][2:])

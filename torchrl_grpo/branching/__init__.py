@@ -33,17 +33,14 @@ from torchrl_grpo.branching.keys import (
 from torchrl_grpo.branching.lookahead import LookaheadPolicy
 from torchrl_grpo.branching.plots import GroupFigure, plot_group
 from torchrl_grpo.branching.rollout import RngMode, branch_rollout, final_states
-from torchrl_grpo.branching.roots import (
-    EpisodeStartRoots,
-    RootSource,
-    StoredRoots,
-    TrunkRoots,
+from torchrl_grpo.branching.root_builders import (
     as_roots,
     make_roots,
     reset_roots,
     roots_from_trajectories,
     trunk_roots,
 )
+from torchrl_grpo.branching.roots import EpisodeStartRoots, RootSource, StoredRoots, TrunkRoots
 from torchrl_grpo.branching.seeding import branch_seed
 from torchrl_grpo.branching.workers import (
     Backend,

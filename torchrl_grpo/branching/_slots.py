@@ -98,7 +98,7 @@ class EnvSlots:
             out = self.env.branch_restore(slots.tolist(), states, keys)
             snap = None
             if want_states:
-                snap = out.pop(STATE) if self.has_state else self._read_all_states()[slots]
+                snap = out.pop(STATE) if self.has_state else self.read_all_states()[slots]
             return out, snap
         n = self.num_slots
         where = torch.zeros(n, dtype=torch.long)
@@ -111,7 +111,7 @@ class EnvSlots:
         out = self.env.reset(td, set_state=True)
         snap = None
         if want_states:
-            snap = out.get(STATE)[slots] if self.has_state else self._read_all_states()[slots]
+            snap = out.get(STATE)[slots] if self.has_state else self.read_all_states()[slots]
         return out.select(*self.obs_keys, *self.done_keys)[slots], snap
 
     def step(
@@ -145,7 +145,7 @@ class EnvSlots:
         """
         snap = nxt.get(STATE, None)
         if snap is None:
-            snap = self._read_all_states()
+            snap = self.read_all_states()
         return snap if rows is None else snap[rows]
 
     def reseed(self, states: TensorDictBase, seeds: list[int]) -> TensorDictBase:
@@ -162,7 +162,8 @@ class EnvSlots:
         return self._local
 
     # ------------------------------------------------------------------ states
-    def _read_all_states(self) -> TensorDictBase:
+    def read_all_states(self) -> TensorDictBase:
+        """The current states of all slots, ``[W]`` (``[1]`` for a plain env)."""
         if not self.batched:
             return _get_state(self.env).unsqueeze(0)
         if not self._warned_slow:

@@ -4,22 +4,20 @@ from __future__ import annotations
 
 import logging
 from collections import OrderedDict
-from collections.abc import Callable, Iterator
-from typing import Any, Literal
+from collections.abc import Callable
+from typing import Literal
 
 import torch
-from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import TensorDictModuleBase
-from torch import nn
-from torchrl.collectors import BaseCollector
+from tensordict import TensorDict
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
 from torchrl_grpo.branching._engine import Policy
 from torchrl_grpo.branching._slots import EnvSlots
+from torchrl_grpo.branching.collector_base import GroupCollectorBase
 from torchrl_grpo.branching.continuation import ContinuationRoots, Selection
 from torchrl_grpo.branching.keys import MASK, STATE
-from torchrl_grpo.branching.rollout import RngMode, check_group_args, run_groups
+from torchrl_grpo.branching.rollout import RngMode, run_groups
 from torchrl_grpo.branching.roots import EpisodeStartRoots, RootSource, TrunkRoots
 from torchrl_grpo.branching.workers import shutdown_env
 
@@ -30,7 +28,7 @@ RootKind = Literal["reset", "trunk", "continue"]
 __all__ = ["GroupCollector", "RootKind"]
 
 
-class GroupCollector(BaseCollector):
+class GroupCollector(GroupCollectorBase):
     """Yields batches of branch groups, ``[R, G, T]``, until ``total_frames`` steps.
 
     Every batch branches G ways from R roots (see :func:`branch_rollout` for the
@@ -108,14 +106,8 @@ class GroupCollector(BaseCollector):
         set_truncated: bool = True,
         exploration_type: ExplorationType = ExplorationType.RANDOM,
     ) -> None:
-        super().__init__()
-        self._closed = True
         try:
-            check_group_args(group_size, horizon, rng)
-            if groups_per_batch < 1:
-                raise ValueError(f"groups_per_batch must be >= 1, got {groups_per_batch}")
-            if total_frames == 0 or total_frames < -1:
-                raise ValueError(f"total_frames must be > 0 or -1, got {total_frames}")
+            super().__init__(policy, group_size, horizon, groups_per_batch, total_frames, rng)
             self.root_source = _make_source(
                 roots, decision_interval or horizon, select, temperature
             )
@@ -126,62 +118,20 @@ class GroupCollector(BaseCollector):
             raise
         self.env: EnvBase = create_env_fn if isinstance(create_env_fn, EnvBase) else create_env_fn()
         self._closed = False
-        self.policy = policy
-        self.group_size = group_size
-        self.horizon = horizon
-        self.groups_per_batch = groups_per_batch
-        self.total_frames = total_frames
-        self.frames_per_batch = groups_per_batch * group_size * horizon
-        self.requested_frames_per_batch = self.frames_per_batch
         self.rng = rng
         self.return_states = return_states
         self.set_truncated = set_truncated
         self.exploration_type = exploration_type
-        self._frames = 0
-        self._batches = 0
-        self._next_group_id = 0
         self._seed = 0
         self._generator = torch.Generator()
         self._slots: EnvSlots | None = None
         if seed is not None:
             self.set_seed(seed)
 
-    # ------------------------------------------------------------------ iteration
-    @property
-    def frames(self) -> int:
-        """Branch steps collected so far."""
-        return self._frames
-
     @property
     def trunk_frames(self) -> int:
         """Steps simulated on trunks to reach decision points (``roots="trunk"``)."""
         return int(getattr(self.root_source, "trunk_steps", 0))
-
-    def __iter__(self) -> Iterator[TensorDictBase]:
-        """Iterate over batches; any error or interrupt shuts the workers down."""
-        try:
-            yield from self.iterator()
-        except GeneratorExit:
-            # The consumer stopped iterating (``break``): the collector stays usable.
-            raise
-        except BaseException:
-            self.shutdown()
-            raise
-
-    def iterator(self) -> Iterator[TensorDictBase]:
-        """Yield ``[R, G, T]`` batches until ``total_frames`` (or the roots run out)."""
-        if self._closed:
-            raise RuntimeError("this GroupCollector has been shut down")
-        while self.total_frames < 0 or self._frames < self.total_frames:
-            if self._pre_collect_hook is not None:
-                self._pre_collect_hook()
-            batch = self._collect()
-            if batch is None:
-                break
-            if self._post_collect_hook is not None:
-                self._post_collect_hook(batch)
-            yield batch
-        self.shutdown()
 
     def _collect(self) -> TensorDict | None:
         if self._slots is None:
@@ -231,84 +181,25 @@ class GroupCollector(BaseCollector):
         self.root_source.set_seed(self._seed)
         return self.env.set_seed(seed, static_seed=static_seed)
 
-    def update_policy_weights_(
-        self,
-        policy_or_weights: TensorDictBase | nn.Module | dict | None = None,
-        **kwargs: Any,
-    ) -> None:
-        """Load new weights into the collector's policy.
-
-        The policy runs in this process, so it is the trained module itself unless
-        the caller passed a copy: then pass the trained module (or its weights,
-        ``TensorDict.from_module(module)``) here. ``None`` is a no-op.
-        """
-        if kwargs:
-            policy_or_weights = kwargs.get("weights", kwargs.get("policy", policy_or_weights))
-        if policy_or_weights is None or policy_or_weights is self.policy:
-            return
-        if not isinstance(self.policy, nn.Module):
-            raise TypeError("update_policy_weights_ needs a policy that is an nn.Module")
-        if isinstance(policy_or_weights, (nn.Module, TensorDictModuleBase)):
-            weights = TensorDict.from_module(policy_or_weights)
-        elif isinstance(policy_or_weights, dict):
-            weights = TensorDict(policy_or_weights).unflatten_keys(".")
-        else:
-            weights = policy_or_weights
-        weights.data.to_module(self.policy)
-
-    def shutdown(
-        self,
-        timeout: float | None = None,
-        close_env: bool = True,
-        raise_on_error: bool = True,
-    ) -> None:
-        """Close the env and terminate its workers (idempotent)."""
-        if self._closed:
-            return
-        self._closed = True
+    def _close(self, timeout: float, close_env: bool) -> None:
         if close_env:
-            shutdown_env(self.env, timeout=10.0 if timeout is None else timeout)
+            shutdown_env(self.env, timeout=timeout)
 
     def state_dict(self) -> OrderedDict:
-        """Counters: frames, batches, the next group id, the root source's state."""
-        return OrderedDict(
-            frames=self._frames,
-            batches=self._batches,
-            next_group_id=self._next_group_id,
-            generator=self._generator.get_state(),
-            root_source=self.root_source.state_dict(),
-        )
+        """Counters, the selection generator and the root source's state (exact resume)."""
+        state = self.counters_state()
+        state["generator"] = self._generator.get_state()
+        state["root_source"] = self.root_source.state_dict()
+        return state
 
     def load_state_dict(self, state_dict: OrderedDict) -> None:
         """Restore :meth:`state_dict` (group ids continue where they stopped)."""
-        self._frames = int(state_dict["frames"])
-        self._batches = int(state_dict["batches"])
-        self._next_group_id = int(state_dict["next_group_id"])
+        self.load_counters_state(state_dict)
         self._generator.set_state(state_dict["generator"])
         self.root_source.load_state_dict(state_dict["root_source"])
 
-    def __len__(self) -> int:
-        raise TypeError("the number of batches depends on where branches end: use total_frames")
-
-    def __enter__(self) -> GroupCollector:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.shutdown()
-
-    def __del__(self) -> None:
-        # Best effort only: interpreter teardown may already have removed modules.
-        try:
-            self.shutdown()
-        except Exception:  # noqa: S110
-            pass
-
-    def __repr__(self) -> str:
-        return (
-            f"{type(self).__name__}(group_size={self.group_size}, horizon={self.horizon}, "
-            f"groups_per_batch={self.groups_per_batch}, frames={self._frames}/"
-            f"{self.total_frames}, roots={type(self.root_source).__name__})"
-        )
+    def _repr_extra(self) -> str:
+        return f", roots={type(self.root_source).__name__}"
 
 
 def _make_source(

@@ -16,7 +16,7 @@ repeats until the episode ends.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -27,7 +27,8 @@ from torchrl_grpo.branching._engine import BranchRun, Policy
 from torchrl_grpo.branching._slots import EnvSlots
 from torchrl_grpo.branching.keys import BRANCH_RETURN, MASK, ROOT_STEP, STATE
 from torchrl_grpo.branching.rollout import RngMode, check_group_args, run_groups
-from torchrl_grpo.branching.roots import RootSource, as_roots
+from torchrl_grpo.branching.root_builders import as_roots
+from torchrl_grpo.branching.roots import RootSource
 
 Selection = Literal["best", "sampled", "trunk"]
 SELECTED = "selected"
@@ -314,10 +315,18 @@ class ContinuationRoots(RootSource):
         self.episodes_finished += int(done.sum())
         self._live = nxt[~done]
 
-    def state_dict(self) -> dict:
-        """The number of finished episodes."""
-        return {"episodes_finished": self.episodes_finished}
+    def state_dict(self) -> dict[str, Any]:
+        """The seed chain, ``episodes_finished`` and the ``"live"`` episodes' roots."""
+        return {
+            **super().state_dict(),
+            "episodes_finished": self.episodes_finished,
+            "live": self._live,
+        }
 
-    def load_state_dict(self, state_dict: dict) -> None:
-        """Restore :meth:`state_dict`."""
-        self.episodes_finished = int(state_dict["episodes_finished"])
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict` (see :meth:`RootSource.load_state_dict`)."""
+        super().load_state_dict(state_dict)
+        if "episodes_finished" in state_dict:
+            self.episodes_finished = int(state_dict["episodes_finished"])
+        if "live" in state_dict:
+            self._live = state_dict["live"]

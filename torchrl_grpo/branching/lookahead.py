@@ -17,7 +17,7 @@ from torchrl.envs import EnvBase
 
 from torchrl_grpo.branching.keys import BRANCH, MASK, ROOT_STEP, STATE, STEP_COUNT
 from torchrl_grpo.branching.rollout import branch_rollout
-from torchrl_grpo.branching.roots import as_roots
+from torchrl_grpo.branching.root_builders import as_roots
 from torchrl_grpo.envs import to_bits
 
 __all__ = ["LookaheadPolicy"]

@@ -22,7 +22,7 @@ from torchrl_grpo.branching.keys import (
     STEP_COUNT,
     TRAJ_IDS,
 )
-from torchrl_grpo.branching.roots import as_roots
+from torchrl_grpo.branching.root_builders import as_roots
 from torchrl_grpo.branching.seeding import branch_seed
 
 RngMode = Literal["shared", "per_branch"]

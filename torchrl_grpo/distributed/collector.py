@@ -2,50 +2,28 @@
 
 from __future__ import annotations
 
-import copy
-import logging
 from collections import OrderedDict
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDict
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
-from torchrl.collectors import BaseCollector
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
 from torchrl_grpo.branching import MASK, RootKind, RootSource
+from torchrl_grpo.branching.collector_base import GroupCollectorBase
 from torchrl_grpo.branching.continuation import Selection
-from torchrl_grpo.branching.rollout import RngMode, check_group_args
+from torchrl_grpo.branching.rollout import RngMode
 from torchrl_grpo.distributed._ray import init_ray, require_ray
-from torchrl_grpo.distributed.worker import GroupResult, GroupWorker, WorkerSnapshot, actor_seed
-
-logger = logging.getLogger(__name__)
+from torchrl_grpo.distributed.actor_pool import ActorPool, split_groups
 
 __all__ = ["RayGroupCollector", "split_groups"]
 
 
-def split_groups(groups_per_batch: int, num_actors: int) -> list[int]:
-    """How many groups each actor collects per batch: as even as possible, first ones first.
-
-    Example:
-        >>> split_groups(8, 3)
-        [3, 3, 2]
-    """
-    if num_actors < 1:
-        raise ValueError(f"num_actors must be >= 1, got {num_actors}")
-    if groups_per_batch < num_actors:
-        raise ValueError(
-            f"groups_per_batch ({groups_per_batch}) must be >= num_actors ({num_actors}): "
-            "every actor collects at least one group per batch"
-        )
-    base, extra = divmod(groups_per_batch, num_actors)
-    return [base + (a < extra) for a in range(num_actors)]
-
-
-class RayGroupCollector(BaseCollector):
+class RayGroupCollector(GroupCollectorBase):
     """A :class:`~torchrl_grpo.branching.GroupCollector` spread over Ray actors.
 
     Each of the ``num_actors`` actors owns a ``GroupCollector`` with its own env workers
@@ -154,9 +132,7 @@ class RayGroupCollector(BaseCollector):
         wait_timeout: float | None = 600.0,
         ray_init: dict[str, Any] | None = None,
     ) -> None:
-        super().__init__()
-        self._actors: list[Any] = []
-        self._closed = True  # until Ray is up: nothing to shut down
+        super().__init__(policy, group_size, horizon, groups_per_batch, total_frames, rng)
         self._owns_ray = False
         self._ray = require_ray()
         if isinstance(env_factory, EnvBase) or not callable(env_factory):
@@ -164,197 +140,74 @@ class RayGroupCollector(BaseCollector):
                 "env_factory must be a picklable callable building the env in the actor "
                 "(e.g. functools.partial(make_branch_env, scenario, W)), not an env"
             )
-        check_group_args(group_size, horizon, rng)
-        if total_frames == 0 or total_frames < -1:
-            raise ValueError(f"total_frames must be > 0 or -1, got {total_frames}")
         if max_restarts < 0:
             raise ValueError(f"max_restarts must be >= 0, got {max_restarts}")
-        self.groups_per_actor = split_groups(groups_per_batch, num_actors)
+        groups_per_actor = split_groups(groups_per_batch, num_actors)
         if isinstance(roots, Sequence) and not isinstance(roots, str):
             if len(roots) != num_actors:
                 raise ValueError(f"got {len(roots)} root sources for {num_actors} actors")
-            self._roots = list(roots)
+            roots_per_actor = list(roots)
         else:
-            self._roots = [roots] * num_actors
+            roots_per_actor = [roots] * num_actors
         self.env_factory = env_factory
-        self.policy = policy
         self.num_actors = num_actors
-        self.group_size = group_size
-        self.horizon = horizon
-        self.groups_per_batch = groups_per_batch
-        self.total_frames = total_frames
-        self.frames_per_batch = groups_per_batch * group_size * horizon
-        self.requested_frames_per_batch = self.frames_per_batch
-        self._collector_kwargs = dict(
-            group_size=group_size,
-            horizon=horizon,
-            decision_interval=decision_interval,
-            select=select,
-            temperature=temperature,
-            rng=rng,
-            return_states=return_states,
-            set_truncated=set_truncated,
-            exploration_type=exploration_type,
-        )
+        self.groups_per_actor = groups_per_actor
         options = {"num_cpus": float(num_cpus_per_actor), **(actor_options or {})}
         if memory_per_actor is not None:
             options["memory"] = int(memory_per_actor)
-        self.actor_options = options
-        self.num_threads = num_threads
-        self.max_restarts = max_restarts
-        self.wait_timeout = wait_timeout
-        self.restarts = 0
-        self._frames = 0
-        self._batches = 0
-        self._next_group_id = 0
-        self._trunk_frames = [0] * num_actors
-        self._snapshots: list[WorkerSnapshot | None] = [None] * num_actors
         # Seeds drawn here (not in the actors) keep an unseeded run reproducible
         # under torch.manual_seed, like the local collector.
-        self._seed = int(torch.randint(0, 2**31 - 1, ())) if seed is None else int(seed)
-        self._policy_ref = None
+        seed = int(torch.randint(0, 2**31 - 1, ())) if seed is None else int(seed)
+        self._pool = ActorPool(
+            self._ray,
+            env_factory,
+            policy,
+            roots_per_actor,
+            dict(
+                group_size=group_size,
+                horizon=horizon,
+                decision_interval=decision_interval,
+                select=select,
+                temperature=temperature,
+                rng=rng,
+                return_states=return_states,
+                set_truncated=set_truncated,
+                exploration_type=exploration_type,
+            ),
+            groups_per_actor,
+            seed,
+            options,
+            num_threads=num_threads,
+            max_restarts=max_restarts,
+            wait_timeout=wait_timeout,
+        )
         self._owns_ray = init_ray(**(ray_init or {}))
         self._closed = False
         try:
-            self._check_resources()
+            self._pool.check_resources()
         except Exception:
             self.shutdown()
             raise
 
-    # ------------------------------------------------------------------ actors
-    def _check_resources(self) -> None:
-        need = self.num_actors * self.actor_options["num_cpus"]
-        have = float(self._ray.cluster_resources().get("CPU", 0.0))
-        if need > have:
-            raise ValueError(
-                f"{self.num_actors} actors x {self.actor_options['num_cpus']} CPUs need {need} "
-                f"Ray CPUs but the cluster has {have}: lower num_cpus_per_actor or num_actors, "
-                "or add nodes"
-            )
-
-    def _seed_of(self, actor: int) -> int:
-        return actor_seed(self._seed, actor)
-
-    def _new_actor(self, index: int) -> Any:
-        ray = self._ray
-        if self._policy_ref is None:
-            self._policy_ref = ray.put(self.policy)
-        remote_cls = ray.remote(GroupWorker).options(**self.actor_options)
-        roots = self._roots[index]
-        kwargs = dict(self._collector_kwargs, groups_per_batch=self.groups_per_actor[index])
-        # A RootSource object is copied per actor, so actors never share one.
-        kwargs["roots"] = copy.deepcopy(roots) if isinstance(roots, RootSource) else roots
-        return remote_cls.remote(
-            self.env_factory, self._policy_ref, kwargs, self._seed_of(index), self.num_threads
-        )
-
-    def _ensure_actors(self) -> None:
-        if self._closed:
-            raise RuntimeError("this RayGroupCollector has been shut down")
-        if self._actors:
-            return
-        self._actors = [self._new_actor(a) for a in range(self.num_actors)]
-        restores = [
-            actor.restore.remote(snap)
-            for actor, snap in zip(self._actors, self._snapshots, strict=True)
-            if snap is not None
-        ]
-        self._ray.get(restores)
-
-    def _replace(self, index: int, err: BaseException) -> None:
-        """Start a new actor ``index`` where the dead one's last batch left off."""
-        ray = self._ray
-        self.restarts += 1
-        logger.warning(
-            "Ray actor %d died (%s): replacing it and redoing its batch",
-            index,
-            type(err).__name__,
-        )
-        try:
-            ray.kill(self._actors[index], no_restart=True)
-        except Exception:  # noqa: BLE001 - already gone is the expected case
-            pass
-        actor = self._new_actor(index)
-        snapshot = self._snapshots[index]
-        if snapshot is not None:
-            ray.get(actor.restore.remote(snapshot))
-        self._actors[index] = actor
-
-    def _fault_types(self) -> tuple[type[BaseException], ...]:
-        exc = self._ray.exceptions
-        types = [exc.RayActorError]
-        for name in ("ActorUnavailableError", "WorkerCrashedError", "ObjectLostError"):
-            if hasattr(exc, name):
-                types.append(getattr(exc, name))
-        return tuple(types)
-
-    def _gather(self, weights: Any, first_ids: list[int]) -> list[GroupResult]:
-        ray = self._ray
-        faults = self._fault_types()
-        pending = {
-            actor.collect.remote(weights, first_ids[a]): a for a, actor in enumerate(self._actors)
-        }
-        results: list[GroupResult | None] = [None] * self.num_actors
-        tries = [0] * self.num_actors
-        while pending:
-            ready, _ = ray.wait(list(pending), num_returns=1, timeout=self.wait_timeout)
-            if not ready:
-                raise TimeoutError(
-                    f"no actor answered within {self.wait_timeout} s: are the actors "
-                    f"schedulable ({self.actor_options}) on {ray.available_resources()}?"
-                )
-            ref = ready[0]
-            a = pending.pop(ref)
-            try:
-                results[a] = ray.get(ref)
-            except faults as err:
-                tries[a] += 1
-                if tries[a] > self.max_restarts:
-                    raise RuntimeError(
-                        f"Ray actor {a} died {tries[a]} times on batch {self._batches}"
-                    ) from err
-                self._replace(a, err)
-                pending[self._actors[a].collect.remote(weights, first_ids[a])] = a
-        return results  # type: ignore[return-value]
-
-    # ------------------------------------------------------------------ iteration
-    @property
-    def frames(self) -> int:
-        """Branch steps collected so far (valid steps of the yielded batches)."""
-        return self._frames
-
     @property
     def trunk_frames(self) -> int:
         """Trunk steps simulated by all actors (``roots="trunk"``)."""
-        return int(sum(self._trunk_frames))
+        return int(sum(self._pool.trunk_frames))
 
     @property
     def actors(self) -> list[Any]:
         """The live Ray actor handles, one per actor index (tests kill them)."""
-        return list(self._actors)
+        return list(self._pool.actors)
 
-    def __iter__(self) -> Iterator[TensorDictBase]:
-        """Iterate over batches; any error or interrupt shuts the actors down."""
-        try:
-            yield from self.iterator()
-        except GeneratorExit:
-            raise
-        except BaseException:
-            self.shutdown()
-            raise
+    @property
+    def restarts(self) -> int:
+        """Actors replaced so far (each after a death)."""
+        return self._pool.restarts
 
-    def iterator(self) -> Iterator[TensorDictBase]:
-        """Yield ``[R, G, T]`` batches until ``total_frames`` (or the roots run out)."""
-        while self.total_frames < 0 or self._frames < self.total_frames:
-            if self._pre_collect_hook is not None:
-                self._pre_collect_hook()
-            batch = self._collect()
-            if batch is None:
-                break
-            if self._post_collect_hook is not None:
-                self._post_collect_hook(batch)
-            yield batch
-        self.shutdown()
+    @property
+    def actor_options(self) -> dict[str, Any]:
+        """The ``ray.remote`` options of the actors (``num_cpus``, ``memory``, ...)."""
+        return self._pool.actor_options
 
     def _weights(self) -> Any:
         if not isinstance(self.policy, nn.Module):
@@ -363,19 +216,16 @@ class RayGroupCollector(BaseCollector):
         return self._ray.put(TensorDict.from_module(self.policy).data.clone())
 
     def _collect(self) -> TensorDict | None:
-        self._ensure_actors()
         first_ids, offset = [], self._next_group_id
         for n in self.groups_per_actor:
             first_ids.append(offset)
             offset += n
-        results = self._gather(self._weights(), first_ids)
+        results = self._pool.gather(self._weights(), first_ids, batch=self._batches)
         parts = [r.data for r in results if r.data is not None and r.data.shape[0] > 0]
         if not parts:
             return None
         data = torch.cat(parts) if len(parts) > 1 else parts[0]
-        for a, result in enumerate(results):
-            self._snapshots[a] = result.snapshot
-            self._trunk_frames[a] = int(result.trunk_frames)
+        self._pool.keep(results)
         self._next_group_id = offset
         self._frames += int(data.get(MASK).sum())
         self._batches += 1
@@ -388,72 +238,21 @@ class RayGroupCollector(BaseCollector):
         Returns:
             ``seed`` (each actor derives its own, see :func:`actor_seed`).
         """
-        self._seed = int(seed)
-        if self._actors:
-            refs = [a.set_seed.remote(self._seed_of(i)) for i, a in enumerate(self._actors)]
-            self._snapshots = list(self._ray.get(refs))
-        return self._seed
+        self._pool.set_seed(seed)
+        return self._pool.seed
 
-    def update_policy_weights_(
-        self,
-        policy_or_weights: TensorDictBase | nn.Module | dict | None = None,
-        **kwargs: Any,
-    ) -> None:
-        """Load new weights into the learner-side policy; actors get them next batch.
-
-        The collector reads its ``policy``'s weights before every batch anyway, so
-        passing nothing (or the policy itself) is a no-op.
-        """
-        if kwargs:
-            policy_or_weights = kwargs.get("weights", kwargs.get("policy", policy_or_weights))
-        if policy_or_weights is None or policy_or_weights is self.policy:
-            return
-        if not isinstance(self.policy, nn.Module):
-            raise TypeError("update_policy_weights_ needs a policy that is an nn.Module")
-        if isinstance(policy_or_weights, (nn.Module, TensorDictModuleBase)):
-            weights = TensorDict.from_module(policy_or_weights)
-        elif isinstance(policy_or_weights, dict):
-            weights = TensorDict(policy_or_weights).unflatten_keys(".")
-        else:
-            weights = policy_or_weights
-        weights.data.to_module(self.policy)
-
-    def shutdown(
-        self,
-        timeout: float | None = None,
-        close_env: bool = True,
-        raise_on_error: bool = True,
-    ) -> None:
+    def _close(self, timeout: float, close_env: bool) -> None:
         """Close every actor's env workers, end the actors (and Ray, if started here)."""
-        if self._closed:
-            return
-        self._closed = True
-        ray = self._ray
-        if self._actors:
-            refs = [a.close.remote() for a in self._actors]
-            # Actors that are already dead cannot close anything: ignore them.
-            ray.wait(refs, num_returns=len(refs), timeout=10.0 if timeout is None else timeout)
-            for actor in self._actors:
-                try:
-                    ray.kill(actor, no_restart=True)
-                except Exception:  # noqa: BLE001, S110
-                    pass
-            self._actors = []
-        if self._owns_ray and ray.is_initialized():
-            ray.shutdown()
+        self._pool.close(timeout)
+        if self._owns_ray and self._ray.is_initialized():
+            self._ray.shutdown()
 
     def state_dict(self) -> OrderedDict:
         """Counters, the seed and every actor's snapshot (exact resume)."""
-        return OrderedDict(
-            frames=self._frames,
-            batches=self._batches,
-            next_group_id=self._next_group_id,
-            seed=self._seed,
-            num_actors=self.num_actors,
-            trunk_frames=list(self._trunk_frames),
-            snapshots=list(self._snapshots),
-            restarts=self.restarts,
-        )
+        state = self.counters_state()
+        state["num_actors"] = self.num_actors
+        state.update(self._pool.state_dict())
+        return state
 
     def load_state_dict(self, state_dict: OrderedDict) -> None:
         """Restore :meth:`state_dict` (same number of actors); actors continue from it."""
@@ -462,44 +261,8 @@ class RayGroupCollector(BaseCollector):
                 f"this state was saved with {state_dict['num_actors']} actors, "
                 f"not {self.num_actors}: the actors' streams would differ"
             )
-        self._frames = int(state_dict["frames"])
-        self._batches = int(state_dict["batches"])
-        self._next_group_id = int(state_dict["next_group_id"])
-        self._seed = int(state_dict["seed"])
-        self._trunk_frames = [int(x) for x in state_dict["trunk_frames"]]
-        self._snapshots = list(state_dict["snapshots"])
-        self.restarts = int(state_dict.get("restarts", 0))
-        if self._actors:
-            restores = [
-                actor.restore.remote(snap)
-                for actor, snap in zip(self._actors, self._snapshots, strict=True)
-                if snap is not None
-            ]
-            self._ray.get(restores)
+        self.load_counters_state(state_dict)
+        self._pool.load_state_dict(state_dict)
 
-    def __len__(self) -> int:
-        raise TypeError("the number of batches depends on where branches end: use total_frames")
-
-    def __bool__(self) -> bool:
-        # __len__ raises, and Python would call it for truth tests.
-        return True
-
-    def __enter__(self) -> RayGroupCollector:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.shutdown()
-
-    def __del__(self) -> None:
-        # Best effort only: interpreter teardown may already have removed modules.
-        try:
-            self.shutdown()
-        except Exception:  # noqa: S110
-            pass
-
-    def __repr__(self) -> str:
-        return (
-            f"{type(self).__name__}(num_actors={self.num_actors}, group_size={self.group_size}, "
-            f"horizon={self.horizon}, groups_per_batch={self.groups_per_batch}, "
-            f"frames={self._frames}/{self.total_frames}, restarts={self.restarts})"
-        )
+    def _repr_extra(self) -> str:
+        return f", num_actors={self.num_actors}, restarts={self.restarts}"

@@ -51,9 +51,10 @@ class WorkerSnapshot:
 
     Attributes:
         collector: ``GroupCollector.state_dict()`` (frames, batches, next group id,
-            selection generator, the root source's counters).
-        root_source: a copy of the root source (its seed chain, pending trunk decision
-            points or live episodes; a copy is exact where its ``state_dict`` may not be).
+            selection generator, the root source's ``state_dict()``: its seed chain,
+            pending trunk decision points or live episodes).
+        root_source: a copy of the root source (exact even for a source of your own
+            whose ``state_dict`` is not complete).
         torch_rng: the actor's global torch generator, from which the policy samples.
 
     Example:

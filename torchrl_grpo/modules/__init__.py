@@ -35,12 +35,15 @@ from torchrl_grpo.modules.scripted import (
     CautiousPolicy,
     ConservativePolicy,
     ConstantActionPolicy,
+    Driver,
     LaneChangePolicy,
     MetaAction,
     RandomPolicy,
     RulePolicy,
+    Scene,
     ScriptedPolicy,
     make_scripted_policy,
+    time_to_collision,
 )
 
 __all__ = [
@@ -62,6 +65,7 @@ __all__ = [
     "ConstantActionPolicy",
     "ContinuousDistribution",
     "DeterministicActor",
+    "Driver",
     "EgoAttentionNet",
     "GreedyTail",
     "KinematicsLayout",
@@ -72,6 +76,7 @@ __all__ = [
     "PriorLogits",
     "RandomPolicy",
     "RulePolicy",
+    "Scene",
     "SceneFeatures",
     "SceneMLP",
     "ScriptedPolicy",
@@ -80,4 +85,5 @@ __all__ = [
     "make_network",
     "make_scripted_policy",
     "make_value_net",
+    "time_to_collision",
 ]

@@ -8,7 +8,7 @@ a few of its entries, and an MLP over the table learns it slowly: cloned from 5,
 states of the rule policy it matches 85% of the actions of held-out states, where the
 same MLP over :class:`SceneFeatures` matches 95% and drives as the rule policy does
 (``benchmarks/bench_features.py``, docs/results.md). :class:`SceneFeatures` decodes the
-table with the scene reader of the scripted drivers (:mod:`~torchrl_grpo.modules.scripted`)
+table with the scene reader of the scripted drivers (:class:`~torchrl_grpo.modules.Driver`)
 into 18 numbers per observation; :class:`SceneMLP` is an MLP over them.
 """
 
@@ -21,7 +21,7 @@ from torch import nn
 from torchrl.modules import MLP
 
 from torchrl_grpo.modules.kinematics import KinematicsLayout
-from torchrl_grpo.modules.scripted import _Driver, _time_to_collision
+from torchrl_grpo.modules.scripted.scene import Driver, time_to_collision
 
 __all__ = ["SceneFeatures", "SceneMLP"]
 
@@ -35,7 +35,7 @@ _CHANGE_GAP, _CHANGE_TTC = 3.0, 3.0
 _NEAR = 25.0
 
 
-class SceneFeatures(_Driver):
+class SceneFeatures(Driver):
     """Driving features of a Kinematics observation: ``[*batch, V, F] -> [*batch, 18]``.
 
     In order: the ego speed (``(v - 25) / 5``), the ego's lane-change direction (-1,
@@ -68,7 +68,7 @@ class SceneFeatures(_Driver):
         features = [(scene.speed - _SPEED_CENTRE) / _SPEED_SCALE, scene.ego_drift.float()]
         for offset in (-1, 0, 1):
             gap, closing = scene.leader(offset)
-            ttc = _time_to_collision(gap, closing)
+            ttc = time_to_collision(gap, closing)
             inverse_ttc = torch.where(
                 torch.isfinite(ttc), 1.0 / ttc.clamp(min=0.1), torch.zeros_like(ttc)
             )

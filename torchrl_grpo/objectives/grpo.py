@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-from typing import Literal
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase, TensorDictParams
@@ -17,23 +15,20 @@ from torch import distributions as d
 from torchrl.objectives import LossModule
 
 from torchrl_grpo.objectives._segments import trajectory_index
+from torchrl_grpo.objectives.aggregation import (
+    AGGREGATION_RULES,
+    Aggregation,
+    aggregate,
+    step_weights,
+    time_trajectories,
+)
+from torchrl_grpo.objectives.checks import check_loss_args, per_step, require, sum_event
+from torchrl_grpo.objectives.diagnostics import RATIO_DIAGNOSTICS, ratio_diagnostics
 from torchrl_grpo.objectives.kl import KLEstimator, analytic_kl, kl_estimate
 
 __all__ = ["Aggregation", "GRPOLoss"]
 
-Aggregation = Literal["dapo", "bnpo", "token_mean", "grpo", "prompt_mean", "dr_grpo"]
-"""Loss aggregations: TRL's ``loss_type`` names and TorchRL's ``aggregation`` names."""
-
-# Several names for one rule: TRL's loss_type and TorchRL's aggregation spell
-# the same normalisers differently; users of either should feel at home.
-_AGGREGATION_RULES = {
-    "dapo": "step_mean",
-    "bnpo": "step_mean",
-    "token_mean": "step_mean",
-    "grpo": "trajectory_mean",
-    "prompt_mean": "trajectory_mean",
-    "dr_grpo": "constant",
-}
+_ADVANTAGE_HINT = " Compute it first, e.g. with GroupRelativeAdvantage."
 
 
 class GRPOLoss(LossModule):
@@ -185,21 +180,14 @@ class GRPOLoss(LossModule):
         max_steps: int | None = None,
         device: torch.device | None = None,
     ) -> None:
-        if aggregation not in _AGGREGATION_RULES:
-            raise ValueError(
-                f"aggregation must be one of {sorted(_AGGREGATION_RULES)}, got {aggregation!r}."
-            )
-        if kl_estimator not in ("k1", "k2", "k3", "analytic"):
-            raise ValueError(
-                f"kl_estimator must be 'k1', 'k2', 'k3' or 'analytic', got {kl_estimator!r}."
-            )
-        eps_low, eps_high = _validate_clip_epsilon(clip_epsilon)
-        if dual_clip is not None and dual_clip <= 1.0:
-            raise ValueError(f"dual_clip must be > 1, got {dual_clip}.")
-        if max_steps is not None and max_steps < 1:
-            raise ValueError(f"max_steps must be >= 1, got {max_steps}.")
-        if samples_mc_entropy < 1:
-            raise ValueError(f"samples_mc_entropy must be >= 1, got {samples_mc_entropy}.")
+        eps_low, eps_high = check_loss_args(
+            aggregation=aggregation,
+            kl_estimator=kl_estimator,
+            clip_epsilon=clip_epsilon,
+            dual_clip=dual_clip,
+            max_steps=max_steps,
+            samples_mc_entropy=samples_mc_entropy,
+        )
         self._in_keys = None
         self._out_keys = None
         super().__init__()
@@ -259,9 +247,7 @@ class GRPOLoss(LossModule):
                 keys += ["loss_entropy", "entropy"]
             if self.kl_to_ref_coeff is not None:
                 keys += ["loss_kl", "kl_to_ref"]
-            keys += ["clip_fraction", "kl_approx", "ESS", "min_ratio", "mean_ratio", "max_ratio"]
-            keys += ["advantage_mean", "advantage_std"]
-            self._out_keys = keys
+            self._out_keys = [*keys, *RATIO_DIAGNOSTICS]
         return self._out_keys
 
     @out_keys.setter
@@ -277,8 +263,8 @@ class GRPOLoss(LossModule):
         """Computes the loss terms and diagnostics over the valid steps of ``tensordict``."""
         keys = self.tensor_keys
         batch_size = tensordict.batch_size
-        mask = _require(tensordict, keys.mask, "mask")
-        mask = _per_step(mask, batch_size, keys.mask)
+        mask = require(tensordict, keys.mask, "mask")
+        mask = per_step(mask, batch_size, keys.mask)
         if mask.dtype != torch.bool:
             raise ValueError(f"{keys.mask!r} must be boolean, got dtype {mask.dtype}.")
         all_valid = bool(mask.all())
@@ -295,17 +281,15 @@ class GRPOLoss(LossModule):
             steps = tensordict.select(*needed, strict=False).reshape(-1)[valid_idx]
         n_batch = len(steps.batch_size)
 
-        advantage = _per_step(
-            _require(steps, keys.advantage, "advantage", hint=_ADVANTAGE_HINT),
+        advantage = per_step(
+            require(steps, keys.advantage, "advantage", hint=_ADVANTAGE_HINT),
             steps.batch_size,
             keys.advantage,
         )
         prev_log_prob = self._behaviour_log_prob(steps)
         dist = self._dist(steps, self.actor_network_params)
-        action = _require(steps, keys.action, "action")
-        log_prob = _per_step(
-            _sum_event(dist.log_prob(action), n_batch), steps.batch_size, "log-prob"
-        )
+        action = require(steps, keys.action, "action")
+        log_prob = per_step(sum_event(dist.log_prob(action), n_batch), steps.batch_size, "log-prob")
         weights = self._step_weights(tensordict, mask, valid_idx, advantage.numel())
 
         log_weight = log_prob - prev_log_prob
@@ -316,30 +300,21 @@ class GRPOLoss(LossModule):
         gain = torch.minimum(ratio * advantage, log_weight_clip.exp() * advantage)
         if self.dual_clip is not None:
             gain = torch.where(advantage < 0, torch.maximum(gain, self.dual_clip * advantage), gain)
-        out = {"loss_objective": -self._aggregate(gain, weights)}
+        out = {"loss_objective": -aggregate(gain, weights)}
 
         diag = {}
         if self.entropy_bonus:
-            entropy = _per_step(self._entropy(dist, n_batch), steps.batch_size, "entropy")
-            out["loss_entropy"] = -self.entropy_coeff * self._aggregate(entropy, weights)
+            entropy = per_step(self._entropy(dist, n_batch), steps.batch_size, "entropy")
+            out["loss_entropy"] = -self.entropy_coeff * aggregate(entropy, weights)
             diag["entropy"] = entropy
         if self.kl_to_ref_coeff is not None:
             kl = self._kl_to_reference(steps, dist, log_prob, n_batch)
-            out["loss_kl"] = self.kl_to_ref_coeff * self._aggregate(kl, weights)
+            out["loss_kl"] = self.kl_to_ref_coeff * aggregate(kl, weights)
             diag["kl_to_ref"] = kl
 
-        with torch.no_grad():
-            for name, value in diag.items():
-                out[name] = value.detach().mean()
-            n = log_weight.numel()
-            lw = log_weight.detach()
-            out["clip_fraction"] = (log_weight_clip != log_weight).sum() / n
-            out["kl_approx"] = -lw.mean()
-            out["ESS"] = (2 * lw.logsumexp(0) - (2 * lw).logsumexp(0)).exp() / n
-            out["min_ratio"], out["max_ratio"] = torch.aminmax(ratio.detach())
-            out["mean_ratio"] = ratio.detach().mean()
-            out["advantage_mean"] = advantage.mean()
-            out["advantage_std"] = advantage.std(correction=0)
+        for name, value in diag.items():
+            out[name] = value.detach().mean()
+        out.update(ratio_diagnostics(log_weight, log_weight_clip, advantage))
         return TensorDict(out, batch_size=[])
 
     # ------------------------------------------------------------- helpers
@@ -359,7 +334,7 @@ class GRPOLoss(LossModule):
             raise ValueError(f"the input has no {key!r} entry (behaviour log-prob).{hint}")
         if value.requires_grad:
             raise ValueError(f"{key!r} requires grad: store the behaviour log-prob detached.")
-        return _per_step(_sum_event(value, len(steps.batch_size)), steps.batch_size, key)
+        return per_step(sum_event(value, len(steps.batch_size)), steps.batch_size, key)
 
     def _entropy(self, dist: d.Distribution, n_batch: int) -> torch.Tensor:
         try:
@@ -371,7 +346,7 @@ class GRPOLoss(LossModule):
             n = (self.samples_mc_entropy,)
             sample = dist.rsample(n) if dist.has_rsample else dist.sample(n)
             entropy = -dist.log_prob(sample).mean(0)
-        return _sum_event(entropy, n_batch)
+        return sum_event(entropy, n_batch)
 
     def _kl_to_reference(
         self, steps: TensorDictBase, dist: d.Distribution, log_prob: torch.Tensor, n_batch: int
@@ -379,15 +354,15 @@ class GRPOLoss(LossModule):
         if self.kl_estimator == "analytic":
             with torch.no_grad():
                 ref_dist = self._dist(steps, self.target_actor_network_params)
-            kl = _sum_event(analytic_kl(dist, ref_dist), n_batch)
-            return _per_step(kl, steps.batch_size, "analytic KL")
+            kl = sum_event(analytic_kl(dist, ref_dist), n_batch)
+            return per_step(kl, steps.batch_size, "analytic KL")
         ref_log_prob = steps.get(self.tensor_keys.ref_log_prob, None)
         if ref_log_prob is None:
             with torch.no_grad():
                 ref_dist = self._dist(steps, self.target_actor_network_params)
                 ref_log_prob = ref_dist.log_prob(steps.get(self.tensor_keys.action))
-        ref_log_prob = _per_step(
-            _sum_event(ref_log_prob, n_batch), steps.batch_size, self.tensor_keys.ref_log_prob
+        ref_log_prob = per_step(
+            sum_event(ref_log_prob, n_batch), steps.batch_size, self.tensor_keys.ref_log_prob
         )
         return kl_estimate(log_prob, ref_log_prob.detach(), self.kl_estimator)
 
@@ -399,21 +374,19 @@ class GRPOLoss(LossModule):
         n_valid: int,
     ) -> torch.Tensor | None:
         """Per-valid-step weights of the aggregation; ``None`` for a plain mean."""
-        rule = _AGGREGATION_RULES[self.aggregation]
+        rule = AGGREGATION_RULES[self.aggregation]
         if rule == "step_mean":
             return None
         batch_size = tensordict.batch_size
         if len(batch_size) >= 2:
             horizon = batch_size[-1]
-            flat = torch.arange(mask.numel(), device=mask.device)
-            traj = (flat if valid_idx is None else valid_idx) // horizon
-            n_rows = mask.numel() // horizon
+            traj, n_rows = time_trajectories(mask.numel(), horizon, valid_idx, mask.device)
         else:
             keys = self.tensor_keys
-            group_id = _per_step(
-                _require(tensordict, keys.group_id, "group_id"), batch_size, keys.group_id
+            group_id = per_step(
+                require(tensordict, keys.group_id, "group_id"), batch_size, keys.group_id
             )
-            branch = _per_step(_require(tensordict, keys.branch, "branch"), batch_size, keys.branch)
+            branch = per_step(require(tensordict, keys.branch, "branch"), batch_size, keys.branch)
             if valid_idx is not None:
                 group_id, branch = group_id[valid_idx], branch[valid_idx]
             traj, traj_group, _ = trajectory_index(
@@ -421,60 +394,4 @@ class GRPOLoss(LossModule):
             )
             n_rows = traj_group.numel()
             horizon = None
-        counts = torch.bincount(traj, minlength=n_rows)
-        n_traj = int((counts > 0).sum())
-        if rule == "trajectory_mean":
-            weights = 1.0 / (counts[traj] * n_traj)
-        else:
-            max_steps = self.max_steps or horizon or int(counts.max())
-            weights = torch.full((n_valid,), 1.0 / (n_traj * max_steps), device=mask.device)
-        return weights.to(torch.get_default_dtype())
-
-    @staticmethod
-    def _aggregate(values: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
-        if weights is None:
-            return values.mean()
-        return (values * weights.to(values.dtype)).sum()
-
-
-_ADVANTAGE_HINT = " Compute it first, e.g. with GroupRelativeAdvantage."
-
-
-def _require(tensordict: TensorDictBase, key: NestedKey, name: str, hint: str = "") -> torch.Tensor:
-    value = tensordict.get(key, None)
-    if value is None:
-        raise ValueError(
-            f"the input has no {key!r} entry (the {name!r} key; rename it with "
-            f"set_keys({name}=...)).{hint}"
-        )
-    return value
-
-
-def _per_step(value: torch.Tensor, batch_size: torch.Size, key: object) -> torch.Tensor:
-    # [*batch] or [*batch, 1] -> [numel(batch)]; any other shape is a layout error
-    if value.shape == batch_size or value.shape == (*batch_size, 1):
-        return value.reshape(-1)
-    raise ValueError(
-        f"{key!r} has shape {tuple(value.shape)}; expected {tuple(batch_size)} or "
-        f"{(*batch_size, 1)}."
-    )
-
-
-def _sum_event(value: torch.Tensor, n_batch: int) -> torch.Tensor:
-    # Normal (not Independent) returns per-dimension log-probs and entropies:
-    # the joint over the action dimensions is their sum.
-    if value.ndim > n_batch:
-        return value.sum(tuple(range(n_batch, value.ndim)))
-    return value
-
-
-def _validate_clip_epsilon(clip_epsilon: float | tuple[float, float]) -> tuple[float, float]:
-    if isinstance(clip_epsilon, (tuple, list)):
-        if len(clip_epsilon) != 2:
-            raise ValueError(f"clip_epsilon must be a float or (low, high), got {clip_epsilon}.")
-        low, high = float(clip_epsilon[0]), float(clip_epsilon[1])
-    else:
-        low = high = float(clip_epsilon)
-    if not (0.0 <= low < 1.0 and high >= 0.0 and math.isfinite(high)):
-        raise ValueError(f"clip_epsilon needs 0 <= low < 1 and 0 <= high, got ({low}, {high}).")
-    return low, high
+        return step_weights(rule, traj, n_rows, n_valid, self.max_steps or horizon, mask.device)

@@ -2,8 +2,8 @@
 
 Also saves and restores a collector's exact position for checkpoints:
 
-- GRPO: the collector's counters plus its root source's seed chain and pending
-  roots (trunk decision points not branched from yet).
+- GRPO: the collector's ``state_dict()``: its counters and its root source's
+  ``state_dict()`` (seed chain, pending trunk decision points, live episodes).
 - PPO: the collector's counters, its carrier (the current observation of every
   worker) and every worker's simulator state, read from the carrier: PPO workers
   write their state after each step (``return_state=True``), so a resumed run
@@ -14,6 +14,7 @@ Also saves and restores a collector's exact position for checkpoints:
 
 from __future__ import annotations
 
+import copy
 import functools
 from typing import Any
 
@@ -37,9 +38,9 @@ __all__ = [
     "make_ray_collector",
 ]
 
-# Root-source attributes that the branching package's state_dict() does not cover yet
-# (seed chain, pending trunk roots, live continuation episodes); read defensively.
-_SOURCE_EXTRA = ("seed", "trunk_steps", "_queue", "_live", "episodes_finished")
+# Checkpoints written before root sources had a complete state_dict() kept the missing
+# part apart ("source"), under the sources' attribute names: their state_dict() keys.
+_LEGACY_SOURCE_KEYS = {"_queue": "queue", "_live": "live"}
 
 
 def make_collector(
@@ -212,10 +213,8 @@ def collector_state(collector: BaseCollector) -> dict[str, Any]:
     if isinstance(collector, RayGroupCollector):
         return {"kind": "ray", "state": collector.state_dict()}
     if isinstance(collector, GroupCollector):
-        source = collector.root_source
-        extra = {k: getattr(source, k) for k in _SOURCE_EXTRA if hasattr(source, k)}
-        extra = {k: v.clone() if hasattr(v, "clone") else v for k, v in extra.items()}
-        return {"kind": "group", "state": collector.state_dict(), "source": extra}
+        # A copy: the root source's tensors are its own (state_dict() does not copy).
+        return {"kind": "group", "state": copy.deepcopy(collector.state_dict())}
     carrier = collector._carrier  # the collector's live step (TorchRL's "carrier")
     return {
         "kind": "torchrl",
@@ -258,8 +257,9 @@ def load_collector_state(collector: BaseCollector, state: dict[str, Any]) -> Non
         if state["kind"] != "group":
             raise ValueError("this checkpoint was written by a PPO run")
         collector.load_state_dict(state["state"])
-        for key, value in state["source"].items():
-            setattr(collector.root_source, key, value)
+        if "source" in state:  # written before root sources had a complete state_dict()
+            legacy = {_LEGACY_SOURCE_KEYS.get(k, k): v for k, v in state["source"].items()}
+            collector.root_source.load_state_dict(legacy)
         return
     if state["kind"] != "torchrl":
         raise ValueError("this checkpoint was written by a GRPO run")
