@@ -11,6 +11,7 @@ the same snapshots to plan: every action from the current state, then a base pol
 See ``docs/branching.md``.
 """
 
+from torchrl_grpo.branching.branch_env import Backend, make_branch_env, shutdown_env
 from torchrl_grpo.branching.collector import GroupCollector, RootKind
 from torchrl_grpo.branching.continuation import (
     SELECTED,
@@ -42,12 +43,7 @@ from torchrl_grpo.branching.root_builders import (
 )
 from torchrl_grpo.branching.roots import EpisodeStartRoots, RootSource, StoredRoots, TrunkRoots
 from torchrl_grpo.branching.seeding import branch_seed
-from torchrl_grpo.branching.workers import (
-    Backend,
-    BranchParallelEnv,
-    make_branch_env,
-    shutdown_env,
-)
+from torchrl_grpo.branching.workers import BranchParallelEnv
 
 __all__ = [
     "BRANCH",

@@ -9,7 +9,7 @@ being stepped with the others (its steps are masked out, and nothing resets it),
 the rollout's shapes never change; with N > B, the branches run in waves of B rows.
 
 :func:`run_batched_branches` returns what the worker-slot engine returns (a
-:class:`~torchrl_grpo.branching._engine.BranchRun`), so
+:class:`~torchrl_grpo.branching.engine.BranchRun`), so
 :func:`~torchrl_grpo.branching.branch_rollout` labels both the same way.
 """
 
@@ -23,21 +23,10 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-from torchrl_grpo.branching._engine import BranchRun, KeepStates, Policy
+from torchrl_grpo.branching.engine import BranchRun, KeepStates, Policy
 from torchrl_grpo.branching.keys import BRANCH, GROUP_ID, ROOT_STEP, STATE, STEP_COUNT
 
-__all__ = ["has_batched_worlds", "run_batched_branches"]
-
-
-def has_batched_worlds(env: EnvBase) -> bool:
-    """Whether ``env``'s batch rows are worlds it restores and steps together.
-
-    Example:
-        >>> from torchrl_grpo.envs import HighwayEnv, TensorHighwayEnv
-        >>> has_batched_worlds(TensorHighwayEnv(num_envs=2)), has_batched_worlds(HighwayEnv())
-        (True, False)
-    """
-    return bool(getattr(env, "batched_worlds", False)) and len(env.batch_size) == 1
+__all__ = ["run_batched_branches"]
 
 
 def _check_actions(td: TensorDictBase, env: EnvBase) -> None:
@@ -90,7 +79,7 @@ def run_batched_branches(
         on_wave: called with the number of branches of each wave (for progress).
 
     Returns:
-        The :class:`~torchrl_grpo.branching._engine.BranchRun`: ``[N, H]`` data (zeros
+        The :class:`~torchrl_grpo.branching.engine.BranchRun`: ``[N, H]`` data (zeros
         after each branch's end), mask, lengths, ended flags, final states.
 
     Example:

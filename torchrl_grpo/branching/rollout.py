@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from numbers import Integral
 from typing import Literal
 
@@ -10,8 +11,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
-from torchrl_grpo.branching._engine import BranchRun, Policy, run_branches
-from torchrl_grpo.branching._slots import EnvSlots
+from torchrl_grpo.branching.batched import run_batched_branches
+from torchrl_grpo.branching.engine import BranchRun, Policy, run_branches
 from torchrl_grpo.branching.keys import (
     BRANCH,
     BRANCH_RETURN,
@@ -24,6 +25,7 @@ from torchrl_grpo.branching.keys import (
 )
 from torchrl_grpo.branching.root_builders import as_roots
 from torchrl_grpo.branching.seeding import branch_seed
+from torchrl_grpo.branching.slots import EnvSlots, has_batched_worlds
 
 RngMode = Literal["shared", "per_branch"]
 
@@ -62,16 +64,24 @@ def run_groups(
 ) -> tuple[TensorDict, BranchRun]:
     """Run validated roots; return the ``[R, G, T]`` data and the engine's ``[R * G]`` run."""
     n_roots, g, horizon = roots.shape[0], int(group_size), int(horizon)
-    group_id = (first_group_id + torch.arange(n_roots)).repeat_interleave(g)
-    branch = torch.arange(g).repeat(n_roots)
-    root_step = roots.get(ROOT_STEP).repeat_interleave(g)
-    states = roots.get(STATE)[torch.arange(n_roots).repeat_interleave(g)]
+    batched = has_batched_worlds(slots.env)
+    device = slots.env.device if batched else torch.device("cpu")
+    group_id = (first_group_id + torch.arange(n_roots, device=device)).repeat_interleave(g)
+    branch = torch.arange(g, device=device).repeat(n_roots)
+    root_step = roots.get(ROOT_STEP).to(device).repeat_interleave(g)
+    states = roots.get(STATE).to(device)[torch.arange(n_roots, device=device).repeat_interleave(g)]
     if rng == "per_branch":
         pairs = zip(group_id.tolist(), branch.tolist(), strict=True)
         seeds = [branch_seed(seed, gid, b) for gid, b in pairs]
         states = slots.reseed(states, seeds)
-    run = run_branches(
-        slots,
+    # A batched simulator runs the R x G branches as rows of one rollout on its device;
+    # other envs run them on their worker slots.
+    engine = (
+        functools.partial(run_batched_branches, slots.env)
+        if batched
+        else functools.partial(run_branches, slots)
+    )
+    run = engine(
         policy,
         states,
         horizon,
@@ -83,7 +93,7 @@ def run_groups(
     )
     data = run.data
     mask = run.mask
-    steps = torch.arange(horizon)
+    steps = torch.arange(horizon, device=device)
     data.set(GROUP_ID, group_id.unsqueeze(-1).expand(-1, horizon).clone())
     data.set(BRANCH, branch.unsqueeze(-1).expand(-1, horizon).clone())
     data.set(ROOT_STEP, root_step.unsqueeze(-1).expand(-1, horizon).clone())

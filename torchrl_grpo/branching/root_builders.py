@@ -17,9 +17,9 @@ from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
-from torchrl_grpo.branching._engine import Policy, run_branches
-from torchrl_grpo.branching._slots import EnvSlots
+from torchrl_grpo.branching.engine import Policy, run_branches
 from torchrl_grpo.branching.keys import MASK, ROOT_STEP, STATE, STEP_COUNT
+from torchrl_grpo.branching.slots import EnvSlots
 
 __all__ = [
     "as_roots",

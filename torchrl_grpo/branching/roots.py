@@ -20,8 +20,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
-from torchrl_grpo.branching._engine import Policy
-from torchrl_grpo.branching._slots import EnvSlots
+from torchrl_grpo.branching.engine import Policy
 from torchrl_grpo.branching.root_builders import (
     as_roots,
     make_roots,
@@ -31,6 +30,7 @@ from torchrl_grpo.branching.root_builders import (
     run_trunks,
     trunk_roots,
 )
+from torchrl_grpo.branching.slots import EnvSlots
 
 __all__ = [
     "EpisodeStartRoots",

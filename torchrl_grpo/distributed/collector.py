@@ -17,8 +17,8 @@ from torchrl_grpo.branching import MASK, RootKind, RootSource
 from torchrl_grpo.branching.collector_base import GroupCollectorBase
 from torchrl_grpo.branching.continuation import Selection
 from torchrl_grpo.branching.rollout import RngMode
-from torchrl_grpo.distributed._ray import init_ray, require_ray
 from torchrl_grpo.distributed.actor_pool import ActorPool, split_groups
+from torchrl_grpo.distributed.ray_setup import init_ray, require_ray
 
 __all__ = ["RayGroupCollector", "split_groups"]
 

@@ -26,7 +26,6 @@ import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_grpo.branching._slots import EnvSlots
 from torchrl_grpo.branching.keys import (
     BRANCH,
     GROUP_ID,
@@ -34,6 +33,7 @@ from torchrl_grpo.branching.keys import (
     STATE,
     STEP_COUNT,
 )
+from torchrl_grpo.branching.slots import EnvSlots
 
 KeepStates = Literal["none", "final", "all"]
 Policy = Callable[[TensorDictBase], TensorDictBase | None]

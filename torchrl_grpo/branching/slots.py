@@ -71,6 +71,10 @@ class EnvSlots:
         run on a local copy of one worker.
         """
         device = next(iter(states.values(True, True))).device
+        if has_batched_worlds(self.env):
+            # A batched simulator's states live on its device and it checks them itself.
+            self.env.validate_state(states.to(self.env.device))
+            return
         if device.type != "cpu":
             raise StateCorruptedError(f"root states are on {device}; states live on the CPU")
         self._local_env().validate_state(states)
@@ -187,3 +191,14 @@ def _get_state(env: EnvBase) -> TensorDictBase | Sequence[TensorDictBase]:
     while isinstance(env, TransformedEnv) and not hasattr(type(env), "get_state"):
         env = env.base_env
     return env.get_state()
+
+
+def has_batched_worlds(env: EnvBase) -> bool:
+    """Whether ``env``'s batch rows are worlds it restores and steps together.
+
+    Example:
+        >>> from torchrl_grpo.envs import HighwayEnv, TensorHighwayEnv
+        >>> has_batched_worlds(TensorHighwayEnv(num_envs=2)), has_batched_worlds(HighwayEnv())
+        (True, False)
+    """
+    return bool(getattr(env, "batched_worlds", False)) and len(env.batch_size) == 1

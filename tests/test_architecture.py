@@ -1,0 +1,128 @@
+"""The package's floors: imports only go down, and no module imports itself back.
+
+The floors are defined here, once, and drawn in docs/architecture.md. A module may
+import from its own subpackage and from subpackages on lower floors; a cycle among
+modules (lazy imports inside functions included) is refused as well.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parents[1] / "torchrl_grpo"
+
+#: Subpackage -> floor. Ground floor: the simulator and the building blocks of learning.
+FLOORS = {
+    "sim": 0,
+    "modules": 0,
+    "objectives": 0,
+    "envs": 1,
+    "branching": 2,
+    "distributed": 3,
+    "training": 4,
+}
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def modules() -> dict[str, Path]:
+    return {module_name(p): p for p in PACKAGE.rglob("*.py")}
+
+
+def imports(path: Path, known: set[str]) -> set[str]:
+    """The package's modules ``path`` imports (``from a import b``: ``a.b`` when it is a module)."""
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            if node.module.split(".")[0] != "torchrl_grpo":
+                continue
+            for alias in node.names:
+                child = f"{node.module}.{alias.name}"
+                out.add(child if child in known else node.module)
+        elif isinstance(node, ast.Import):
+            out |= {a.name for a in node.names if a.name.split(".")[0] == "torchrl_grpo"}
+    return out
+
+
+def graph() -> dict[str, set[str]]:
+    found = modules()
+    known = set(found)
+    return {name: imports(path, known) & known for name, path in found.items()}
+
+
+def subpackage(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else None
+
+
+def test_every_subpackage_has_a_floor():
+    subpackages = {subpackage(m) for m in modules()} - {None}
+    assert subpackages == set(FLOORS), "give every subpackage a floor in FLOORS"
+
+
+def test_imports_only_go_down():
+    upward = []
+    for source, targets in graph().items():
+        here = subpackage(source)
+        for target in targets:
+            there = subpackage(target)
+            if here is None or there is None or here == there:
+                continue
+            if FLOORS[there] >= FLOORS[here]:
+                upward.append(f"{source} -> {target}")
+    assert not upward, "imports that do not go down a floor:\n" + "\n".join(sorted(upward))
+
+
+def test_no_import_cycle():
+    edges = graph()
+    cycles: list[list[str]] = []
+    state: dict[str, int] = {}  # 1: on the path, 2: done
+    path: list[str] = []
+
+    def visit(node: str) -> None:
+        state[node] = 1
+        path.append(node)
+        for nxt in sorted(edges.get(node, ())):
+            if state.get(nxt) == 1:
+                cycles.append(path[path.index(nxt) :] + [nxt])
+            elif nxt not in state:
+                visit(nxt)
+        path.pop()
+        state[node] = 2
+
+    for node in sorted(edges):
+        if node not in state:
+            visit(node)
+    assert not cycles, "import cycles:\n" + "\n".join(" -> ".join(c) for c in cycles)
+
+
+def test_the_simulator_imports_only_torch_and_tensordict():
+    allowed = {"torch", "tensordict", "torchrl_grpo", "__future__"}
+    stdlib = {"math", "typing", "dataclasses", "collections", "functools", "numbers"}
+    strays = []
+    for path in (PACKAGE / "sim").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = []
+            if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            for name in names:
+                root = name.split(".")[0]
+                if root not in allowed | stdlib or (
+                    root == "torchrl_grpo" and not name.startswith("torchrl_grpo.sim")
+                ):
+                    strays.append(f"{path.name}: {name}")
+    assert not strays, strays
+
+
+def test_the_checker_sees_an_upward_import(tmp_path):
+    # The same scan on a made-up pair of modules: envs importing training is refused.
+    a = tmp_path / "a.py"
+    a.write_text("from torchrl_grpo.training import Trainer\n")
+    found = imports(a, {"torchrl_grpo.training"})
+    assert found == {"torchrl_grpo.training"} and FLOORS["training"] > FLOORS["envs"]
