@@ -15,7 +15,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from torchrl_grpo.training import Trainer, register_configs
+from torchrl_grpo.training import Trainer, register_configs, resume_config
 
 register_configs()
 CONF = str(Path(__file__).resolve().parents[1] / "conf")
@@ -25,7 +25,14 @@ CONF = str(Path(__file__).resolve().parents[1] / "conf")
 def main(cfg: DictConfig) -> float:
     """Train, evaluate, and print where the outputs are."""
     logging.getLogger("torchrl_grpo").setLevel(logging.INFO)
-    run_dir = cfg.experiment.out_dir or HydraConfig.get().runtime.output_dir
+    hydra_cfg = HydraConfig.get()
+    if cfg.get("resume"):
+        # The checkpoint's config, the command line's overrides on top; the run goes on
+        # writing into its own folder.
+        cfg = resume_config(cfg, list(hydra_cfg.overrides.task), conf_dir=CONF)
+    run_dir = cfg.experiment.out_dir or (
+        Path(cfg.resume).parent if cfg.get("resume") else hydra_cfg.runtime.output_dir
+    )
     result = Trainer(cfg, run_dir=run_dir).train()
     status = "interrupted (Ctrl-C)" if result.interrupted else "done"
     print(f"\n{status}: {result.frames} env frames, {result.iterations} iterations")

@@ -18,7 +18,7 @@ from torchrl_grpo.branching import (
     reset_roots,
     shutdown_env,
 )
-from torchrl_grpo.branching._slots import EnvSlots
+from torchrl_grpo.branching.slots import EnvSlots
 from torchrl_grpo.envs import states_equal
 
 

@@ -142,6 +142,8 @@ def test_resume_restores_the_lagging_tail_policy(tmp_path):
         "algo.first_action=enumerate",
         "algo.trunk=greedy",
         "algo.tail_sync_batches=2",
+        "algo.tail_policy=learner",
+        "algo.replay_groups=null",
     ]
     stopped = _train(tmp_path, "stopped", [*common, "experiment.total_frames=70"])
     assert stopped.iteration == 3
@@ -258,16 +260,18 @@ def test_policy_weights_give_the_expected_surrogates_gradient():
 def test_resume_refuses_another_algorithm_or_model(tmp_path):
     _train(tmp_path, "grpo", ["experiment.total_frames=20"])
     resume = f"resume={tmp_path / 'grpo' / 'last.pt'}"
-    cfg = compose_config([*TINY, "algo=ppo", resume])
     with pytest.raises(ValueError, match="algo=grpo_branch"):
-        Trainer(cfg, run_dir=tmp_path / "ppo")
+        compose_config([*TINY, "algo=ppo", resume])
     # Same parameter shapes, another policy: the prior would change it silently.
-    cfg = compose_config([*TINY, "model.prior=rule", resume])
+    with pytest.raises(ValueError, match="model.prior=None, not 'rule'"):
+        compose_config([*TINY, "model.prior=rule", resume])
+    with pytest.raises(ValueError, match="model.kind='scene', not 'mlp'"):
+        compose_config([*TINY, "model=mlp", resume])
+    # The Trainer checks as well, for configs composed elsewhere.
+    cfg = compose_config([*TINY, resume])
+    cfg.model.prior = "rule"
     with pytest.raises(ValueError, match="model.prior=None, not 'rule'"):
         Trainer(cfg, run_dir=tmp_path / "prior")
-    cfg = compose_config([*TINY, "model=scene", resume])
-    with pytest.raises(ValueError, match="model.kind='mlp', not 'scene'"):
-        Trainer(cfg, run_dir=tmp_path / "scene")
     # The run's own model resumes.
     Trainer(compose_config([*TINY, resume]), run_dir=tmp_path / "same")
 
@@ -316,6 +320,10 @@ def test_ctrl_c_saves_and_leaves_no_worker(tmp_path):
     assert "interrupted" in out
     ckpt = load_checkpoint(run_dir / "last.pt")
     assert 0 < ckpt["frames"] < 100000
-    # Every process of the session (the trainer and its env worker) is gone.
+    # Every process of the session (the trainer, its env worker, multiprocessing's
+    # resource tracker) is gone, within a few seconds of the trainer's exit.
+    deadline = time.monotonic() + 20
     with pytest.raises(ProcessLookupError):
-        os.killpg(proc.pid, 0)
+        while time.monotonic() < deadline:
+            os.killpg(proc.pid, 0)
+            time.sleep(0.2)

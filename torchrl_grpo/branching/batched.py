@@ -23,10 +23,11 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-from torchrl_grpo.branching.engine import BranchRun, KeepStates, Policy
+from torchrl_grpo.branching.engine import BranchRun, KeepStates, Policy, run_branches
 from torchrl_grpo.branching.keys import BRANCH, GROUP_ID, ROOT_STEP, STATE, STEP_COUNT
+from torchrl_grpo.branching.slots import EnvSlots, has_batched_worlds
 
-__all__ = ["run_batched_branches"]
+__all__ = ["run_batched_branches", "run_on"]
 
 
 def _check_actions(td: TensorDictBase, env: EnvBase) -> None:
@@ -176,3 +177,26 @@ def _wave(env, policy, states, rows, horizon, labels, keep, mask, lengths, ended
         filler = data[:, :1].apply(torch.zeros_like).expand(k, horizon - data.shape[1])
         data = torch.cat([data, filler.clone()], 1)
     return data
+
+
+def run_on(
+    slots: EnvSlots, policy: Policy, states: TensorDictBase, horizon: int, **kwargs
+) -> BranchRun:
+    """Run branches on ``slots``' env: rows of one rollout for a batched simulator, else slots.
+
+    The arguments are :func:`run_batched_branches`' (``kwargs``: ``group_id``, ``branch``,
+    ``root_step``, ``keep``, ``exploration_type``).
+
+    Example:
+        >>> from torchrl_grpo.envs import TensorHighwayEnv
+        >>> env = TensorHighwayEnv(num_envs=2, seed=0)
+        >>> zero = torch.zeros(2, dtype=torch.int64)
+        >>> idle = lambda td: td.set("action", torch.ones(2, dtype=torch.int64))
+        >>> run = run_on(EnvSlots(env), idle, env.get_state(), 3, group_id=zero, branch=zero,
+        ...              root_step=zero)
+        >>> run.lengths.tolist()
+        [3, 3]
+    """
+    if has_batched_worlds(slots.env):
+        return run_batched_branches(slots.env, policy, states, horizon, **kwargs)
+    return run_branches(slots, policy, states, horizon, **kwargs)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 from numbers import Integral
 from typing import Literal
 
@@ -11,8 +10,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
-from torchrl_grpo.branching.batched import run_batched_branches
-from torchrl_grpo.branching.engine import BranchRun, Policy, run_branches
+from torchrl_grpo.branching.batched import run_on
+from torchrl_grpo.branching.engine import BranchRun, Policy
 from torchrl_grpo.branching.keys import (
     BRANCH,
     BRANCH_RETURN,
@@ -76,12 +75,8 @@ def run_groups(
         states = slots.reseed(states, seeds)
     # A batched simulator runs the R x G branches as rows of one rollout on its device;
     # other envs run them on their worker slots.
-    engine = (
-        functools.partial(run_batched_branches, slots.env)
-        if batched
-        else functools.partial(run_branches, slots)
-    )
-    run = engine(
+    run = run_on(
+        slots,
         policy,
         states,
         horizon,

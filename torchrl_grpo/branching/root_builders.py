@@ -17,7 +17,8 @@ from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
-from torchrl_grpo.branching.engine import Policy, run_branches
+from torchrl_grpo.branching.batched import run_on
+from torchrl_grpo.branching.engine import Policy
 from torchrl_grpo.branching.keys import MASK, ROOT_STEP, STATE, STEP_COUNT
 from torchrl_grpo.branching.slots import EnvSlots
 
@@ -183,7 +184,7 @@ def run_trunks(
     found = [cur]
     steps_taken = 0
     while cur.shape[0]:
-        run = run_branches(
+        run = run_on(
             slots,
             policy,
             cur.get(STATE),

@@ -20,7 +20,9 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
+from torchrl_grpo.branching.batched import run_on
 from torchrl_grpo.branching.engine import Policy
+from torchrl_grpo.branching.keys import ROOT_STEP, STATE
 from torchrl_grpo.branching.root_builders import (
     as_roots,
     make_roots,
@@ -150,6 +152,10 @@ class TrunkRoots(RootSource):
             also acts on the branches). Give the learner here when the branches act
             through a wrapper that should not drive the trunks, e.g. a
             :class:`~torchrl_grpo.modules.GreedyTail` whose tail is a fixed base policy.
+        live: keep ``num_roots`` trunks alive between batches and advance each by one
+            segment of K steps per batch (an ended trunk is replaced by a new episode),
+            so that every batch's decision points come from the current policy. The
+            default runs whole trunks, W at a time, and queues their decision points.
 
     Attributes:
         trunk_steps: env steps simulated on trunks so far (not part of any batch).
@@ -175,6 +181,7 @@ class TrunkRoots(RootSource):
         max_steps: int | None = None,
         exploration_type: ExplorationType = ExplorationType.RANDOM,
         policy: Policy | None = None,
+        live: bool = False,
     ) -> None:
         if every < 1:
             raise ValueError(f"every must be >= 1, got {every}")
@@ -182,12 +189,15 @@ class TrunkRoots(RootSource):
         self.max_steps = max_steps
         self.exploration_type = exploration_type
         self.policy = policy
+        self.live = live
         self._queue: TensorDict | None = None
         self.trunk_steps = 0
 
     def next_roots(self, env: EnvBase, policy: Policy, num_roots: int) -> TensorDict:
         """Pop ``num_roots`` decision points, running new trunks when the queue is short."""
         slots = EnvSlots(env)
+        if self.live:
+            return self._advance_live(env, slots, policy, num_roots)
         while self._queue is None or self._queue.shape[0] < num_roots:
             starts = self.fresh_roots(env, slots.num_slots)
             new, steps = run_trunks(
@@ -203,6 +213,43 @@ class TrunkRoots(RootSource):
             self._queue = new if self._queue is None else torch.cat([self._queue, new])
         out, self._queue = self._queue[:num_roots], self._queue[num_roots:]
         return out
+
+    def _advance_live(
+        self, env: EnvBase, slots: EnvSlots, policy: Policy, num_roots: int
+    ) -> TensorDict:
+        """One segment of every live trunk; new episodes for the trunks that ended."""
+        live = self._queue
+        if live is None or live.shape[0] != num_roots:
+            self._queue = self.fresh_roots(env, num_roots)
+            return self._queue.clone()
+        n = live.shape[0]
+        run = run_on(
+            slots,
+            policy if self.policy is None else self.policy,
+            live.get(STATE),
+            self.every,
+            group_id=torch.arange(n),
+            branch=torch.zeros(n, dtype=torch.long),
+            root_step=live.get(ROOT_STEP),
+            keep="final",
+            exploration_type=self.exploration_type,
+        )
+        self.trunk_steps += int(run.lengths.sum())
+        steps = live.get(ROOT_STEP).to(run.lengths.device) + run.lengths
+        alive = ~run.ended & (run.lengths == self.every)
+        if self.max_steps is not None:
+            alive &= steps < self.max_steps
+        alive = alive.cpu()
+        kept = TensorDict(
+            {
+                STATE: run.final_states[alive.to(run.final_states.device)],
+                ROOT_STEP: steps.cpu()[alive],
+            },
+            batch_size=[int(alive.sum())],
+        )
+        fresh = self.fresh_roots(env, n - kept.shape[0]) if kept.shape[0] < n else None
+        self._queue = kept if fresh is None else torch.cat([kept, fresh.to(kept.device)])
+        return self._queue.clone()
 
     def state_dict(self) -> dict[str, Any]:
         """The seed chain, ``trunk_steps`` and the ``"queue"`` of decision points."""

@@ -201,4 +201,6 @@ def has_batched_worlds(env: EnvBase) -> bool:
         >>> has_batched_worlds(TensorHighwayEnv(num_envs=2)), has_batched_worlds(HighwayEnv())
         (True, False)
     """
-    return bool(getattr(env, "batched_worlds", False)) and len(env.batch_size) == 1
+    # Read on the class: ParallelEnv forwards unknown attributes to its workers and
+    # answers with their list of values.
+    return getattr(type(env), "batched_worlds", False) is True and len(env.batch_size) == 1

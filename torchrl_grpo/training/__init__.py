@@ -22,6 +22,7 @@ from torchrl_grpo.training.collect import (
     load_collector_state,
     make_collector,
 )
+from torchrl_grpo.training.compose import compose_config, resume_config
 from torchrl_grpo.training.config import (
     Config,
     EnvConfig,
@@ -31,7 +32,6 @@ from torchrl_grpo.training.config import (
     OptimConfig,
     RolloutConfig,
     check_config,
-    compose_config,
     register_configs,
     to_container,
     typed_config,
@@ -82,6 +82,7 @@ __all__ = [
     "check_config",
     "collector_state",
     "compose_config",
+    "resume_config",
     "env_frames",
     "evaluate",
     "format_table",

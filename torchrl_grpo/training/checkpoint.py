@@ -172,6 +172,8 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
 
     Raises:
         FileNotFoundError: naming the path.
+        ValueError: ``not a valid checkpoint: PATH``, for a truncated file or one that
+            is not a checkpoint.
 
     Example:
         >>> import tempfile
@@ -189,7 +191,13 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}")
-    return torch.load(path, map_location="cpu", weights_only=False)
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # torch raises OSError, UnpicklingError, RuntimeError, ...
+        raise ValueError(f"not a valid checkpoint: {path} ({type(err).__name__})") from err
+    if not isinstance(payload, dict):
+        raise ValueError(f"not a valid checkpoint: {path} (holds a {type(payload).__name__})")
+    return payload
 
 
 def changed_keys(saved: Any, current: Any, prefix: str = "") -> dict[str, tuple[Any, Any]]:
@@ -222,7 +230,8 @@ def check_resumable(path: str | Path, saved: dict[str, Any], current: dict[str, 
         ValueError: naming the keys that differ.
 
     Example:
-        >>> saved = {"algo": {"name": "ppo"}, "model": {"kind": "mlp", "prior": None}}
+        >>> saved = {"algo": {"name": "ppo"}, "env": {"scenario": "merge-v0"},
+        ...          "model": {"kind": "mlp", "prior": None}}
         >>> try:
         ...     check_resumable("last.pt", saved, {**saved, "model": {"kind": "scene"}})
         ... except ValueError as err:
@@ -234,6 +243,14 @@ def check_resumable(path: str | Path, saved: dict[str, Any], current: dict[str, 
             f"resume={path} was written by algo={saved['algo']['name']}, "
             f"not algo={current['algo']['name']}"
         )
+    # The simulator's states in the checkpoint (queued roots, live episodes) exist only
+    # in the env they were taken in.
+    for key in ("scenario", "config"):
+        if saved["env"].get(key) != current["env"].get(key):
+            raise ValueError(
+                f"resume={path} was written on another env: env.{key}="
+                f"{saved['env'].get(key)!r}, not {current['env'].get(key)!r}"
+            )
     # The parameters fit only the network they were trained in; a prior that changed
     # would load them silently into another policy.
     changed = changed_keys(saved["model"], current["model"])

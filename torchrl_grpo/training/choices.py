@@ -24,7 +24,7 @@ from torchrl_grpo import branching
 from torchrl_grpo.modules.greedy_tail import FirstAction
 from torchrl_grpo.objectives import Aggregation, BootstrapMode, KLEstimator
 from torchrl_grpo.objectives.advantage import Baseline, Returns, RewardScaling
-from torchrl_grpo.training.env_builder import RolloutBackend
+from torchrl_grpo.training.env_builder import EnvBackend, RolloutBackend
 from torchrl_grpo.training.logging_builder import LoggerKind, WandbRunMode
 from torchrl_grpo.training.model_builder import BasePolicyName, ModelArchitecture
 
@@ -33,6 +33,7 @@ __all__ = [
     "Backend",
     "BaselineName",
     "BootstrapName",
+    "EnvBackendName",
     "FirstActionName",
     "KLEstimatorName",
     "LoggerBackend",
@@ -143,6 +144,11 @@ Backend = _choices(
     "Backend",
     RolloutBackend,
     "How the rollout workers run (``ray``: GRPO groups on Ray actors, see ``rollout.ray``).",
+)
+EnvBackendName = _choices(
+    "EnvBackendName",
+    EnvBackend,
+    "The simulator training runs on: tensor, highway, or auto (tensor where it covers the config).",
 )
 WorkerBackend = _choices("WorkerBackend", branching.Backend, "How each Ray actor runs its workers.")
 LoggerBackend = _choices("LoggerBackend", LoggerKind, "Where metrics go.")

@@ -88,7 +88,8 @@ def make_collector(
         base_tail = str(algo.get("tail_policy", "learner")) != "learner"
         greedy_trunk = str(algo.get("trunk", "sample")) == "greedy"
         source = "continue" if roots == "continuation" else roots
-        if roots == "trunk" and (greedy_trunk or base_tail):
+        live = bool(rollout.get("live_trunks", False))
+        if roots == "trunk" and (greedy_trunk or base_tail or live):
             # Greedy: decision points on the states the evaluated policy visits.
             source = TrunkRoots(
                 int(rollout.decision_interval),
@@ -96,6 +97,7 @@ def make_collector(
                     ExplorationType.DETERMINISTIC if greedy_trunk else ExplorationType.RANDOM
                 ),
                 policy=learner if base_tail else None,
+                live=live,
             )
         if str(rollout.get("backend")) == "ray":
             if env is not None:

@@ -26,12 +26,11 @@ Example:
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from hydra import compose, initialize_config_dir
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
@@ -50,6 +49,7 @@ from torchrl_grpo.training.choices import (
     Backend,
     BaselineName,
     BootstrapName,
+    EnvBackendName,
     FirstActionName,
     KLEstimatorName,
     LoggerBackend,
@@ -98,7 +98,6 @@ __all__ = [
     "WandbMode",
     "WorkerBackend",
     "check_config",
-    "compose_config",
     "register_configs",
     "to_container",
     "typed_config",
@@ -131,6 +130,8 @@ class EnvConfig:
     scenario: str = MISSING
     config: dict[str, Any] = field(default_factory=dict)
     max_episode_steps: int = 1000
+    backend: EnvBackendName = EnvBackendName["auto"]
+    num_envs: int = 1280
 
 
 @dataclass
@@ -201,6 +202,7 @@ class RolloutConfig:
     horizon: int = 8
     decision_interval: int = 4
     groups_per_batch: int = 8
+    live_trunks: bool = False
     frames_per_batch: int = 512
     num_workers: int = 1
     backend: Backend = Backend.single
@@ -278,8 +280,7 @@ class Config:
 
     Example:
         >>> import pathlib
-        >>> from hydra import compose, initialize_config_dir
-        >>> import torchrl_grpo
+        >>>         >>> import torchrl_grpo
         >>> conf = pathlib.Path(torchrl_grpo.__file__).parents[1] / "conf"
         >>> _ = register_configs()
         >>> with initialize_config_dir(str(conf), version_base=None):
@@ -298,6 +299,7 @@ class Config:
     logger: LoggerConfig = MISSING
     experiment: ExperimentConfig = MISSING
     seed: int = 0
+    device: str = "cpu"
     resume: str | None = None
 
 
@@ -348,23 +350,6 @@ def register_configs() -> ConfigStore:
     for algorithm in set(ALGORITHMS.values()):
         cs.store(group="algo", name=algorithm.config_name, node=algorithm.config_class)
     return cs
-
-
-def compose_config(
-    overrides: Sequence[str] = (), config_name: str = "config", conf_dir: str | Path = CONF_DIR
-) -> DictConfig:
-    """Compose ``conf/<config_name>.yaml`` with ``overrides``, as ``scripts/train.py`` does.
-
-    Registers the schemas first (:func:`register_configs`).
-
-    Example:
-        >>> cfg = compose_config(["algo=ppo", "env=merge"])
-        >>> str(cfg.algo.name), cfg.env.scenario, OmegaConf.get_type(cfg.algo).__name__
-        ('ppo', 'merge-v0', 'PPOConfig')
-    """
-    register_configs()
-    with initialize_config_dir(str(Path(conf_dir).resolve()), version_base=None):
-        return compose(config_name, overrides=list(overrides))
 
 
 def typed_config(container: Mapping[str, Any]) -> DictConfig:

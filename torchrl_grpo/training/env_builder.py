@@ -2,17 +2,22 @@
 
 from __future__ import annotations
 
+import logging
 from typing import Any, Literal
 
+import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.envs import EnvBase
 
 from torchrl_grpo.branching import Backend, make_branch_env
-from torchrl_grpo.envs import HighwayEnv
+from torchrl_grpo.envs import HighwayEnv, TensorHighwayEnv, check_tensor_config
 from torchrl_grpo.modules import KinematicsLayout
 
 __all__ = [
+    "EnvBackend",
     "RolloutBackend",
+    "check_device",
+    "env_backend",
     "env_overrides",
     "episode_step_limit",
     "make_env",
@@ -24,6 +29,58 @@ __all__ = [
 #: of :func:`~torchrl_grpo.branching.make_branch_env`, or ``"ray"`` (GRPO groups collected
 #: on Ray actors, :class:`~torchrl_grpo.distributed.RayGroupCollector`).
 RolloutBackend = Literal[Backend, "ray"]
+#: The simulator training runs on (``env.backend``): ``tensor`` (the batched simulator,
+#: :class:`~torchrl_grpo.envs.TensorHighwayEnv`), ``highway`` (highway-env itself, on
+#: ``rollout.backend`` workers), or ``auto``: the tensor simulator where it covers the
+#: scenario and config, highway-env elsewhere.
+EnvBackend = Literal["auto", "tensor", "highway"]
+
+log = logging.getLogger(__name__)
+
+
+def env_backend(env_cfg: DictConfig) -> Literal["tensor", "highway"]:
+    """The simulator ``env.backend`` resolves to, logged (with the reason for ``auto``).
+
+    Raises:
+        ValueError: ``env.backend=tensor`` for a scenario or config the tensor simulator
+            does not cover (its own message, naming the key).
+
+    Example:
+        >>> cfg = OmegaConf.create({"scenario": "merge-v0", "config": {}, "backend": "auto"})
+        >>> env_backend(cfg)
+        'highway'
+        >>> env_backend(OmegaConf.merge(cfg, {"scenario": "highway-fast-v0"}))
+        'tensor'
+    """
+    chosen = str(env_cfg.get("backend", "highway"))
+    if chosen == "highway":
+        return "highway"
+    try:
+        check_tensor_config(env_cfg.scenario, env_overrides(env_cfg))
+    except ValueError as err:
+        if chosen == "tensor":
+            raise
+        log.info("env.backend=auto: training on highway-env (%s)", err)
+        return "highway"
+    if chosen == "auto":
+        log.info("env.backend=auto: training on the tensor simulator (%s)", env_cfg.scenario)
+    return "tensor"
+
+
+def check_device(device: str) -> torch.device:
+    """``device`` as a torch device; a clear error for a CUDA device that is not there.
+
+    Example:
+        >>> check_device("cpu")
+        device(type='cpu')
+    """
+    try:
+        found = torch.device(device)
+    except RuntimeError as err:
+        raise ValueError(f"device={device!r} is not a torch device: {err}") from None
+    if found.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device={device!r} was asked for, but torch finds no CUDA device")
+    return found
 
 
 def env_overrides(env_cfg: DictConfig) -> dict[str, Any]:
@@ -69,13 +126,23 @@ def make_env(
 
 
 def make_rollout_env(
-    env_cfg: DictConfig, rollout_cfg: DictConfig, *, snapshots: bool = True, **env_kwargs: Any
+    env_cfg: DictConfig,
+    rollout_cfg: DictConfig,
+    *,
+    snapshots: bool = True,
+    device: str = "cpu",
+    seed: int | None = None,
+    **env_kwargs: Any,
 ) -> EnvBase:
-    """The W training workers (``rollout.num_workers``, ``rollout.backend``).
+    """The env training collects from.
 
-    GRPO branches read every worker's state through shared memory (``snapshots``);
-    PPO's workers write their state after every step instead (``return_state=True``),
-    which lets a checkpoint restore them mid-episode.
+    On the tensor simulator (:func:`env_backend`): one
+    :class:`~torchrl_grpo.envs.TensorHighwayEnv` of ``env.num_envs`` worlds on
+    ``device``, whose rows are the branches (and trunks) of a batch. On highway-env: the
+    W workers of ``rollout.num_workers`` and ``rollout.backend``; GRPO branches read every
+    worker's state through shared memory (``snapshots``); PPO's workers write their state
+    after every step instead (``return_state=True``), which lets a checkpoint restore
+    them mid-episode.
 
     Example:
         >>> env_cfg = OmegaConf.create({"scenario": "merge-v0", "config": {}})
@@ -84,6 +151,15 @@ def make_rollout_env(
         >>> make_rollout_env(env_cfg, rollout).batch_size
         torch.Size([])
     """
+    if env_backend(env_cfg) == "tensor":
+        return TensorHighwayEnv(
+            env_cfg.scenario,
+            env_overrides(env_cfg),
+            num_envs=int(env_cfg.num_envs),
+            device=check_device(device),
+            seed=seed,
+            return_state=bool(env_kwargs.get("return_state", snapshots)),
+        )
     return make_branch_env(
         env_cfg.scenario,
         int(rollout_cfg.num_workers),

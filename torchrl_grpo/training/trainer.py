@@ -37,7 +37,7 @@ from torchrl_grpo.training.checkpoint import (
 )
 from torchrl_grpo.training.collect import collector_state, env_frames, load_collector_state
 from torchrl_grpo.training.config import check_config, to_container, typed_config
-from torchrl_grpo.training.env_builder import make_env
+from torchrl_grpo.training.env_builder import check_device, make_env
 from torchrl_grpo.training.hooks import Hook, default_hooks
 from torchrl_grpo.training.logging_builder import log_metrics, make_logger
 from torchrl_grpo.training.metrics import PhaseTimer, progress_bar, progress_postfix
@@ -133,6 +133,7 @@ class Trainer:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.seed = int(cfg.seed)
         seed_everything(self.seed)
+        check_device(str(cfg.get("device", "cpu")))
         self.eval_env = make_env(cfg.env, seed=self.seed)
         self.policy = make_policy(cfg.model, self.eval_env)
         self.algo = algorithm_for(cfg.algo)(cfg, self.policy, self.eval_env)

@@ -149,7 +149,10 @@ class Algorithm:
         The workers write their simulator state after each step, so that a checkpoint
         restores them mid-episode (:func:`~torchrl_grpo.training.collector_state`).
         """
-        env = make_rollout_env(self.cfg.env, self.cfg.rollout, snapshots=False, return_state=True)
+        cfg = self.cfg
+        env = make_rollout_env(
+            cfg.env, cfg.rollout, snapshots=False, return_state=True, device=cfg.device, seed=seed
+        )
         return make_collector(self.cfg, env, self.policy, seed=seed)
 
     # ---------------------------------------------------------------- per batch

@@ -253,7 +253,9 @@ class GRPO(Algorithm):
         env = None
         if str(cfg.rollout.backend) != "ray":
             # With the Ray backend every actor builds its own env workers.
-            env = make_rollout_env(cfg.env, cfg.rollout, snapshots=True)
+            env = make_rollout_env(
+                cfg.env, cfg.rollout, snapshots=True, device=cfg.device, seed=seed
+            )
         return make_collector(cfg, env, self.policy, seed=seed, tail_policy=self.tail_policy)
 
     def batch_metrics(self, batch: TensorDictBase) -> dict[str, float]:
