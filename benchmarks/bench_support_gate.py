@@ -30,10 +30,10 @@ from torchrl.modules import ProbabilisticActor
 
 from torchrl_grpo.modules import SceneFeatures
 from torchrl_grpo.training import load_checkpoint
+from torchrl_grpo.training.algos.grpo import make_replay  # the buffer the run trained with
 from torchrl_grpo.training.env_builder import make_env, make_layout
 from torchrl_grpo.training.evaluation import evaluate
 from torchrl_grpo.training.model_builder import make_base_policy, make_policy
-from torchrl_grpo.training.trainer import _make_replay  # the buffer the run trained with
 
 
 class SupportGate(nn.Module):
@@ -83,7 +83,7 @@ def load_run(run: Path) -> tuple[DictConfig, EnvBase, ProbabilisticActor, torch.
     """The config, its env, the trained policy, replayed observations and frames of a run."""
     ckpt = load_checkpoint(run / "last.pt")
     cfg = OmegaConf.create(ckpt["config"])
-    replay = _make_replay(cfg.algo)
+    replay = make_replay(cfg.algo)
     if replay is None or ckpt.get("replay") is None:
         raise SystemExit(f"{run} has no replayed groups: train it with algo.replay_groups")
     replay.load_state_dict(ckpt["replay"])

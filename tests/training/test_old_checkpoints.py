@@ -123,6 +123,7 @@ def test_an_old_checkpoint_evaluates_its_own_policy(tmp_path, run):
     env = make_env(env_cfg, seed=0)
     policy = make_policy(OmegaConf.create(ckpt["config"]["model"]), env)
     policy.load_state_dict(ckpt["policy"])
-    seed = ckpt["config"]["experiment"]["eval_seed"]
+    # The final evaluation's seeds (20000 for configs older than the key).
+    seed = typed_config(ckpt["config"]).experiment.final_eval_seed
     expected, _ = evaluate(env, policy, episodes=2, seed=seed, max_steps=env_cfg.max_episode_steps)
     assert (trained.returns, trained.seeds) == (expected.returns, expected.seeds)

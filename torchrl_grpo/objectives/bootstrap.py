@@ -7,6 +7,7 @@ runs before the group-relative advantage, which then reads the training reward.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields, replace
 from typing import Literal
 
@@ -38,6 +39,10 @@ class HorizonBootstrap(TensorDictModuleBase):
             ``duration`` times its ``policy_frequency``).
         mode: ``"batch_mean"`` (the tail above) or ``"none"`` (the training reward is a
             copy of the env's).
+        termination_penalty: subtracted from the training reward of a step where the
+            env ended the episode (in highway-env a crash, or leaving the road with
+            ``offroad_terminal``): shaping that makes a crash cost more than the reward
+            it forfeits. ``0`` (the default) adds nothing.
 
     Keys (change them with :meth:`set_keys`): ``reward`` (``("next", "reward")``),
     ``terminated`` (``("next", "terminated")``), ``mask`` (``"mask"``: valid steps),
@@ -68,6 +73,9 @@ class HorizonBootstrap(TensorDictModuleBase):
                 [1.0000, 0.0000, 0.0000]])
         >>> out["bootstrap"].sum((-2, -1))  # the tail of each branch
         tensor([2.4000, 0.0000])
+        >>> out = HorizonBootstrap(step_limit=10, termination_penalty=5.0)(td)
+        >>> out["next", "train_reward"].squeeze(-1)[1]  # the crash costs 5 more
+        tensor([ 1., -5.,  0.])
     """
 
     @dataclass
@@ -92,8 +100,15 @@ class HorizonBootstrap(TensorDictModuleBase):
 
     default_keys = _AcceptedKeys
 
-    def __init__(self, step_limit: int, mode: BootstrapMode = "batch_mean") -> None:
+    def __init__(
+        self, step_limit: int, mode: BootstrapMode = "batch_mean", termination_penalty: float = 0.0
+    ) -> None:
         super().__init__()
+        if not math.isfinite(termination_penalty) or termination_penalty < 0:
+            raise ValueError(
+                f"termination_penalty must be a finite number >= 0, got {termination_penalty}."
+            )
+        self.termination_penalty = float(termination_penalty)
         if mode not in ("none", "batch_mean"):
             raise ValueError(f"mode must be 'none' or 'batch_mean', got {mode!r}.")
         if step_limit < 1:
@@ -146,9 +161,17 @@ class HorizonBootstrap(TensorDictModuleBase):
             tail = (rate * left * (~ended_by_env & (lengths > 0))).unsqueeze(-1)
             train.view(shape).scatter_add_(-1, last, tail.to(train.dtype))
             bonus.view(shape).scatter_(-1, last, tail.to(bonus.dtype))
+        if self.termination_penalty and bool(mask.any()):
+            ended = tensordict.get(keys.terminated).reshape(shape) & mask
+            penalty = (self.termination_penalty * ended).to(train.dtype)
+            train.view(shape).sub_(penalty)
+            bonus.view(shape).sub_(penalty.to(bonus.dtype))
         tensordict.set(keys.train_reward, train)
         tensordict.set(keys.bootstrap, bonus)
         return tensordict
 
     def extra_repr(self) -> str:  # noqa: D102
-        return f"step_limit={self.step_limit}, mode={self.mode!r}"
+        return (
+            f"step_limit={self.step_limit}, mode={self.mode!r}, "
+            f"termination_penalty={self.termination_penalty}"
+        )

@@ -15,12 +15,14 @@ from torchrl_grpo.training.algos import (
     algorithm_for,
     register_algorithm,
 )
+from torchrl_grpo.training.baselines import evaluate_baselines
 from torchrl_grpo.training.checkpoint import load_checkpoint, save_checkpoint
 from torchrl_grpo.training.collect import (
     collector_state,
     env_frames,
     load_collector_state,
     make_collector,
+    world_steps,
 )
 from torchrl_grpo.training.compose import compose_config, resume_config
 from torchrl_grpo.training.config import (
@@ -52,26 +54,27 @@ from torchrl_grpo.training.optim_builder import make_optimizer
 from torchrl_grpo.training.plots import plot_comparison, plot_learning_curve, save_gif
 from torchrl_grpo.training.results import EvalResult, format_table
 from torchrl_grpo.training.trainer import Trainer, TrainResult
+from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
 
 __all__ = [
     "ALGORITHMS",
-    "BASELINE_LABELS",
-    "GRPO",
-    "PPO",
     "AlgoConfig",
     "Algorithm",
+    "BASELINE_LABELS",
     "CheckpointHook",
     "Config",
     "EnvConfig",
     "EvalResult",
     "EvaluationHook",
     "ExperimentConfig",
+    "GRPO",
     "GRPOConfig",
     "GroupPlotHook",
     "Hook",
     "LoggerConfig",
     "ModelConfig",
     "OptimConfig",
+    "PPO",
     "PPOConfig",
     "PhaseTimer",
     "RolloutConfig",
@@ -82,9 +85,10 @@ __all__ = [
     "check_config",
     "collector_state",
     "compose_config",
-    "resume_config",
     "env_frames",
     "evaluate",
+    "evaluate_baselines",
+    "evaluate_on_tensor",
     "format_table",
     "is_grpo",
     "load_checkpoint",
@@ -103,12 +107,15 @@ __all__ = [
     "make_reference_sync",
     "make_rollout_env",
     "make_value",
+    "paired_gap",
     "plot_comparison",
     "plot_learning_curve",
     "register_algorithm",
     "register_configs",
+    "resume_config",
     "save_checkpoint",
     "save_gif",
     "to_container",
     "typed_config",
+    "world_steps",
 ]

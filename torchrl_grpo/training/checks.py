@@ -47,6 +47,9 @@ def check_config(cfg: DictConfig) -> None:
     rollout = _group(cfg, "rollout")
     if rollout is not None:
         _check_rollout(rollout)
+    experiment = _group(cfg, "experiment")
+    if experiment is not None:
+        _check_eval_seeds(experiment)
     algo = _group(cfg, "algo")
     if algo is not None:
         algorithm_for(algo).check_config(cfg)
@@ -103,4 +106,21 @@ def _check_rollout(rollout: DictConfig) -> None:
         raise ValueError(
             f"rollout.ray.workers_per_actor must be 1 with rollout.ray.env_backend=single, "
             f"got {ray.workers_per_actor}"
+        )
+
+
+def _check_eval_seeds(exp: DictConfig) -> None:
+    """The periodic evaluation's seeds and the final one's are disjoint sets."""
+    keys = ("eval_seed", "eval_episodes", "final_eval_seed", "final_eval_episodes")
+    if any(k not in exp or OmegaConf.is_missing(exp, k) for k in keys):
+        return
+    periodic = range(int(exp.eval_seed), int(exp.eval_seed) + int(exp.eval_episodes))
+    final = range(int(exp.final_eval_seed), int(exp.final_eval_seed) + int(exp.final_eval_episodes))
+    shared = range(max(periodic.start, final.start), min(periodic.stop, final.stop))
+    if len(periodic) and len(final) and len(shared):
+        raise ValueError(
+            f"experiment.eval_seed and experiment.final_eval_seed overlap: the periodic "
+            f"evaluation's seeds {periodic.start}..{periodic.stop - 1} and the final one's "
+            f"{final.start}..{final.stop - 1} share {shared.start}..{shared.stop - 1}; the "
+            "final evaluation must drive episodes the run never selected on"
         )

@@ -33,6 +33,7 @@ from torchrl_grpo.training.env_builder import env_overrides
 __all__ = [
     "collector_state",
     "env_frames",
+    "world_steps",
     "load_collector_state",
     "make_collector",
     "make_ray_collector",
@@ -196,6 +197,24 @@ def env_frames(collector: BaseCollector) -> int:
     """
     frames = int(getattr(collector, "frames", getattr(collector, "_frames", 0)))
     return frames + int(getattr(collector, "trunk_frames", 0))
+
+
+def world_steps(collector: BaseCollector) -> int | None:
+    """Worlds the collector's batched simulator has stepped, masked rows included, or ``None``.
+
+    A frame is a step of a world that is not masked out; a batched simulator steps
+    every row of its batch, so its throughput counts those too.
+
+    Example:
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> from torchrl_grpo.modules import ConstantActionPolicy
+        >>> collector = GroupCollector(HighwayEnv("merge-v0"), ConstantActionPolicy("IDLE"),
+        ...                            group_size=2, horizon=2, groups_per_batch=1, seed=0)
+        >>> world_steps(collector) is None
+        True
+    """
+    steps = getattr(getattr(collector, "env", None), "world_steps", None)
+    return None if steps is None else int(steps)
 
 
 def collector_state(collector: BaseCollector) -> dict[str, Any]:

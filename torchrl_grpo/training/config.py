@@ -267,7 +267,10 @@ class ExperimentConfig:
     eval_episodes: int = 10
     final_eval_episodes: int = 30
     eval_seed: int = 10_000
+    final_eval_seed: int = 20_000
     baselines: list[str] = field(default_factory=lambda: ["random", "idle", "slower", "rule"])
+    baseline_cache: str | None = "outputs/baselines"
+    transfer_gap: bool = True
     checkpoint_every: int = 10
     plot_every: int = 10
     progress_bar: bool = True
@@ -280,7 +283,8 @@ class Config:
 
     Example:
         >>> import pathlib
-        >>>         >>> import torchrl_grpo
+        >>> from hydra import compose, initialize_config_dir
+        >>> import torchrl_grpo
         >>> conf = pathlib.Path(torchrl_grpo.__file__).parents[1] / "conf"
         >>> _ = register_configs()
         >>> with initialize_config_dir(str(conf), version_base=None):

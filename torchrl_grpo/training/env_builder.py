@@ -23,6 +23,7 @@ __all__ = [
     "make_env",
     "make_layout",
     "make_rollout_env",
+    "tensor_covers",
 ]
 
 #: How the rollout workers run (``rollout.backend``): a :data:`~torchrl_grpo.branching.Backend`
@@ -65,6 +66,20 @@ def env_backend(env_cfg: DictConfig) -> Literal["tensor", "highway"]:
     if chosen == "auto":
         log.info("env.backend=auto: training on the tensor simulator (%s)", env_cfg.scenario)
     return "tensor"
+
+
+def tensor_covers(env_cfg: DictConfig) -> bool:
+    """Whether the tensor simulator covers ``env_cfg``'s scenario and config.
+
+    Example:
+        >>> tensor_covers(OmegaConf.create({"scenario": "merge-v0", "config": {}}))
+        False
+    """
+    try:
+        check_tensor_config(env_cfg.scenario, env_overrides(env_cfg))
+    except ValueError:
+        return False
+    return True
 
 
 def check_device(device: str) -> torch.device:

@@ -208,7 +208,7 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
         env_cfg = run_cfg.env
         history = list(ckpt.get("eval_history") or [])
         if seed is None:
-            seed = int(run_cfg.experiment.eval_seed)
+            seed = int(run_cfg.experiment.final_eval_seed)
     seed = 10_000 if seed is None else int(seed)
     env = make_env(env_cfg, seed=seed)
     max_steps = int(env_cfg.get("max_episode_steps", 1000))

@@ -21,12 +21,14 @@ from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 
 from torchrl_grpo.branching import BRANCH_RETURN, plot_group
+from torchrl_grpo.training.baselines import evaluate_baselines
 from torchrl_grpo.training.checkpoint import Progress
-from torchrl_grpo.training.env_builder import make_env, make_layout
-from torchrl_grpo.training.evaluation import BASELINE_LABELS, baseline_policy, evaluate
+from torchrl_grpo.training.env_builder import make_env, tensor_covers
+from torchrl_grpo.training.evaluation import evaluate
 from torchrl_grpo.training.logging_builder import log_metrics, log_video
 from torchrl_grpo.training.plots import plot_learning_curve, save_gif
 from torchrl_grpo.training.results import EvalResult, format_table
+from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
 
 __all__ = [
     "CheckpointHook",
@@ -169,11 +171,14 @@ class CheckpointHook(Hook):
 class EvaluationHook(Hook):
     """Deterministic evaluations during training, and the final one beside the baselines.
 
-    Every ``experiment.eval_every`` iterations: ``eval_episodes`` episodes (``eval/``
-    metrics, a row of ``eval_history.jsonl``). At the end: ``final_eval_episodes``
-    episodes of the policy and of every baseline of ``experiment.baselines`` on the
-    same seeds (``results.md``, ``results.json``), the first episode as a GIF (with
-    ``logger.video``), and the learning curve of the evaluation history.
+    Every ``experiment.eval_every`` iterations: ``eval_episodes`` episodes from
+    ``eval_seed`` (``eval/`` metrics, a row of ``eval_history.jsonl``). At the end:
+    ``final_eval_episodes`` episodes from ``final_eval_seed`` (a disjoint seed set) of
+    the policy and of every baseline of ``experiment.baselines``, the baselines from
+    their cache (:func:`~torchrl_grpo.training.evaluate_baselines`; ``results.md``,
+    ``results.json``), the first episode as a GIF (with ``logger.video``), and the
+    learning curve of the evaluation history. Where the tensor simulator covers the env,
+    each evaluation also logs the paired transfer gap (``transfer/`` metrics).
 
     Example:
         >>> hook = EvaluationHook()
@@ -193,12 +198,18 @@ class EvaluationHook(Hook):
     def on_iteration(  # noqa: D102
         self, trainer: TrainerView, batch: TensorDictBase, result: Any
     ) -> dict[str, float]:
-        return self.evaluate(trainer, int(trainer.cfg.experiment.eval_episodes))[0]
+        exp = trainer.cfg.experiment
+        return self.evaluate(trainer, int(exp.eval_episodes), int(exp.eval_seed))[0]
 
     def evaluate(
-        self, trainer: TrainerView, episodes: int, record: bool = False
+        self, trainer: TrainerView, episodes: int, seed: int, record: bool = False
     ) -> tuple[dict[str, float], EvalResult, Any]:
-        """Evaluate the policy, append the row to the history; metrics, results, video."""
+        """Evaluate the policy from ``seed``, add a history row; metrics, results, video.
+
+        Where the tensor simulator covers the env, the same starting worlds are driven
+        there too, and the paired transfer gap joins the metrics
+        (:mod:`~torchrl_grpo.training.transfer`).
+        """
         cfg = trainer.cfg
         if record and self._render is None:
             self._render = make_env(cfg.env, render_mode="rgb_array")
@@ -206,18 +217,25 @@ class EvaluationHook(Hook):
             trainer.eval_env,
             trainer.policy,
             episodes=episodes,
-            seed=int(cfg.experiment.eval_seed),
+            seed=seed,
             max_steps=int(cfg.env.max_episode_steps),
             name=str(cfg.algo.name),
             record=self._render if record else None,
         )
         summary = res.summary()
+        if bool(cfg.experiment.get("transfer_gap", True)) and tensor_covers(cfg.env):
+            tensor = evaluate_on_tensor(cfg.env, trainer.policy, episodes=episodes, seed=seed)
+            summary |= {f"transfer/{k}": v for k, v in paired_gap(res, tensor).items()}
         progress = trainer.progress
         row = {"iteration": progress.iteration, "frames": progress.frames}
         progress.eval_history.append({**row, "wall_seconds": trainer.wall_seconds(), **summary})
         with open(trainer.run_dir / "eval_history.jsonl", "a") as f:
             f.write(json.dumps(progress.eval_history[-1]) + "\n")
-        metrics = {f"eval/{k}": v for k, v in summary.items() if k != "episodes"}
+        metrics = {
+            k if k.startswith("transfer/") else f"eval/{k}": v
+            for k, v in summary.items()
+            if k != "episodes"
+        }
         return metrics, res, video
 
     def on_train_end(self, trainer: TrainerView, result: Any) -> None:  # noqa: D102
@@ -226,17 +244,27 @@ class EvaluationHook(Hook):
         frames = trainer.progress.frames
         video = None
         if episodes > 0:
-            metrics, trained, video = self.evaluate(trainer, episodes, bool(cfg.logger.video))
+            seed = int(exp.final_eval_seed)
+            metrics, trained, video = self.evaluate(trainer, episodes, seed, bool(cfg.logger.video))
             trained.name = f"{cfg.algo.name} (trained)"
-            final = {f"final/{k[5:]}": v for k, v in metrics.items()}
+            final = {f"final/{k.split('/', 1)[1]}": v for k, v in metrics.items()}
             log_metrics(trainer.logger, final, step=frames)
             summary = trainer.progress.eval_history[-1]
             result.final = {k: v for k, v in summary.items() if k != "iteration"}
-            results = [trained, *self._baselines(trainer, episodes)]
+            cache = exp.get("baseline_cache")
+            baselines = evaluate_baselines(
+                cfg.env,
+                list(exp.baselines),
+                episodes=episodes,
+                seed=seed,
+                cache_dir=None if cache is None else Path(str(cache)),
+                policy_seed=trainer.seed,
+            )
+            results = [trained, *baselines]
             table = format_table(results)
             result.results_table = trainer.run_dir / "results.md"
             result.results_table.write_text(
-                f"{cfg.env.scenario}, {episodes} episodes from seed {exp.eval_seed}, "
+                f"{cfg.env.scenario}, {episodes} episodes from seed {seed}, "
                 f"after {frames} env frames\n\n{table}\n"
             )
             result.results_json = trainer.run_dir / "results.json"
@@ -252,28 +280,6 @@ class EvaluationHook(Hook):
                 trainer.run_dir / "learning_curve.png",
                 title=f"{cfg.env.scenario}: deterministic evaluation",
             )
-
-    def _baselines(self, trainer: TrainerView, episodes: int) -> list[EvalResult]:
-        """The scripted baselines of ``experiment.baselines``, on the evaluation's seeds."""
-        cfg = trainer.cfg
-        env = trainer.eval_env
-        layout, n_actions = make_layout(env), int(env.action_spec.n)
-        results = []
-        for name in cfg.experiment.baselines:
-            policy = baseline_policy(name, layout, n_actions, seed=trainer.seed)
-            if policy is None:
-                log.warning("baseline %r does not apply to %s", name, cfg.env.scenario)
-                continue
-            res, _ = evaluate(
-                env,
-                policy,
-                episodes=episodes,
-                seed=int(cfg.experiment.eval_seed),
-                max_steps=int(cfg.env.max_episode_steps),
-                name=BASELINE_LABELS.get(name, name),
-            )
-            results.append(res)
-        return results
 
 
 def default_hooks() -> list[Hook]:

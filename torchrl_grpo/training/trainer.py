@@ -35,7 +35,12 @@ from torchrl_grpo.training.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
-from torchrl_grpo.training.collect import collector_state, env_frames, load_collector_state
+from torchrl_grpo.training.collect import (
+    collector_state,
+    env_frames,
+    load_collector_state,
+    world_steps,
+)
 from torchrl_grpo.training.config import check_config, to_container, typed_config
 from torchrl_grpo.training.env_builder import check_device, make_env
 from torchrl_grpo.training.hooks import Hook, default_hooks
@@ -208,6 +213,7 @@ class Trainer:
             if self._rng_state is not None:
                 set_rng_state(self._rng_state)
             start_frames = env_frames(collector)
+            start_worlds = world_steps(collector)
             data_iter = iter(collector)
             while self.frames < total and not self.stop_requested:
                 t0 = self._iteration_start = time.perf_counter()
@@ -233,6 +239,12 @@ class Trainer:
                 metrics["time/iteration"] = elapsed
                 metrics["time/fps"] = new_frames / max(times.get("time/collect", elapsed), 1e-9)
                 metrics["time/total_fps"] = new_frames / max(elapsed, 1e-9)
+                worlds_now = world_steps(collector)
+                if worlds_now is not None and start_worlds is not None:
+                    # The simulator's own throughput: every row it stepped, masked or not.
+                    collect_time = max(times.get("time/collect", elapsed), 1e-9)
+                    metrics["time/env_steps_per_s"] = (worlds_now - start_worlds) / collect_time
+                    start_worlds = worlds_now
                 metrics["frames/total"] = self.frames
                 metrics["frames/iteration"] = self.iteration
                 metrics["frames/updates"] = self.algo.updates

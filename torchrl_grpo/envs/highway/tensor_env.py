@@ -125,6 +125,8 @@ class TensorHighwayEnv(EnvBase):
         step_fn = functools.partial(step, params=self.params, dense=dense)
         self._step_fn = torch.compile(step_fn, dynamic=False) if compile else step_fn
         self._world = empty_world(num_envs, self.params.num_vehicles, dtype, device)
+        #: Worlds stepped so far, masked rows included (the simulator's throughput).
+        self.world_steps = 0
         self._highway_rng = torch.zeros(num_envs, RNG_WORDS, dtype=torch.int64, device=device)
         self._highway_seed = torch.full((num_envs,), -1, dtype=torch.int64, device=device)
         self._set_seed(int(torch.empty((), dtype=torch.int64).random_()) if seed is None else seed)
@@ -296,6 +298,7 @@ class TensorHighwayEnv(EnvBase):
         if not self._categorical:
             action = action.argmax(-1)
         world, outputs = self._step_fn(self._world, action.to(torch.int64))
+        self.world_steps += self.batch_size[0]
         # TorchRL's partial steps: rows outside the "_step" mask keep their world (their
         # outputs are computed and discarded: one batched step costs the same).
         rows = tensordict.get("_step", None)

@@ -16,7 +16,6 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from torch import nn
 from torchrl.collectors import BaseCollector
-from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import LossModule
@@ -30,6 +29,7 @@ from torchrl_grpo.objectives import (
     ReferenceSync,
 )
 from torchrl_grpo.training.algos.base import AlgoConfig, Algorithm, register_algorithm
+from torchrl_grpo.training.algos.enumerated import make_replay, policy_weighted, replay_rows
 from torchrl_grpo.training.choices import (
     AggregationName,
     BaselineName,
@@ -100,6 +100,7 @@ class GRPOConfig(AlgoConfig):
     select: SelectionName = SelectionName["best"]
     returns: ReturnsName = ReturnsName["branch"]
     bootstrap: BootstrapName = BootstrapName["batch_mean"]
+    crash_penalty: float = 0.0
     baseline: BaselineName = BaselineName["mean"]
     scale_rewards: ScaleRewards = ScaleRewards["group"]
     gamma: float = 1.0
@@ -148,7 +149,9 @@ class GRPO(Algorithm):
         algo = cfg.algo
         self.advantage = self.make_advantage(algo)
         self.bootstrap = HorizonBootstrap(
-            episode_step_limit(env, int(cfg.env.max_episode_steps)), str(algo.bootstrap)
+            episode_step_limit(env, int(cfg.env.max_episode_steps)),
+            str(algo.bootstrap),
+            termination_penalty=float(algo.crash_penalty),
         ).set_keys(train_reward=TRAIN_REWARD)
         self.ref_sync = self.make_reference_sync(algo, self.loss)
         self.tail_policy = _tail_policy(algo, policy, env)
@@ -330,7 +333,7 @@ class GRPO(Algorithm):
         if self.tail_policy is not None and checkpoint.get("tail_policy") is not None:
             self.tail_policy.load_state_dict(checkpoint["tail_policy"])
         if self.replay is not None and checkpoint.get("replay") is not None:
-            saved = _replay_rows(OmegaConf.create(checkpoint["config"]["algo"]))
+            saved = replay_rows(OmegaConf.create(checkpoint["config"]["algo"]))
             if saved != self.replay.storage.max_size:
                 # A loaded storage keeps its saved size: the first write past it would fail.
                 raise ValueError(
@@ -358,43 +361,3 @@ def _tail_policy(algo: DictConfig, policy: nn.Module, env: EnvBase) -> nn.Module
     tail = copy.deepcopy(policy)
     tail.requires_grad_(False)
     return tail
-
-
-def make_replay(algo: DictConfig) -> ReplayBuffer | None:
-    """The FIFO buffer of the trained steps of ``algo.replay_groups`` groups, or ``None``.
-
-    Example:
-        >>> cfg = OmegaConf.create({"replay_groups": 10, "group_size": 5, "explore_steps": 1})
-        >>> make_replay(cfg).storage.max_size
-        50
-    """
-    rows = _replay_rows(algo)
-    return None if rows is None else ReplayBuffer(storage=LazyTensorStorage(rows), batch_size=None)
-
-
-def _replay_rows(algo: DictConfig) -> int | None:
-    """Trained steps the replay holds: one per explored step of each of the groups' branches."""
-    groups = algo.get("replay_groups")
-    if groups is None:
-        return None
-    return int(groups) * int(algo.group_size) * int(algo.explore_steps)
-
-
-def policy_weighted(data: TensorDictBase, n_actions: int) -> TensorDictBase:
-    """Scale each enumerated step's advantage by ``n * pi(a|s)`` (``algo.action_weights``).
-
-    The clipped surrogate is linear in the advantage, so this weighs each action's
-    term by the probability the policy gives it: the sum over a group is then
-    ``n`` times the expected surrogate over all actions of its root.
-
-    Example:
-        >>> from tensordict import TensorDict
-        >>> data = TensorDict(advantage=torch.ones(2, 1),
-        ...                   action_log_prob=torch.tensor([0.5, 0.25]).log(), batch_size=[2])
-        >>> policy_weighted(data, 4)["advantage"].squeeze(-1)
-        tensor([2., 1.])
-    """
-    weight = n_actions * data.get("action_log_prob").exp()
-    advantage = data.get("advantage")
-    weighted = advantage * weight.reshape(advantage.shape)
-    return data.clone(recurse=False).set("advantage", weighted)
