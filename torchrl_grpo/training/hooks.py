@@ -178,7 +178,7 @@ class EvaluationHook(Hook):
     their cache (:func:`~torchrl_grpo.training.evaluate_baselines`; ``results.md``,
     ``results.json``), the first episode as a GIF (with ``logger.video``), and the
     learning curve of the evaluation history. Where the tensor simulator covers the env,
-    each evaluation also logs the paired transfer gap (``transfer/`` metrics).
+    each evaluation also logs the paired transfer gap (``eval/transfer_*`` metrics).
 
     Example:
         >>> hook = EvaluationHook()
@@ -225,17 +225,13 @@ class EvaluationHook(Hook):
         summary = res.summary()
         if bool(cfg.experiment.get("transfer_gap", True)) and tensor_covers(cfg.env):
             tensor = evaluate_on_tensor(cfg.env, trainer.policy, episodes=episodes, seed=seed)
-            summary |= {f"transfer/{k}": v for k, v in paired_gap(res, tensor).items()}
+            summary |= {f"transfer_{k}": v for k, v in paired_gap(res, tensor).items()}
         progress = trainer.progress
         row = {"iteration": progress.iteration, "frames": progress.frames}
         progress.eval_history.append({**row, "wall_seconds": trainer.wall_seconds(), **summary})
         with open(trainer.run_dir / "eval_history.jsonl", "a") as f:
             f.write(json.dumps(progress.eval_history[-1]) + "\n")
-        metrics = {
-            k if k.startswith("transfer/") else f"eval/{k}": v
-            for k, v in summary.items()
-            if k != "episodes"
-        }
+        metrics = {f"eval/{k}": v for k, v in summary.items() if k != "episodes"}
         return metrics, res, video
 
     def on_train_end(self, trainer: TrainerView, result: Any) -> None:  # noqa: D102
