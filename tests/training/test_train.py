@@ -37,7 +37,7 @@ def _csv_scalars(run_dir) -> dict[str, list[float]]:
 
 
 def test_smoke_run_writes_finite_metrics_and_checkpoint(smoke_run):
-    proc, run_dir, _ = smoke_run
+    proc, run_dir, elapsed = smoke_run
     assert proc.returncode == 0, proc.stderr[-3000:]
     # The script ends by telling where everything is.
     for label in ("run folder:", "checkpoint:", "logs:", "results:", "curve:"):
