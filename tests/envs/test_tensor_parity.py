@@ -96,7 +96,13 @@ def test_ladder_on_highway_v0():
     worst = same_world(env, states)
     assert worst["observation"] <= 1e-9 and worst["flags"] == 0
     assert one_step(env, states).agreement >= 0.995
-    reference = json.loads((REFERENCE / "highway-v0.json").read_text())
+    path = REFERENCE / "highway-v0.json"
+    if not path.is_file():
+        pytest.skip(
+            f"rungs a and b passed; rung d needs {path}: python scripts/highway_reference.py "
+            "--scenario highway-v0 --episodes 200 --workers 2"
+        )
+    reference = json.loads(path.read_text())
     table = fresh_resets(
         "highway-v0", reference, reference_policies(env.config), episodes=reference["episodes"]
     )

@@ -27,7 +27,7 @@ from torchrl_grpo.training.env_builder import make_env, tensor_covers
 from torchrl_grpo.training.evaluation import evaluate
 from torchrl_grpo.training.logging_builder import log_metrics, log_video
 from torchrl_grpo.training.plots import plot_learning_curve, save_gif
-from torchrl_grpo.training.results import EvalResult, format_table
+from torchrl_grpo.training.results import EvalResult, compare_paired, format_table
 from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
 
 __all__ = [
@@ -258,15 +258,16 @@ class EvaluationHook(Hook):
             )
             results = [trained, *baselines]
             table = format_table(results)
+            verdicts = "\n".join(compare_paired(trained, b) for b in baselines)
             result.results_table = trainer.run_dir / "results.md"
             result.results_table.write_text(
                 f"{cfg.env.scenario}, {episodes} episodes from seed {seed}, "
-                f"after {frames} env frames\n\n{table}\n"
+                f"after {frames} env frames\n\n{table}\n\n{verdicts}\n"
             )
             result.results_json = trainer.run_dir / "results.json"
             payload = {"frames": frames, "results": [r.to_dict() for r in results]}
             result.results_json.write_text(json.dumps(payload, indent=1))
-            log.info("final evaluation:\n%s", table)
+            log.info("final evaluation:\n%s\n%s", table, verdicts)
         if video is not None:
             result.video = save_gif(video, trainer.run_dir / "eval_episode.gif")
             log_video(trainer.logger, "media/eval_episode", video, step=frames)

@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-__all__ = ["EvalResult", "format_table"]
+__all__ = ["EvalResult", "compare_paired", "format_table"]
 
 
 @dataclass
@@ -95,3 +95,33 @@ def format_table(results: Sequence[EvalResult]) -> str:
             f"{int(s['episodes'])} |"
         )
     return "\n".join(lines)
+
+
+def compare_paired(policy: EvalResult, baseline: EvalResult) -> str:
+    """Whether ``policy`` beats ``baseline`` on the same episodes, as one line.
+
+    "Beats" is paired on the same seeds: a mean return higher by more than two standard
+    errors of the per-episode difference, and a crash rate no higher.
+
+    Raises:
+        ValueError: the results are not of the same seeds.
+
+    Example:
+        >>> a = EvalResult("a", [22.0, 23.0, 24.0], [False] * 3, [30] * 3, [25.0] * 3, [0, 1, 2])
+        >>> b = EvalResult("b", [20.0, 20.5, 21.0], [False] * 3, [30] * 3, [20.0] * 3, [0, 1, 2])
+        >>> print(compare_paired(a, b))
+        a vs b: return +2.50 ± 0.29 (paired, 3 episodes), crash rate 0.0% vs 0.0%: beats b
+    """
+    if policy.seeds != baseline.seeds:
+        raise ValueError(f"{policy.name} and {baseline.name} drove other episodes")
+    diff = np.asarray(policy.returns, np.float64) - np.asarray(baseline.returns, np.float64)
+    n = len(diff)
+    sem = float(diff.std(ddof=1) / math.sqrt(n)) if n > 1 else math.inf
+    mean = float(diff.mean())
+    crash_a, crash_b = float(np.mean(policy.crashed)), float(np.mean(baseline.crashed))
+    beats = mean > 2 * sem and crash_a <= crash_b
+    return (
+        f"{policy.name} vs {baseline.name}: return {mean:+.2f} ± {sem:.2f} (paired, {n} "
+        f"episodes), crash rate {100 * crash_a:.1f}% vs {100 * crash_b:.1f}%: "
+        + (f"beats {baseline.name}" if beats else f"does not beat {baseline.name}")
+    )
