@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 import torch
+
+from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.envs.highway.parity import (
     fresh_resets,
     one_step,
@@ -20,8 +22,6 @@ from torchrl_grpo.envs.highway.parity import (
     same_world,
     whole_episodes,
 )
-
-from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.modules import (
     ConstantActionPolicy,
     KinematicsLayout,

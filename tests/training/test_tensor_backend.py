@@ -170,3 +170,17 @@ def test_the_periodic_and_final_evaluations_use_disjoint_seeds():
         )
     )
     assert not periodic & final
+
+
+def test_the_lookahead_baseline_is_the_planner_over_the_rule_policy(tmp_path):
+    from torchrl_grpo.branching import LookaheadPolicy
+
+    cfg = OmegaConf.create({"scenario": "highway-fast-v0", "config": {}, "max_episode_steps": 2})
+    [planner] = evaluate_baselines(cfg, ["lookahead"], episodes=1, seed=3, cache_dir=tmp_path)
+    assert planner.name == "lookahead planner" and planner.lengths == [2]
+    # The same episode planned by hand.
+    env = make_env(cfg, return_state=True)
+    rule = make_scripted_policy("rule", make_layout(env))
+    by_hand = LookaheadPolicy(make_env(cfg), rule, horizon=baselines_module.LOOKAHEAD_HORIZON)
+    expected, _ = evaluate(env, by_hand, episodes=1, seed=3, max_steps=2)
+    assert planner.returns == expected.returns
