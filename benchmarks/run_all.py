@@ -39,6 +39,7 @@ ROOT = HERE.parent
 SCRIPTS: dict[str, tuple[str, list[str], str]] = {
     "env": ("bench_env.py", [], "env overhead, snapshot + restore, state size"),
     "branching": ("bench_branching.py", [], "branch throughput against workers"),
+    "ceiling": ("bench_ceiling.py", [], "branch workers against raw highway-env processes"),
     "loss": ("bench_loss.py", [], "GRPOLoss against ClipPPOLoss"),
     "ray": ("bench_ray.py", [], "groups/s on Ray against the local collector"),
 }
@@ -105,6 +106,9 @@ def page(rows: list[dict], runs: list[dict], started: str) -> str:
         lines.append(
             f"| `{run['command']}` | {run['what']} | {run['exit']} | {run['seconds']:.0f} |"
         )
+    # Hand-written sections (profiles, analyses) follow the measured table.
+    for notes in sorted((HERE / "notes").glob("*.md")):
+        lines += ["", notes.read_text().rstrip()]
     failed = [run for run in runs if run["exit"] != 0]
     for run in failed:
         lines += ["", f"### `{run['command']}` failed", "", "```", run["tail"], "```"]

@@ -150,9 +150,13 @@ def test_branch_fast_paths_match_torchrl_reset_and_step(highway_parallel, return
 
 def test_sleeping_wait_learns_the_wait_lengths(highway_parallel):
     # After a few steps, a step's wait starts with one long sleep: a handful of
-    # wake-ups per wait instead of one every 0.5 ms.
+    # wake-ups per wait instead of one every 0.5 ms (the lock-step path: no lanes).
     roots = reset_roots(plain_env("highway-fast-v0"), 1, seed=0)
-    branch_rollout(highway_parallel, ScheduledPolicy(torch.ones(2, 4)), roots, 2, 4)
+    highway_parallel.branch_lanes = 0
+    try:
+        branch_rollout(highway_parallel, ScheduledPolicy(torch.ones(2, 4)), roots, 2, 4)
+    finally:
+        del highway_parallel.branch_lanes
     recent = highway_parallel.__dict__["_recent_waits"]
     assert recent["step"] > 0 and recent["restore"] > 0
     assert highway_parallel.__dict__.get("_wait_kind") is None

@@ -25,6 +25,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from torchrl_grpo.branching.engine import BranchRun, KeepStates, Policy, run_branches
 from torchrl_grpo.branching.keys import BRANCH, GROUP_ID, ROOT_STEP, STATE, STEP_COUNT
+from torchrl_grpo.branching.pipelined import run_pipelined
 from torchrl_grpo.branching.slots import EnvSlots, has_batched_worlds
 
 __all__ = ["run_batched_branches", "run_on"]
@@ -199,4 +200,6 @@ def run_on(
     """
     if has_batched_worlds(slots.env):
         return run_batched_branches(slots.env, policy, states, horizon, **kwargs)
+    if slots.pipelined:
+        return run_pipelined(slots, policy, states, horizon, **kwargs)
     return run_branches(slots, policy, states, horizon, **kwargs)

@@ -58,7 +58,7 @@ class BranchRun:
     final_states: TensorDictBase | None
 
 
-class _Rows:
+class StepRows:
     """Preallocated ``[size, ...]`` leaves, filled by index from ``[W, ...]`` tensordicts.
 
     The first tensordict written fixes the keys, shapes and dtypes (its leaves minus
@@ -124,9 +124,9 @@ def run_branches(
     final = states.clone() if keep != "none" else None
     want_states = keep != "none"
     # The policy's input and output (minus what a step adds), and the step's "next".
-    root_rows = _Rows(size, skip=(STATE, "next", "_step"))
-    next_rows = _Rows(size, skip=(STATE,))
-    state_rows = (_Rows(size), _Rows(size)) if keep == "all" else None
+    root_rows = StepRows(size, skip=(STATE, "next", "_step"))
+    next_rows = StepRows(size, skip=(STATE,))
+    state_rows = (StepRows(size), StepRows(size)) if keep == "all" else None
     slot_state: TensorDictBase | None = None
     cur: TensorDictBase | None = None
     next_branch = 0
@@ -162,7 +162,7 @@ def run_branches(
             td.set(STEP_COUNT, (root_step[idx] + slot_t).unsqueeze(-1))
             out = policy(td)
             td = td if out is None else out
-            _check_actions(td, slots)
+            check_actions(td, slots)
             b = slot_branch if rows_idx is None else slot_branch[rows_idx]
             t = slot_t if rows_idx is None else slot_t[rows_idx]
             where = b * horizon + t
@@ -221,7 +221,7 @@ def _advance(cur: TensorDictBase, nxt: TensorDictBase, rows: torch.Tensor | None
             leaf[rows] = value[rows]
 
 
-def _check_actions(td: TensorDictBase, slots: EnvSlots) -> None:
+def check_actions(td: TensorDictBase, slots: EnvSlots) -> None:
     """Fail in the parent, with a readable message, before a bad action reaches a worker."""
     spec = slots.action_spec
     for key in slots.action_keys:

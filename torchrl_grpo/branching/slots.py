@@ -58,6 +58,8 @@ class EnvSlots:
         # A BranchParallelEnv, untransformed, restores and steps its workers directly
         # (transforms would be skipped otherwise).
         self._fast = isinstance(env, BranchParallelEnv) and env.branch_fast_paths_apply()
+        # Branch rollouts on it run pipelined over the workers' lanes (pipelined.py).
+        self.pipelined = self._fast and env.branch_lanes_apply()
         self._local: EnvBase | None = None
         self._warned_slow = False
 

@@ -11,12 +11,15 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase, unravel_key
+from torchrl.envs import EnvBase
 
 from torchrl_grpo.branching.keys import STATE
+from torchrl_grpo.branching.lanes import BranchWorkerFactory
 from torchrl_grpo.envs import (
     SnapshotParallelEnv,
 )
@@ -78,6 +81,7 @@ class BranchParallelEnv(SnapshotParallelEnv):
 
     sleep_while_waiting: bool = True
     branch_fast_paths: bool = True
+    branch_lanes: int = 2
     _MIN_SLEEP = 1e-5
     _MAX_SLEEP = 5e-4
     # Waits of branch_restore / branch_step: a first sleep of this share of the
@@ -85,6 +89,20 @@ class BranchParallelEnv(SnapshotParallelEnv):
     _FIRST_SLEEP_SHARE = 0.6
     _POLLS_PER_WAIT = 24
     _MAX_POLL_SLEEP = 2e-3
+
+    def __init__(
+        self,
+        num_workers: int,
+        create_env_fn: Callable[..., EnvBase] | Sequence[Callable[..., EnvBase]],
+        *args: Any,
+        **kwargs: Any,
+    ) -> None:
+        # Each worker env gets a LaneRunner (env.branch_jobs) for pipelined rollouts.
+        if callable(create_env_fn):
+            wrapped = _with_lanes(create_env_fn)
+        else:
+            wrapped = [_with_lanes(f) for f in create_env_fn]
+        super().__init__(num_workers, wrapped, *args, **kwargs)
 
     def _sleeping_wait_applies(self) -> bool:
         # Read the instance dict: ParallelEnv.__getattr__ forwards unknown attributes
@@ -250,6 +268,65 @@ class BranchParallelEnv(SnapshotParallelEnv):
             self.parent_channels[i].send(("step", {}))
         self._wait_as("step", workers)
         return shared.get("next").select(*keys).clone()
+
+    # ------------------------------------------------------------ pipelined rollouts
+    def branch_lanes_apply(self) -> bool:
+        """Whether branch rollouts run pipelined on this env's lanes (see ``pipelined``).
+
+        They need :attr:`branch_lanes` >= 1, workers built from constructors (which
+        then carry a :class:`~torchrl_grpo.branching.lanes.LaneRunner`) and what
+        :meth:`branch_fast_paths_apply` checks.
+        """
+        if self.branch_lanes < 1 or not self.branch_fast_paths_apply():
+            return False
+        makers = self.__dict__.get("create_env_fn")
+        return isinstance(makers, list) and all(isinstance(f, BranchWorkerFactory) for f in makers)
+
+    def branch_send(
+        self,
+        worker: int,
+        jobs: list[tuple],
+        reset_keys: Sequence[NestedKey],
+        step_keys: Sequence[NestedKey],
+    ) -> None:
+        """Queue ``jobs`` (see :class:`~torchrl_grpo.branching.lanes.LaneRunner`) on ``worker``.
+
+        Its answer is read, in sending order, with :meth:`branch_receive`.
+        """
+        self.parent_channels[worker].send(("branch_jobs", ((jobs, reset_keys, step_keys), {})))
+
+    def branch_receive(self, worker: int) -> list[dict[str, Any]]:
+        """The answer of ``worker`` to the oldest jobs not read yet (blocks until it comes).
+
+        The parent sleeps in the kernel until the answer arrives: no polling.
+
+        Raises:
+            RuntimeError: the worker died, did not answer within ``BATCHED_PIPE_TIMEOUT``,
+                or raised (its traceback is in the message).
+        """
+        channel = self.parent_channels[worker]
+        deadline = time.monotonic() + self.BATCHED_PIPE_TIMEOUT
+        # The parent keeps the worker's end of the pipe open, so a dead worker shows
+        # as silence: check it every second.
+        while not channel.poll(1.0):
+            if not self._workers[worker].is_alive():
+                raise RuntimeError(f"Cannot proceed, worker {worker} dead.")
+            if time.monotonic() > deadline:
+                raise RuntimeError(
+                    f"worker {worker} did not answer within {self.BATCHED_PIPE_TIMEOUT} s"
+                )
+        try:
+            _, result = channel.recv()
+        except EOFError as err:
+            raise RuntimeError(f"Cannot proceed, worker {worker} dead.") from err
+        if isinstance(result, tuple):
+            raise RuntimeError(f"branch worker {worker} failed:\n{result[1]}")
+        return result
+
+
+def _with_lanes(make: Any) -> Any:
+    # An env instance is sent to its worker as it is: it gets no lanes.
+    return make if isinstance(make, EnvBase) else BranchWorkerFactory(make)
 
 
 def _as_tuple(key: NestedKey) -> tuple[str, ...]:

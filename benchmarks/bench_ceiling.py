@@ -1,0 +1,171 @@
+"""Branch rollouts against the machine's ceiling: W workers vs W raw highway-env processes.
+
+The ceiling of W workers is W independent processes that each step a raw
+highway-env env (``gymnasium.make``, random actions) as fast as they can, in
+segments of H steps from episode starts (as branches from reset roots run), timing
+the steps only: what the machine gives highway-env alone. Against it, in the same run
+and interleaved round by round (so that load from other processes hits both sides
+alike), this script times ``branch_rollout`` on a ``BranchParallelEnv`` of W workers
+(``make_branch_env``, an MLP actor in this process):
+
+- ``lanes``: pipelined rollouts (the default, ``branch_lanes = 2``);
+- ``lockstep``: the lock-step engine (``branch_lanes = 0``): every step, the policy,
+  then all workers step, then the parent waits for the slowest.
+
+Each round times the three back to back and takes the ratios of that round; the
+script prints the median ratio (and range) to the ceiling for every scenario and W,
+with the load average. Start-up (forks, env construction, the first restores of each
+lane) is not timed.
+
+Run: ``python benchmarks/bench_ceiling.py [--workers 1 2] [--repeats 3]``
+(``--workers 1 2 4 8 14`` on a 16-core host).
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing
+import os
+import statistics
+import time
+import warnings
+
+import torch
+from claims import claim
+
+from torchrl_grpo.branching import branch_rollout, make_branch_env, reset_roots, shutdown_env
+from torchrl_grpo.envs import HighwayEnv
+from torchrl_grpo.modules import KinematicsMLP, make_discrete_actor
+
+warnings.filterwarnings("ignore", message=".*is out of date.*")
+SCENARIOS = ("highway-fast-v0", "merge-v0")
+
+
+def _raw_worker(scenario: str, steps: int, horizon: int, seed: int, barrier, out) -> None:
+    import gymnasium as gym
+    import highway_env  # noqa: F401  (registers the scenarios)
+
+    warnings.filterwarnings("ignore")
+    env = gym.make(scenario)
+    env.reset(seed=seed)
+    env.action_space.seed(seed)
+    barrier.wait()
+    stepping = 0.0
+    for i in range(steps):
+        # Segments of H steps from episode starts, as branches from reset roots are;
+        # only the steps are timed (resets cost more than restores).
+        if i % horizon == 0:
+            env.reset()
+        start = time.perf_counter()
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+        stepping += time.perf_counter() - start
+        if terminated or truncated:
+            env.reset()
+    out.put(steps / stepping)
+
+
+def ceiling_rate(scenario: str, workers: int, steps: int, horizon: int) -> float:
+    """Steps/s of ``workers`` raw highway-env processes run together (``steps`` each)."""
+    ctx = multiprocessing.get_context("fork")
+    barrier, out = ctx.Barrier(workers), ctx.Queue()
+    procs = [
+        ctx.Process(target=_raw_worker, args=(scenario, steps, horizon, seed, barrier, out))
+        for seed in range(workers)
+    ]
+    for p in procs:
+        p.start()
+    total = sum(out.get() for _ in procs)
+    for p in procs:
+        p.join()
+    return total
+
+
+def branch_rate(env, policy, roots, group_size: int, horizon: int) -> float:
+    """Valid branch steps per second of one ``branch_rollout``."""
+    start = time.perf_counter()
+    data = branch_rollout(env, policy, roots, group_size, horizon)
+    return int(data["mask"].sum()) / (time.perf_counter() - start)
+
+
+def make_policy(env: HighwayEnv) -> torch.nn.Module:
+    obs = env.observation_spec["observation"].shape
+    n = int(env.action_spec.n)
+    return make_discrete_actor(KinematicsMLP(obs[-2], obs[-1], out_features=n), n)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
+    parser.add_argument("--workers", nargs="+", type=int, default=[1, 2], help="values of W")
+    parser.add_argument("--roots", type=int, default=2, help="R roots per worker")
+    parser.add_argument("--group-size", type=int, default=4, help="G branches per root")
+    parser.add_argument("--horizon", type=int, default=8, help="H steps per branch")
+    parser.add_argument("--repeats", type=int, default=3, help="interleaved rounds")
+    args = parser.parse_args()
+    # The policy runs in this process next to the workers: one thread.
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    setups = {}
+    for scenario in args.scenarios:
+        plain = HighwayEnv(scenario, seed=0)
+        for w in args.workers:
+            roots = reset_roots(plain, args.roots * w, seed=w)
+            env = make_branch_env(scenario, w, mp_start_method="fork")
+            # Builds every lane and warms the workers up.
+            branch_rollout(env, make_policy(plain), roots, args.group_size, 2)
+            setups[scenario, w] = (env, make_policy(plain), roots)
+    steps_per_branch_run = args.roots * args.group_size * args.horizon
+    ratios: dict[tuple, dict[str, list[float]]] = {k: {"lanes": [], "lockstep": []} for k in setups}
+    ceilings: dict[tuple, list[float]] = {k: [] for k in setups}
+    load = [os.getloadavg()[0]]
+    try:
+        for _ in range(args.repeats):
+            for (scenario, w), (env, policy, roots) in setups.items():
+                # Raw processes take as many steps each as one worker takes in a rollout.
+                ceiling = ceiling_rate(scenario, w, steps_per_branch_run, args.horizon)
+                env.branch_lanes = 2
+                lanes = branch_rate(env, policy, roots, args.group_size, args.horizon)
+                env.branch_lanes = 0
+                lockstep = branch_rate(env, policy, roots, args.group_size, args.horizon)
+                ceilings[scenario, w].append(ceiling)
+                ratios[scenario, w]["lanes"].append(lanes / ceiling)
+                ratios[scenario, w]["lockstep"].append(lockstep / ceiling)
+            load.append(os.getloadavg()[0])
+    finally:
+        for env, _, _ in setups.values():
+            shutdown_env(env)
+    print(
+        f"R={args.roots}*W G={args.group_size} H={args.horizon}, {args.repeats} interleaved "
+        f"rounds, medians (ranges); {os.cpu_count()} cores, load average "
+        f"{min(load):.1f}-{max(load):.1f} (1-minute, sampled between rounds)"
+    )
+    print(
+        f"  {'scenario':<16} {'W':>2} {'ceiling steps/s':>16} {'lanes/ceiling':>20} "
+        f"{'lockstep/ceiling':>20}"
+    )
+    for (scenario, w), r in ratios.items():
+        cells = [
+            f"{statistics.median(v):.2f} ({min(v):.2f}-{max(v):.2f})"
+            for v in (r["lanes"], r["lockstep"])
+        ]
+        print(
+            f"  {scenario:<16} {w:>2} {statistics.median(ceilings[scenario, w]):16.1f} "
+            f"{cells[0]:>20} {cells[1]:>20}"
+        )
+    note = f"load {min(load):.1f}-{max(load):.1f} on {os.cpu_count()} cores"
+    for (scenario, w), r in ratios.items():
+        claim(
+            f"{scenario}: branch steps/s on {w} worker(s) / {w} raw highway-env processes",
+            statistics.median(r["lanes"]),
+            ">=0.85",
+            note=note,
+        )
+        claim(
+            f"{scenario}: the same, lock-step engine (branch_lanes=0)",
+            statistics.median(r["lockstep"]),
+            note=note,
+        )
+
+
+if __name__ == "__main__":
+    main()
