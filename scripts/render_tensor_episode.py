@@ -3,7 +3,8 @@
 The worlds never run in highway-env: each step's tensor state goes through the bridge
 (``state_to_highway``) into a HighwayEnv that only draws it.
 
-    python scripts/render_tensor_episode.py --policy rule --seed 3 --out docs/img/sim/tensor_episode.gif
+    python scripts/render_tensor_episode.py --policy rule --seed 3 \
+        --out docs/img/sim/tensor_episode.gif
 """
 
 import argparse
