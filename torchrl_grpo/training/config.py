@@ -43,7 +43,6 @@ from torchrl_grpo.training.algos.grpo import (
 )
 from torchrl_grpo.training.algos.ppo import PPOConfig, PPOVariant
 from torchrl_grpo.training.checks import check_config
-from torchrl_grpo.training.resolvers import CONF_DIR, register_resolvers
 from torchrl_grpo.training.choices import (
     AggregationName,
     Backend,
@@ -63,6 +62,7 @@ from torchrl_grpo.training.choices import (
     WorkerBackend,
     choice_enum,
 )
+from torchrl_grpo.training.resolvers import CONF_DIR, register_resolvers
 
 __all__ = [
     "ActionWeightsName",
