@@ -21,7 +21,7 @@ from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 
 from torchrl_grpo.branching import BRANCH_RETURN, plot_group
-from torchrl_grpo.training.checkpoint import Progress
+from torchrl_grpo.training.checkpoint import Progress, save_checkpoint
 from torchrl_grpo.training.env_builder import make_env, make_layout
 from torchrl_grpo.training.evaluation import BASELINE_LABELS, baseline_policy, evaluate
 from torchrl_grpo.training.logging_builder import log_metrics, log_video
@@ -45,7 +45,8 @@ class TrainerView(Protocol):
 
     Example:
         >>> from torchrl_grpo.training import Trainer
-        >>> all(callable(getattr(Trainer, name)) for name in ("save", "wall_seconds"))
+        >>> names = ("save", "state_dict", "wall_seconds")
+        >>> all(callable(getattr(Trainer, name)) for name in names)
         True
     """
 
@@ -57,6 +58,9 @@ class TrainerView(Protocol):
     logger: Logger | None
     progress: Progress
     stop_requested: bool
+
+    def state_dict(self, collector: Any = None) -> dict[str, Any]:
+        """Everything needed to continue exactly: a checkpoint's dict."""
 
     def save(self, collector: Any = None, name: str = "last.pt") -> Path:
         """Write a checkpoint of the run (and of ``collector``) into the run folder."""
@@ -143,6 +147,11 @@ class GroupPlotHook(Hook):
 class CheckpointHook(Hook):
     """Every ``experiment.checkpoint_every`` iterations, on Ctrl-C and at the end: ``last.pt``.
 
+    The end's checkpoint is written again after the final evaluation, with its row in
+    the evaluation history (``scripts/evaluate.py`` draws the learning curve from it);
+    everything else, random states included, stays as the loop left it, so that a
+    resume with a bigger budget continues exactly.
+
     Example:
         >>> hook = CheckpointHook()
         >>> hook.phase
@@ -150,6 +159,9 @@ class CheckpointHook(Hook):
     """
 
     phase = "checkpoint"
+
+    def __init__(self) -> None:
+        self._last: dict[str, Any] | None = None
 
     def due(self, trainer: TrainerView, batch: TensorDictBase) -> bool:  # noqa: D102
         return _every(trainer, int(trainer.cfg.experiment.checkpoint_every)) or (
@@ -163,7 +175,13 @@ class CheckpointHook(Hook):
         return {}
 
     def on_loop_end(self, trainer: TrainerView, result: Any) -> None:  # noqa: D102
-        result.checkpoint = trainer.save()
+        self._last = trainer.state_dict()
+        result.checkpoint = save_checkpoint(self._last, trainer.run_dir / "last.pt")
+
+    def on_train_end(self, trainer: TrainerView, result: Any) -> None:  # noqa: D102
+        if self._last is not None:
+            self._last.update(trainer.progress.state_dict())
+            result.checkpoint = save_checkpoint(self._last, trainer.run_dir / "last.pt")
 
 
 class EvaluationHook(Hook):
