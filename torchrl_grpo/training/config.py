@@ -278,7 +278,8 @@ class Config:
 
     Example:
         >>> import pathlib
-        >>>         >>> import torchrl_grpo
+        >>> import torchrl_grpo
+        >>> from hydra import compose, initialize_config_dir
         >>> conf = pathlib.Path(torchrl_grpo.__file__).parents[1] / "conf"
         >>> _ = register_configs()
         >>> with initialize_config_dir(str(conf), version_base=None):

@@ -24,7 +24,7 @@ from torchrl_grpo.branching import BRANCH_RETURN, plot_group
 from torchrl_grpo.training.checkpoint import Progress, save_checkpoint
 from torchrl_grpo.training.env_builder import make_env, make_layout
 from torchrl_grpo.training.evaluation import BASELINE_LABELS, baseline_policy, evaluate
-from torchrl_grpo.training.logging_builder import log_metrics, log_video
+from torchrl_grpo.training.logging_builder import log_metrics
 from torchrl_grpo.training.plots import plot_learning_curve, save_gif
 from torchrl_grpo.training.results import EvalResult, format_table
 
@@ -97,8 +97,8 @@ class Hook:
 
     def on_iteration(
         self, trainer: TrainerView, batch: TensorDictBase, result: Any
-    ) -> dict[str, float]:
-        """The job of an iteration; metrics to log with the iteration's."""
+    ) -> dict[str, Any]:
+        """The job of an iteration; metrics to log in the iteration's row (scalars, videos)."""
         return {}
 
     def on_loop_end(self, trainer: TrainerView, result: Any) -> None:
@@ -116,8 +116,8 @@ class GroupPlotHook(Hook):
     """Every ``experiment.plot_every`` iterations, plot the batch's most informative group.
 
     The group with the widest spread of returns goes to ``<run>/plots/`` and, as a
-    video, to the logger (``media/branch_group``), with ``logger.group_plots``. Only
-    batches of branch groups are plotted.
+    video, to the logger (``collect/branch_group``, in the iteration's row), with
+    ``logger.group_plots``. Only batches of branch groups are plotted.
 
     Example:
         >>> GroupPlotHook().phase
@@ -132,7 +132,7 @@ class GroupPlotHook(Hook):
 
     def on_iteration(  # noqa: D102
         self, trainer: TrainerView, batch: TensorDictBase, result: Any
-    ) -> dict[str, float]:
+    ) -> dict[str, Any]:
         if not trainer.cfg.logger.group_plots:
             return {}
         returns = batch.get(BRANCH_RETURN)[:, :, 0, 0]
@@ -140,8 +140,7 @@ class GroupPlotHook(Hook):
         iteration = trainer.progress.iteration
         path = trainer.run_dir / "plots" / f"group_it{iteration:05d}.png"
         fig = plot_group(batch, group, path=path)
-        log_video(trainer.logger, "media/branch_group", fig.video, step=trainer.progress.frames)
-        return {}
+        return {"collect/branch_group": fig.video}  # a video, in the iteration's row
 
 
 class CheckpointHook(Hook):
@@ -246,8 +245,9 @@ class EvaluationHook(Hook):
         if episodes > 0:
             metrics, trained, video = self.evaluate(trainer, episodes, bool(cfg.logger.video))
             trained.name = f"{cfg.algo.name} (trained)"
-            final = {f"final/{k[5:]}": v for k, v in metrics.items()}
-            log_metrics(trainer.logger, final, step=frames)
+            final = {f"eval/final_{k[5:]}": v for k, v in metrics.items()}
+            # One row: the final evaluation's metrics and its video.
+            log_metrics(trainer.logger, {**final, "eval/final_episode": video}, step=frames)
             summary = trainer.progress.eval_history[-1]
             result.final = {k: v for k, v in summary.items() if k != "iteration"}
             results = [trained, *self._baselines(trainer, episodes)]
@@ -263,7 +263,6 @@ class EvaluationHook(Hook):
             log.info("final evaluation:\n%s", table)
         if video is not None:
             result.video = save_gif(video, trainer.run_dir / "eval_episode.gif")
-            log_video(trainer.logger, "media/eval_episode", video, step=frames)
         if trainer.progress.eval_history:
             result.curve = plot_learning_curve(
                 {str(cfg.algo.name): [trainer.progress.eval_history]},

@@ -233,9 +233,9 @@ class Trainer:
                 metrics["time/iteration"] = elapsed
                 metrics["time/fps"] = new_frames / max(times.get("time/collect", elapsed), 1e-9)
                 metrics["time/total_fps"] = new_frames / max(elapsed, 1e-9)
-                metrics["frames/total"] = self.frames
-                metrics["frames/iteration"] = self.iteration
-                metrics["frames/updates"] = self.algo.updates
+                metrics["collect/frames"] = self.frames
+                metrics["train/iteration"] = self.iteration
+                metrics["train/updates"] = self.algo.updates
                 log_metrics(self.logger, metrics, step=self.frames)
                 if pbar is not None:
                     pbar.update(new_frames)
