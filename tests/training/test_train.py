@@ -318,6 +318,8 @@ def test_ctrl_c_saves_and_leaves_no_worker(tmp_path):
             os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == 0, err[-3000:]
     assert "interrupted" in out
+    # The warning once, not once per forked worker too.
+    assert (out + err).count("Ctrl-C: finishing this iteration") == 1, out + err
     ckpt = load_checkpoint(run_dir / "last.pt")
     assert 0 < ckpt["frames"] < 100000
     # Every process of the session (the trainer, its env worker, multiprocessing's

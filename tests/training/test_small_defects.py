@@ -1,0 +1,27 @@
+"""Smaller defects a new user hit (issue 20, item 9): each refused or fixed, at start."""
+
+from __future__ import annotations
+
+import pytest
+from conftest import TINY, compose_config
+
+from torchrl_grpo.training import Trainer, check_config
+
+
+def test_episodes_of_zero_steps_are_refused_at_start(tmp_path):
+    cfg = compose_config([*TINY, "env.max_episode_steps=0"])
+    with pytest.raises(ValueError, match="env.max_episode_steps must be >= 1, got 0"):
+        Trainer(cfg, run_dir=tmp_path / "run")
+    assert not (tmp_path / "run").exists()  # nothing started, nothing written
+    check_config(compose_config([*TINY, "env.max_episode_steps=1"]))
+
+
+@pytest.mark.parametrize("tail", ["rule", "slower"])
+def test_a_scripted_tail_on_ray_is_refused_when_the_config_loads(tail):
+    cfg = compose_config(
+        [*TINY, "rollout.backend=ray", "algo.explore_steps=1", f"algo.tail_policy={tail}"]
+    )
+    with pytest.raises(ValueError, match=f"algo.tail_policy={tail} is not supported"):
+        check_config(cfg)
+    learner = ["algo.tail_policy=learner", "algo.replay_groups=null"]
+    check_config(compose_config([*TINY, "rollout.backend=ray", *learner]))
