@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import pytest
 from conftest import TINY, compose_config
 
@@ -25,3 +29,23 @@ def test_a_scripted_tail_on_ray_is_refused_when_the_config_loads(tail):
         check_config(cfg)
     learner = ["algo.tail_policy=learner", "algo.replay_groups=null"]
     check_config(compose_config([*TINY, "rollout.backend=ray", *learner]))
+
+
+def test_recording_an_evaluation_prints_no_sdl_error(tmp_path):
+    code = (
+        "from omegaconf import OmegaConf\n"
+        "from torchrl_grpo.modules import ConstantActionPolicy\n"
+        "from torchrl_grpo.training import evaluate, make_env\n"
+        "cfg = OmegaConf.create({'scenario': 'highway-fast-v0', 'config': {}})\n"
+        "env, rec = make_env(cfg, seed=0), make_env(cfg, render_mode='rgb_array')\n"
+        "for _ in range(2):\n"
+        "    _, video = evaluate(env, ConstantActionPolicy('IDLE'), episodes=1, seed=0,\n"
+        "                        max_steps=2, name='idle', record=rec)\n"
+        "    assert video is not None and int(video.float().std()) > 0\n"
+    )
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("XDG_", "SDL_"))}
+    proc = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "XDG_RUNTIME_DIR" not in proc.stdout + proc.stderr
