@@ -25,6 +25,14 @@ CONF = str(Path(__file__).resolve().parents[1] / "conf")
 def main(cfg: DictConfig) -> None:
     """Evaluate and print the table and where the files are."""
     logging.getLogger("torchrl_grpo").setLevel(logging.INFO)
+    keys = {o: o.lstrip("+~").split("=")[0] for o in HydraConfig.get().overrides.task}
+    chosen_env = [o for o, key in keys.items() if key == "env" or key.startswith("env.")]
+    if cfg.checkpoint and chosen_env:
+        # A checkpoint is evaluated on the env it was trained on: say so, never ignore it.
+        raise SystemExit(
+            f"{chosen_env[0]}: a checkpoint is evaluated on its own env (its config); "
+            "leave env out, or give no checkpoint to evaluate the baselines on another env"
+        )
     if cfg.out_dir:
         out_dir = Path(cfg.out_dir)
     elif cfg.checkpoint:

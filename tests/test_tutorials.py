@@ -67,8 +67,8 @@ EXPECTED: dict[str, tuple[list[str], list[str]]] = {
             r"^offline wandb run: .*/run/wandb/offline-run-\S+$",
             r"wandb sync .*offline-run-\S+$",
             r"wandb sync --dry-run: Would sync 1 run",
-            r"the offline run holds [1-9]\d* eval/return and 1 final/return values .*"
-            r"they match: True$",
+            r"the offline run holds [1-9]\d* eval/return and 1 eval/final_return values "
+            r"\(\d+ history rows in all\); they match: True$",
             r"^\| grpo_branch \(trained\) \|",
             r"^learning curve: ",
         ],

@@ -177,12 +177,12 @@ def main(argv: list[str] | None = None) -> None:
     history = [json.loads(line) for line in (run_dir / "eval_history.jsonl").open()]
     logged = read_offline_history(offline)
     eval_logged = [row["eval/return"] for row in logged if "eval/return" in row]
-    final_logged = [row["final/return"] for row in logged if "final/return" in row]
+    final_logged = [row["eval/final_return"] for row in logged if "eval/final_return" in row]
     n_final = len(final_logged)
     same = eval_logged + final_logged == [row["return"] for row in history]
     print(
         f"evaluation history: {len(history)} rows in eval_history.jsonl; the offline run "
-        f"holds {len(eval_logged)} eval/return and {n_final} final/return values "
+        f"holds {len(eval_logged)} eval/return and {n_final} eval/final_return values "
         f"({len(logged)} history rows in all); they match: {same}"
     )
     print(f"{'frames':>8} {'return':>8} {'± std':>7} {'crash rate':>11}")

@@ -210,6 +210,9 @@ TINY_RAY = [
     "rollout.backend=ray",
     "rollout.ray.num_actors=2",
     "rollout.ray.num_cpus_per_actor=0.5",
+    # The default scripted tail and its replay are refused on Ray when the config loads.
+    "algo.tail_policy=learner",
+    "algo.replay_groups=null",
 ]
 
 

@@ -63,6 +63,7 @@ _LOWER_BOUNDS = {
     "rollout.frames_per_batch": 1,
     "rollout.num_workers": 1,
     "experiment.total_frames": 1,
+    "env.max_episode_steps": 1,
     "experiment.eval_every": 0,
     "experiment.eval_episodes": 0,
     "experiment.final_eval_episodes": 0,

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Literal
 
 from hydra.core.config_store import ConfigStore
@@ -63,6 +62,7 @@ from torchrl_grpo.training.choices import (
     WorkerBackend,
     choice_enum,
 )
+from torchrl_grpo.training.resolvers import CONF_DIR, register_resolvers
 
 __all__ = [
     "ActionWeightsName",
@@ -103,8 +103,6 @@ __all__ = [
     "typed_config",
 ]
 
-#: The config folder of a source checkout (``conf/`` beside the package).
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
 # Kept for code that names the built-in algorithms; each schema types its own name.
 AlgoName = choice_enum(
@@ -283,8 +281,8 @@ class Config:
 
     Example:
         >>> import pathlib
-        >>> from hydra import compose, initialize_config_dir
         >>> import torchrl_grpo
+        >>> from hydra import compose, initialize_config_dir
         >>> conf = pathlib.Path(torchrl_grpo.__file__).parents[1] / "conf"
         >>> _ = register_configs()
         >>> with initialize_config_dir(str(conf), version_base=None):
@@ -336,7 +334,8 @@ def register_configs() -> ConfigStore:
     The ``algo`` group gets the schema of every registered algorithm
     (:func:`~torchrl_grpo.training.register_algorithm`). The YAML files of ``conf/`` list
     their schema first in their defaults, e.g. ``conf/algo/ppo.yaml`` starts from
-    ``base_ppo``. Idempotent.
+    ``base_ppo``. Registers the resolvers ``conf/`` uses as well
+    (:func:`~torchrl_grpo.training.resolvers.register_resolvers`). Idempotent.
 
     Returns:
         Hydra's ConfigStore.
@@ -346,6 +345,7 @@ def register_configs() -> ConfigStore:
         >>> "base_ppo.yaml" in cs.list("algo")
         True
     """
+    register_resolvers()
     cs = ConfigStore.instance()
     cs.store(name="base_config", node=Config)
     cs.store(name="base_evaluate", node=EvalConfig)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 from typing import Any, Literal
 
 import torch
@@ -131,6 +132,11 @@ def make_env(
         >>> make_env(cfg, seed=0).action_spec.n
         5
     """
+    if render_mode == "rgb_array":
+        # Frames are drawn off screen: SDL needs no display and no sound. Left to
+        # probe them, it prints "XDG_RUNTIME_DIR is invalid" at every evaluation.
+        os.environ.setdefault("SDL_VIDEODRIVER", "offscreen")
+        os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
     return HighwayEnv(
         env_cfg.scenario,
         config=env_overrides(env_cfg),

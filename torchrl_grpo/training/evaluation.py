@@ -195,7 +195,6 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
         'always-SLOWER'
     """
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     env_cfg = cfg.env
     seed = cfg.seed
     history: list[dict] = []
@@ -209,6 +208,8 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
         history = list(ckpt.get("eval_history") or [])
         if seed is None:
             seed = int(run_cfg.experiment.final_eval_seed)
+    # Only once the checkpoint loaded: a wrong path leaves no empty folder behind.
+    out_dir.mkdir(parents=True, exist_ok=True)
     seed = 10_000 if seed is None else int(seed)
     env = make_env(env_cfg, seed=seed)
     max_steps = int(env_cfg.get("max_episode_steps", 1000))

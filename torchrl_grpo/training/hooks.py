@@ -22,10 +22,10 @@ from torchrl.record.loggers import Logger
 
 from torchrl_grpo.branching import BRANCH_RETURN, plot_group
 from torchrl_grpo.training.baselines import evaluate_baselines
-from torchrl_grpo.training.checkpoint import Progress
+from torchrl_grpo.training.checkpoint import Progress, save_checkpoint
 from torchrl_grpo.training.env_builder import make_env, tensor_covers
 from torchrl_grpo.training.evaluation import evaluate
-from torchrl_grpo.training.logging_builder import log_metrics, log_video
+from torchrl_grpo.training.logging_builder import log_metrics
 from torchrl_grpo.training.plots import plot_learning_curve, save_gif
 from torchrl_grpo.training.results import EvalResult, compare_paired, format_table
 from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
@@ -47,7 +47,8 @@ class TrainerView(Protocol):
 
     Example:
         >>> from torchrl_grpo.training import Trainer
-        >>> all(callable(getattr(Trainer, name)) for name in ("save", "wall_seconds"))
+        >>> names = ("save", "state_dict", "wall_seconds")
+        >>> all(callable(getattr(Trainer, name)) for name in names)
         True
     """
 
@@ -59,6 +60,9 @@ class TrainerView(Protocol):
     logger: Logger | None
     progress: Progress
     stop_requested: bool
+
+    def state_dict(self, collector: Any = None) -> dict[str, Any]:
+        """Everything needed to continue exactly: a checkpoint's dict."""
 
     def save(self, collector: Any = None, name: str = "last.pt") -> Path:
         """Write a checkpoint of the run (and of ``collector``) into the run folder."""
@@ -95,8 +99,8 @@ class Hook:
 
     def on_iteration(
         self, trainer: TrainerView, batch: TensorDictBase, result: Any
-    ) -> dict[str, float]:
-        """The job of an iteration; metrics to log with the iteration's."""
+    ) -> dict[str, Any]:
+        """The job of an iteration; metrics to log in the iteration's row (scalars, videos)."""
         return {}
 
     def on_loop_end(self, trainer: TrainerView, result: Any) -> None:
@@ -114,8 +118,8 @@ class GroupPlotHook(Hook):
     """Every ``experiment.plot_every`` iterations, plot the batch's most informative group.
 
     The group with the widest spread of returns goes to ``<run>/plots/`` and, as a
-    video, to the logger (``media/branch_group``), with ``logger.group_plots``. Only
-    batches of branch groups are plotted.
+    video, to the logger (``collect/branch_group``, in the iteration's row), with
+    ``logger.group_plots``. Only batches of branch groups are plotted.
 
     Example:
         >>> GroupPlotHook().phase
@@ -130,7 +134,7 @@ class GroupPlotHook(Hook):
 
     def on_iteration(  # noqa: D102
         self, trainer: TrainerView, batch: TensorDictBase, result: Any
-    ) -> dict[str, float]:
+    ) -> dict[str, Any]:
         if not trainer.cfg.logger.group_plots:
             return {}
         returns = batch.get(BRANCH_RETURN)[:, :, 0, 0]
@@ -138,12 +142,16 @@ class GroupPlotHook(Hook):
         iteration = trainer.progress.iteration
         path = trainer.run_dir / "plots" / f"group_it{iteration:05d}.png"
         fig = plot_group(batch, group, path=path)
-        log_video(trainer.logger, "media/branch_group", fig.video, step=trainer.progress.frames)
-        return {}
+        return {"collect/branch_group": fig.video}  # a video, in the iteration's row
 
 
 class CheckpointHook(Hook):
     """Every ``experiment.checkpoint_every`` iterations, on Ctrl-C and at the end: ``last.pt``.
+
+    The end's checkpoint is written again after the final evaluation, with its row in
+    the evaluation history (``scripts/evaluate.py`` draws the learning curve from it);
+    everything else, random states included, stays as the loop left it, so that a
+    resume with a bigger budget continues exactly.
 
     Example:
         >>> hook = CheckpointHook()
@@ -152,6 +160,9 @@ class CheckpointHook(Hook):
     """
 
     phase = "checkpoint"
+
+    def __init__(self) -> None:
+        self._last: dict[str, Any] | None = None
 
     def due(self, trainer: TrainerView, batch: TensorDictBase) -> bool:  # noqa: D102
         return _every(trainer, int(trainer.cfg.experiment.checkpoint_every)) or (
@@ -165,7 +176,13 @@ class CheckpointHook(Hook):
         return {}
 
     def on_loop_end(self, trainer: TrainerView, result: Any) -> None:  # noqa: D102
-        result.checkpoint = trainer.save()
+        self._last = trainer.state_dict()
+        result.checkpoint = save_checkpoint(self._last, trainer.run_dir / "last.pt")
+
+    def on_train_end(self, trainer: TrainerView, result: Any) -> None:  # noqa: D102
+        if self._last is not None:
+            self._last.update(trainer.progress.state_dict())
+            result.checkpoint = save_checkpoint(self._last, trainer.run_dir / "last.pt")
 
 
 class EvaluationHook(Hook):
@@ -243,8 +260,9 @@ class EvaluationHook(Hook):
             seed = int(exp.final_eval_seed)
             metrics, trained, video = self.evaluate(trainer, episodes, seed, bool(cfg.logger.video))
             trained.name = f"{cfg.algo.name} (trained)"
-            final = {f"final/{k.split('/', 1)[1]}": v for k, v in metrics.items()}
-            log_metrics(trainer.logger, final, step=frames)
+            final = {f"eval/final_{k[5:]}": v for k, v in metrics.items()}
+            # One row: the final evaluation's metrics and its video.
+            log_metrics(trainer.logger, {**final, "eval/final_episode": video}, step=frames)
             summary = trainer.progress.eval_history[-1]
             result.final = {k: v for k, v in summary.items() if k != "iteration"}
             cache = exp.get("baseline_cache")
@@ -270,7 +288,6 @@ class EvaluationHook(Hook):
             log.info("final evaluation:\n%s\n%s", table, verdicts)
         if video is not None:
             result.video = save_gif(video, trainer.run_dir / "eval_episode.gif")
-            log_video(trainer.logger, "media/eval_episode", video, step=frames)
         if trainer.progress.eval_history:
             result.curve = plot_learning_curve(
                 {str(cfg.algo.name): [trainer.progress.eval_history]},

@@ -1,11 +1,12 @@
 """Builder of the ``logger`` group: TorchRL's wandb (offline by default) or CSV logger.
 
-Metric names live in stable namespaces (CleanRL style): ``train/`` (what the
-collected data shows), ``group/`` (branch-group statistics), ``loss/`` (every loss
-term), ``diag/`` (clip fraction, KL, ESS, entropy, ratios, gradient norm),
-``advantage/``, ``eval/`` (deterministic evaluation), ``time/`` (seconds per phase,
-frames per second) and ``frames/``. The step of every metric is the number of env
-frames simulated so far, branch and trunk steps included.
+Metric names live in four namespaces (CleanRL style): ``collect/`` (what the collected
+data shows: returns, crashes, speed, branch-group statistics, frames), ``train/`` (the
+update: every loss term as ``loss_*``, clip fraction, KL, ESS, entropy, ratios,
+gradient norm, learning rate, advantages), ``eval/`` (deterministic evaluation; the
+final one as ``eval/final_*``) and ``time/`` (seconds per phase, frames per second).
+An iteration's metrics, its media included, are one row (one ``wandb.log`` call),
+keyed by the number of env frames simulated so far, branch and trunk steps included.
 """
 
 from __future__ import annotations
@@ -20,7 +21,15 @@ import torch
 from omegaconf import DictConfig
 from torchrl.record.loggers import CSVLogger, Logger, WandbLogger
 
-__all__ = ["LoggerKind", "WandbRunMode", "log_hparams", "log_metrics", "log_video", "make_logger"]
+__all__ = [
+    "LoggerKind",
+    "WandbRunMode",
+    "is_video",
+    "log_hparams",
+    "log_metrics",
+    "log_video",
+    "make_logger",
+]
 
 log = logging.getLogger(__name__)
 
@@ -92,25 +101,54 @@ def log_hparams(logger: Logger | None, config: dict) -> None:
         log.warning("could not log the config", exc_info=True)
 
 
-def log_metrics(logger: Logger | None, metrics: dict[str, Any], step: int) -> None:
-    """Log scalars under their names at ``step``, in one call of TorchRL's ``log_metrics``.
-
-    One call, so that wandb records one history row per training iteration (a
-    ``log_scalar`` per metric would commit a row each).
+def is_video(value: Any) -> bool:
+    """Whether a metric's value is a video: a ``(1, T, 3, H, W)`` uint8 tensor.
 
     Example:
-        >>> log_metrics(None, {"train/return": 1.0}, step=0)  # no logger: a no-op
+        >>> is_video(torch.zeros(1, 4, 3, 8, 8, dtype=torch.uint8)), is_video(torch.ones(3))
+        (True, False)
+    """
+    return isinstance(value, torch.Tensor) and value.dtype == torch.uint8 and value.dim() == 5
+
+
+def log_metrics(logger: Logger | None, metrics: dict[str, Any], step: int) -> None:
+    """Log an iteration's metrics at ``step`` (env frames): one row, videos included.
+
+    Scalars (numbers, tensors averaged; ``None`` skipped) and videos (:func:`is_video`)
+    go to wandb in one ``wandb.log`` call, so that a run's history has one row per
+    training iteration, keyed by frames (TorchRL's logger sets each namespace's
+    ``<namespace>/step`` to ``step``). The CSV logger writes a file per metric and per
+    video.
+
+    Example:
+        >>> log_metrics(None, {"train/loss_objective": 1.0}, step=0)  # no logger: a no-op
     """
     if logger is None:
         return
-    clean = {}
+    scalars, videos = {}, {}
     for name, value in metrics.items():
+        if is_video(value):
+            videos[name] = value
+            continue
         if isinstance(value, torch.Tensor):
             value = value.detach().float().mean().item()
         if value is None:
             continue
-        clean[name] = float(value)
-    logger.log_metrics(clean, step=step)
+        scalars[name] = float(value)
+    if not isinstance(logger, WandbLogger):
+        logger.log_metrics(scalars, step=step)
+        for name, video in videos.items():
+            log_video(logger, name, video, step=step)
+        return
+    row: dict[str, Any] = dict(scalars)
+    if videos and importlib.util.find_spec("moviepy") is None:
+        log.warning("moviepy is not installed: videos %s not sent to wandb", sorted(videos))
+    elif videos:
+        import wandb
+
+        for name, video in videos.items():
+            row[name] = wandb.Video(video.cpu().numpy(), fps=logger.video_fps, format="mp4")
+    logger.log_metrics(row, step=step)
 
 
 def log_video(logger: Logger | None, name: str, video: torch.Tensor, step: int) -> None:

@@ -23,9 +23,9 @@ __all__ = ["PhaseTimer", "group_metrics", "metric_name", "progress_bar", "progre
 _POSTFIX = {
     "eval/return": "eval",
     "eval/crash_rate": "crash",
-    "group/return_mean": "group_ret",
-    "train/episode_return": "ep_ret",
-    "loss/objective": "loss",
+    "collect/group_return_mean": "group_ret",
+    "collect/episode_return": "ep_ret",
+    "train/loss_objective": "loss",
     "time/fps": "fps",
 }
 
@@ -61,15 +61,13 @@ class PhaseTimer:
 
 
 def metric_name(key: str) -> str:
-    """The metric of a loss output: ``loss_*`` terms under ``loss/``, the rest under ``diag/``.
+    """The metric of a loss output: every term and diagnostic under ``train/``, by its key.
 
     Example:
         >>> metric_name("loss_objective"), metric_name("clip_fraction")
-        ('loss/objective', 'diag/clip_fraction')
+        ('train/loss_objective', 'train/clip_fraction')
     """
-    if key.startswith("loss_"):
-        return f"loss/{key[5:]}"
-    return f"diag/{key}"
+    return f"train/{key}"
 
 
 def progress_bar(enabled: bool, total: int, initial: int) -> Any | None:
@@ -90,14 +88,14 @@ def progress_postfix(metrics: dict[str, float]) -> dict[str, str]:
     """The few metrics the progress bar shows, by short name.
 
     Example:
-        >>> progress_postfix({"eval/return": 21.456, "diag/lr": 1e-3})
+        >>> progress_postfix({"eval/return": 21.456, "train/lr": 1e-3})
         {'eval': '21.5'}
     """
     return {short: f"{metrics[k]:.3g}" for k, short in _POSTFIX.items() if k in metrics}
 
 
 def group_metrics(batch: TensorDictBase) -> dict[str, float]:
-    """Statistics of a ``[R, G, T]`` batch of branch groups (``group/``, ``train/``).
+    """Statistics of a ``[R, G, T]`` batch of branch groups (``collect/``).
 
     Example:
         >>> import torch
@@ -110,8 +108,8 @@ def group_metrics(batch: TensorDictBase) -> dict[str, float]:
         ...     ("next", "crashed"): torch.tensor([[[False, False], [True, False]]]).unsqueeze(-1),
         ...     ("next", "speed"): torch.full((1, 2, 2, 1), 20.0),
         ... }, batch_size=[1, 2, 2])
-        >>> metrics = group_metrics(batch)
-        >>> metrics["group/return_mean"], metrics["group/crash_spread"], metrics["train/reward"]
+        >>> m = group_metrics(batch)
+        >>> m["collect/group_return_mean"], m["collect/group_crash_spread"], m["collect/reward"]
         (1.25, 1.0, 0.8333333134651184)
     """
     mask = batch.get(MASK)
@@ -122,14 +120,14 @@ def group_metrics(batch: TensorDictBase) -> dict[str, float]:
     std = returns.std(1) if returns.shape[1] > 1 else torch.zeros(returns.shape[0])
     reward = batch.get(("next", "reward")).reshape(mask.shape)[mask]
     return {
-        "group/return_mean": float(returns.mean()),
-        "group/return_std": float(std.mean()),
-        "group/zero_std_fraction": float((std == 0).double().mean()),
-        "group/best_minus_mean": float((returns.max(1).values - returns.mean(1)).mean()),
-        "group/crash_spread": float((crashed.any(1) & ~crashed.all(1)).double().mean()),
-        "train/branch_return": float(returns.mean()),
-        "train/branch_length": float(lengths.mean()),
-        "train/crash_rate": float(crashed.double().mean()),
-        "train/speed": float(speed.float().mean()) if speed.numel() else math.nan,
-        "train/reward": float(reward.float().mean()),
+        "collect/group_return_mean": float(returns.mean()),
+        "collect/group_return_std": float(std.mean()),
+        "collect/group_zero_std_fraction": float((std == 0).double().mean()),
+        "collect/group_best_minus_mean": float((returns.max(1).values - returns.mean(1)).mean()),
+        "collect/group_crash_spread": float((crashed.any(1) & ~crashed.all(1)).double().mean()),
+        "collect/branch_return": float(returns.mean()),
+        "collect/branch_length": float(lengths.mean()),
+        "collect/crash_rate": float(crashed.double().mean()),
+        "collect/speed": float(speed.float().mean()) if speed.numel() else math.nan,
+        "collect/reward": float(reward.float().mean()),
     }

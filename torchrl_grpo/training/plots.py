@@ -58,9 +58,9 @@ def plot_learning_curve(
             [np.interp(grid, [r["frames"] for r in h], [r[metric] for r in h]) for h in histories]
         )
         mean, std = curves.mean(0), curves.std(0)
-        line = ax.plot(
-            grid, mean, label=f"{label} ({len(histories)} run{'s' if len(histories) > 1 else ''})"
-        )[0]
+        # Markers: every evaluation shows, the first alone too (a line needs two points).
+        runs_label = f"{label} ({len(histories)} run{'s' if len(histories) > 1 else ''})"
+        line = ax.plot(grid, mean, marker="o", markersize=4, label=runs_label)[0]
         if len(histories) > 1:
             ax.fill_between(grid, mean - std, mean + std, color=line.get_color(), alpha=0.2)
     for label, value in (hlines or {}).items():

@@ -13,6 +13,7 @@ normally; a second Ctrl-C stops at once (the last periodic checkpoint stands).
 from __future__ import annotations
 
 import logging
+import os
 import random
 import signal
 import time
@@ -146,6 +147,8 @@ class Trainer:
         self.progress = Progress()
         self.collector: BaseCollector | None = None
         self.stop_requested = False
+        # Env workers fork with the SIGINT handler: only this process acts on it.
+        self._pid = os.getpid()
         self._iteration_start: float | None = None
         # What a resumed run restores once its collector is built (see train()).
         self._collector_state: dict[str, Any] | None = None
@@ -245,9 +248,9 @@ class Trainer:
                     collect_time = max(times.get("time/collect", elapsed), 1e-9)
                     metrics["time/env_steps_per_s"] = (worlds_now - start_worlds) / collect_time
                     start_worlds = worlds_now
-                metrics["frames/total"] = self.frames
-                metrics["frames/iteration"] = self.iteration
-                metrics["frames/updates"] = self.algo.updates
+                metrics["collect/frames"] = self.frames
+                metrics["train/iteration"] = self.iteration
+                metrics["train/updates"] = self.algo.updates
                 log_metrics(self.logger, metrics, step=self.frames)
                 if pbar is not None:
                     pbar.update(new_frames)
@@ -283,6 +286,8 @@ class Trainer:
         return wall
 
     def _on_sigint(self, signum: int, frame: object) -> None:
+        if os.getpid() != self._pid:
+            return  # a forked env worker: the trainer stops it, one warning is enough
         if self.stop_requested:
             raise KeyboardInterrupt
         self.stop_requested = True

@@ -157,7 +157,7 @@ class Algorithm:
 
     # ---------------------------------------------------------------- per batch
     def batch_metrics(self, batch: TensorDictBase) -> dict[str, float]:
-        """What the collected batch shows (``train/``, ``group/`` metrics)."""
+        """What the collected batch shows (``collect/`` metrics)."""
         return {}
 
     def update(self, batch: TensorDictBase, timer: PhaseTimer) -> dict[str, float]:
@@ -181,9 +181,9 @@ class Algorithm:
                 epoch (PPO recomputes its advantages with the updated critic).
 
         Returns:
-            The mean of every scalar the loss returns (``loss_*`` under ``loss/``, the
-            rest under ``diag/``), ``loss/total``, ``diag/grad_norm``, ``diag/lr`` and
-            ``diag/minibatches``.
+            The mean of every scalar the loss returns (``train/<key>``: ``loss_*``
+            terms, diagnostics), ``train/loss_total``, ``train/grad_norm``,
+            ``train/lr`` and ``train/minibatches``.
         """
         algo = self.cfg.algo
         params = [p for group in self.optimizer.param_groups for p in group["params"]]
@@ -209,12 +209,12 @@ class Algorithm:
                 for key, value in out.items():
                     if isinstance(value, torch.Tensor) and value.numel() == 1:
                         sums[metric_name(key)] += float(value.detach())
-                sums["diag/grad_norm"] += float(grad_norm)
-                sums["loss/total"] += float(loss.detach())
+                sums["train/grad_norm"] += float(grad_norm)
+                sums["train/loss_total"] += float(loss.detach())
                 count += 1
         means = {k: v / max(count, 1) for k, v in sums.items()}
-        means["diag/lr"] = self.optimizer.param_groups[0]["lr"]
-        means["diag/minibatches"] = float(count)
+        means["train/lr"] = self.optimizer.param_groups[0]["lr"]
+        means["train/minibatches"] = float(count)
         return means
 
     # ---------------------------------------------------------------- checkpoints

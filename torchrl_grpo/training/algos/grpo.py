@@ -279,15 +279,17 @@ class GRPO(Algorithm):
         adv = data.get("advantage")
         shape = batch.get(MASK).shape
         stats = {
-            "advantage/mean": float(adv.mean()),
-            "advantage/std": float(adv.std()) if adv.numel() > 1 else 0.0,
-            "advantage/abs_mean": float(adv.abs().mean()),
-            "advantage/nonzero_fraction": float((adv != 0).float().mean()),
-            "group/bootstrap_mean": float(batch.get("bootstrap").reshape(shape).sum(-1).mean()),
+            "train/advantage_mean": float(adv.mean()),
+            "train/advantage_std": float(adv.std()) if adv.numel() > 1 else 0.0,
+            "train/advantage_abs_mean": float(adv.abs().mean()),
+            "train/advantage_nonzero_fraction": float((adv != 0).float().mean()),
+            "collect/group_bootstrap_mean": float(
+                batch.get("bootstrap").reshape(shape).sum(-1).mean()
+            ),
         }
         if self.replay is not None:
             data = self.replayed(data)
-            stats["replay/steps"] = float(data.shape[0])
+            stats["train/replay_steps"] = float(data.shape[0])
         if str(self.cfg.algo.action_weights) == "policy":
             data = policy_weighted(data, int(self.env.action_spec.n))
         with timer("update"):

@@ -131,13 +131,13 @@ class PPO(Algorithm):
                 acc[w] = 0.0
         self.episode_return = acc
         out = {
-            "train/speed": float(data.get(("next", "speed")).float().mean()),
-            "train/reward": float(reward.float().mean()),
+            "collect/speed": float(data.get(("next", "speed")).float().mean()),
+            "collect/reward": float(reward.float().mean()),
         }
         if returns:
-            out["train/episode_return"] = float(np.mean(returns))
-            out["train/crash_rate"] = float(np.mean(crashes))
-            out["train/episodes"] = float(len(returns))
+            out["collect/episode_return"] = float(np.mean(returns))
+            out["collect/crash_rate"] = float(np.mean(crashes))
+            out["collect/episodes"] = float(len(returns))
         return out
 
     def update(self, batch: TensorDictBase, timer: PhaseTimer) -> dict[str, float]:
@@ -147,11 +147,11 @@ class PPO(Algorithm):
             self.advantage(data)
         adv = data.get("advantage")
         stats = {
-            "advantage/mean": float(adv.mean()),
-            "advantage/std": float(adv.std()),
-            "advantage/abs_mean": float(adv.abs().mean()),
-            "value/mean": float(data.get("state_value").mean()),
-            "value/target_mean": float(data.get("value_target").mean()),
+            "train/advantage_mean": float(adv.mean()),
+            "train/advantage_std": float(adv.std()),
+            "train/advantage_abs_mean": float(adv.abs().mean()),
+            "train/value_mean": float(data.get("state_value").mean()),
+            "train/value_target_mean": float(data.get("value_target").mean()),
         }
 
         def refresh() -> TensorDictBase:

@@ -1,0 +1,81 @@
+"""Outputs where the user said, and what the scripts list: run folders, train.log, --help."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+from conftest import ROOT, TINY, compose_config
+
+from torchrl_grpo.training import load_checkpoint
+
+
+def _script(script: str, args: list[str], cwd, timeout: float = 180):
+    """Run ``scripts/<script>`` from ``cwd`` (Hydra's relative folders land there)."""
+    env = {**os.environ, "WANDB_MODE": "offline", "PYTHONUNBUFFERED": "1"}
+    return subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / script), *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def test_out_dir_holds_hydras_files_and_a_resume_writes_into_its_own_folder(tmp_path):
+    tiny = [*TINY, "experiment.checkpoint_every=1"]
+    first = _script(
+        "train.py", [*tiny, "experiment.total_frames=20", "experiment.out_dir=runs/x"], tmp_path
+    )
+    assert first.returncode == 0, first.stderr[-3000:]
+    run = tmp_path / "runs" / "x"
+    # Everything in runs/x: no outputs/<date>/ folder beside it.
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["runs"]
+    assert (run / ".hydra" / "config.yaml").is_file()
+    assert "train.log" in os.listdir(run)
+    frames = load_checkpoint(run / "last.pt")["frames"]
+    # A resume without out_dir goes on in the checkpoint's folder, its log appended.
+    resumed = _script(
+        "train.py", [f"resume={run / 'last.pt'}", "experiment.total_frames=150"], tmp_path
+    )
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["runs"]
+    assert "run folder:  runs/x" in resumed.stdout
+    assert load_checkpoint(run / "last.pt")["frames"] > frames
+    assert "resumed from" in (run / "train.log").read_text()
+
+
+def test_evaluate_with_a_wrong_path_leaves_no_folder(tmp_path):
+    (tmp_path / "runs" / "x").mkdir(parents=True)
+    proc = _script("evaluate.py", ["checkpoint=runs/x/typo.pt", "hydra.run.dir=hydra"], tmp_path)
+    assert proc.returncode != 0
+    assert "typo.pt" in proc.stderr
+    assert os.listdir(tmp_path / "runs" / "x") == []
+
+
+def test_evaluate_refuses_an_env_beside_a_checkpoint(tmp_path, smoke_run):
+    _, run_dir, _ = smoke_run
+    proc = _script(
+        "evaluate.py",
+        [f"checkpoint={run_dir / 'last.pt'}", "env=merge", "hydra.run.dir=h"],
+        tmp_path,
+    )
+    assert proc.returncode != 0
+    assert "env=merge: a checkpoint is evaluated on its own env" in proc.stderr
+
+
+def test_help_lists_only_choices_that_compose():
+    proc = _script("train.py", ["--help"], ROOT, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    groups = proc.stdout.split("== Configuration groups ==")[1].split("== Config ==")[0]
+    lines = [line for line in groups.splitlines() if ": " in line and "(" not in line]
+    listed = {g: c.split(", ") for g, c in (line.split(": ") for line in lines)}
+    assert set(listed) >= {"algo", "env", "model", "experiment", "logger", "optim"}
+    assert "base_grpo" not in proc.stdout and "base_env" not in proc.stdout
+    for group, choices in listed.items():
+        if group == "rollout":  # chosen by algo (rollout: ${algo})
+            continue
+        for choice in choices:
+            compose_config([f"{group}={choice}"])

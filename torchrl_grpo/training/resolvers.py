@@ -1,0 +1,71 @@
+"""OmegaConf resolvers of ``conf/``: where a run writes, and the choices ``--help`` lists.
+
+``conf/config.yaml`` sets Hydra's run folder with ``${run_dir:...}``: the folder the
+user named (``experiment.out_dir``), else the folder of the checkpoint a run resumes
+(it goes on writing there), else Hydra's dated folder. Hydra's ``.hydra/`` and
+``train.log`` then land in the run folder itself. ``--help`` lists the choices of each
+config group with ``${config_choices:}``: the YAML files of ``conf/<group>/``, not the
+schemas Hydra's own list shows beside them (``algo=base_grpo`` is no choice).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+__all__ = ["CONF_DIR", "config_choices", "register_resolvers", "run_dir"]
+
+#: The config folder of a source checkout (``conf/`` beside the package).
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+
+
+def run_dir(out_dir: str | None, resume: str | None, default: str) -> str:
+    """The run folder: ``out_dir``, else the resumed checkpoint's folder, else ``default``.
+
+    Example:
+        >>> run_dir("runs/x", None, "outputs/today")
+        'runs/x'
+        >>> run_dir(None, "runs/y/last.pt", "outputs/today")
+        'runs/y'
+        >>> run_dir(None, None, "outputs/today")
+        'outputs/today'
+    """
+    if out_dir:
+        return str(out_dir)
+    if resume:
+        return str(Path(resume).parent)
+    return str(default)
+
+
+def config_choices(conf_dir: str | Path | None = None) -> str:
+    """One line per config group of ``conf_dir``: ``group: choice, choice, ...``.
+
+    A choice is a YAML file of the group's folder; the schemas the files start from
+    (``base_*``, registered by :func:`~torchrl_grpo.training.register_configs`) are not.
+
+    Example:
+        >>> print(config_choices().splitlines()[0])
+        algo: grpo_branch, grpo_episode, ppo
+    """
+    lines = []
+    for group in sorted(p for p in Path(conf_dir or CONF_DIR).iterdir() if p.is_dir()):
+        choices = sorted(f.stem for f in group.glob("*.yaml"))
+        if choices:
+            lines.append(f"{group.name}: {', '.join(choices)}")
+    return "\n".join(lines)
+
+
+def register_resolvers() -> None:
+    """Register ``run_dir`` and ``config_choices`` with OmegaConf (idempotent).
+
+    Example:
+        >>> register_resolvers()
+        >>> cfg = OmegaConf.create({"out": None, "resume": "runs/y/last.pt",
+        ...                         "dir": "${run_dir:${out},${resume},outputs/today}"})
+        >>> cfg.dir
+        'runs/y'
+    """
+    for name, resolver in (("run_dir", run_dir), ("config_choices", config_choices)):
+        if not OmegaConf.has_resolver(name):
+            OmegaConf.register_new_resolver(name, resolver)
