@@ -71,6 +71,7 @@ class BranchParallelEnv(SnapshotParallelEnv):
 
     Example:
         >>> import functools
+        >>> from torchrl_grpo.branching import shutdown_env
         >>> from torchrl_grpo.envs import HighwayEnv
         >>> env = BranchParallelEnv(1, functools.partial(HighwayEnv, "merge-v0"),
         ...                         mp_start_method="fork")
