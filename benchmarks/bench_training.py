@@ -114,6 +114,14 @@ for env, by_algo in curves.items():
             hlines=hlines if metric == "return" else None,
         )
         log.info("wrote %s", path)
+    path = plot_learning_curve(
+        dict(by_algo),
+        args.out / f"curve_{env}_return_wall.png",
+        title=f"{envs[env].scenario}: deterministic evaluation (return, wall-clock)",
+        hlines=hlines,
+        x="wall_seconds",
+    )
+    log.info("wrote %s", path)
     # The claim: how soon each algorithm's greedy policy beats always-SLOWER. A run beats
     # it at its first evaluation whose return is above always-SLOWER's on the same
     # episodes (evaluation i of n episodes uses seed eval_seed + i, and so do baselines).

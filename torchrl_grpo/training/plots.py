@@ -25,8 +25,9 @@ def plot_learning_curve(
     metric: str = "return",
     title: str | None = None,
     hlines: dict[str, float] | None = None,
+    x: str = "frames",
 ) -> Path:
-    """Plot ``metric`` against frames: one line per label, mean ± std over its runs.
+    """Plot ``metric`` against frames (or ``x``): one line per label, mean ± std over its runs.
 
     Args:
         runs: ``{label: [history of run 1, history of run 2, ...]}``, each history a
@@ -35,6 +36,7 @@ def plot_learning_curve(
         metric: the key to plot.
         title: figure title.
         hlines: horizontal reference lines ``{label: value}`` (baselines).
+        x: the key on the x axis: ``"frames"``, or ``"wall_seconds"`` (training time).
 
     Example:
         >>> import tempfile
@@ -53,9 +55,9 @@ def plot_learning_curve(
         histories = [list({r["frames"]: r for r in h}.values()) for h in histories if h]
         if not histories:
             continue
-        grid = np.unique(np.concatenate([[r["frames"] for r in h] for h in histories]))
+        grid = np.unique(np.concatenate([[r[x] for r in h] for h in histories]))
         curves = np.stack(
-            [np.interp(grid, [r["frames"] for r in h], [r[metric] for r in h]) for h in histories]
+            [np.interp(grid, [r[x] for r in h], [r[metric] for r in h]) for h in histories]
         )
         mean, std = curves.mean(0), curves.std(0)
         # Markers: every evaluation shows, the first alone too (a line needs two points).
@@ -66,7 +68,9 @@ def plot_learning_curve(
     for label, value in (hlines or {}).items():
         ax.axhline(value, ls="--", lw=1, color="gray")
         ax.text(ax.get_xlim()[0], value, f" {label}", va="bottom", fontsize=8, color="gray")
-    ax.set_xlabel("env frames (every branch and trunk step)")
+    ax.set_xlabel(
+        "env frames (every branch and trunk step)" if x == "frames" else f"{x} of training"
+    )
     ax.set_ylabel(f"evaluation {metric}")
     if title:
         ax.set_title(title)
