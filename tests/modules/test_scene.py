@@ -67,3 +67,25 @@ def test_the_config_refuses_a_scene_it_cannot_read(observation, problem):
     env = HighwayEnv("highway-fast-v0", config={"observation": observation}, seed=0)
     with pytest.raises(ValueError, match=f"model.kind=scene.*{problem}"):
         make_policy(cfg, env)
+
+
+def test_the_speed_feature_is_centred_on_the_envs_target_speeds():
+    from omegaconf import OmegaConf
+
+    from torchrl_grpo.envs import HighwayEnv
+    from torchrl_grpo.training import make_net
+    from torchrl_grpo.training.config import ModelConfig
+
+    layout = KinematicsLayout()
+    cols = {f: torch.zeros(5) for f in layout.features}
+    cols["presence"][0], cols["y"][0], cols["vx"][0] = 1.0, 4.0, 35.0
+    observation = layout.encode(cols)
+    # Target speeds 30, 35 and 40 m/s: 35 m/s is the middle, 40 m/s one half range up.
+    assert SceneFeatures(layout, (30.0, 35.0, 40.0))(observation)[0].item() == 0.0
+    assert SceneFeatures(layout)(observation)[0].item() == 2.0  # the default 25 +- 5
+    # The trainer's network takes them from the env's config.
+    speeds = {"action": {"type": "DiscreteMetaAction", "target_speeds": [30, 35, 40]}}
+    cfg = OmegaConf.merge(OmegaConf.structured(ModelConfig), {"kind": "scene"})
+    net = make_net(cfg, HighwayEnv(config=speeds), 5)
+    assert (net.features.speed_centre, net.features.speed_scale) == (35.0, 5.0)
+    assert make_net(cfg, HighwayEnv(), 5).features.speed_centre == 25.0

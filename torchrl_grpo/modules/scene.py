@@ -25,8 +25,8 @@ from torchrl_grpo.modules.scripted.scene import Driver, time_to_collision
 
 __all__ = ["SceneFeatures", "SceneMLP"]
 
-# Centre and scale of the ego speed: highway-env's target speeds are 20, 25 and 30 m/s.
-_SPEED_CENTRE, _SPEED_SCALE = 25.0, 5.0
+#: highway-env's default target speeds (DiscreteMetaAction), m/s.
+DEFAULT_TARGET_SPEEDS = (20.0, 25.0, 30.0)
 # Gaps beyond this many metres (or no leader at all) read as this far.
 _FAR = 100.0
 # The room a lane change needs, as the rule policy judges it (RulePolicy's defaults).
@@ -38,7 +38,9 @@ _NEAR = 25.0
 class SceneFeatures(Driver):
     """Driving features of a Kinematics observation: ``[*batch, V, F] -> [*batch, 18]``.
 
-    In order: the ego speed (``(v - 25) / 5``), the ego's lane-change direction (-1,
+    In order: the ego speed, centred on the middle of the env's target speeds and
+    scaled by half their range (``(v - 25) / 5`` for highway-env's default 20, 25 and
+    30 m/s), the ego's lane-change direction (-1,
     0, +1); then for the left lane, the ego's lane and the right lane: whether it
     exists, the bumper-to-bumper gap to the nearest vehicle ahead in it (m / 50, at most
     2), the speed at which the ego closes on it (m/s / 10), the inverse time to
@@ -48,6 +50,7 @@ class SceneFeatures(Driver):
 
     Args:
         layout: how the observation is laid out (needs presence, x, y and vx).
+        target_speeds: the env's ``DiscreteMetaAction`` target speeds (m/s).
 
     Example:
         >>> layout = KinematicsLayout()  # highway-env's default observation, 3 lanes
@@ -62,10 +65,20 @@ class SceneFeatures(Driver):
 
     n_features = 18
 
+    def __init__(
+        self, layout: KinematicsLayout, target_speeds: Sequence[float] = DEFAULT_TARGET_SPEEDS
+    ) -> None:
+        super().__init__(layout)
+        low, high = float(min(target_speeds)), float(max(target_speeds))
+        self.speed_centre = (low + high) / 2
+        # One target speed: the default's half range, 5 m/s.
+        self.speed_scale = (high - low) / 2 if high > low else 5.0
+
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         """Maps ``[*batch, V, F]`` to ``[*batch, 18]``."""
         scene = self.scene(observation)
-        features = [(scene.speed - _SPEED_CENTRE) / _SPEED_SCALE, scene.ego_drift.float()]
+        speed = (scene.speed - self.speed_centre) / self.speed_scale
+        features = [speed, scene.ego_drift.float()]
         for offset in (-1, 0, 1):
             gap, closing = scene.leader(offset)
             ttc = time_to_collision(gap, closing)
@@ -96,6 +109,7 @@ class SceneMLP(nn.Module):
         out_features: size of the output (actions for logits, 1 for a value).
         num_cells: widths of the hidden layers.
         activation_class: activation between hidden layers.
+        target_speeds: the env's target speeds (see :class:`SceneFeatures`).
 
     Example:
         >>> net = SceneMLP(KinematicsLayout(), out_features=5, num_cells=(32,))
@@ -109,9 +123,10 @@ class SceneMLP(nn.Module):
         out_features: int,
         num_cells: Sequence[int] = (256, 256),
         activation_class: type[nn.Module] = nn.Tanh,
+        target_speeds: Sequence[float] = DEFAULT_TARGET_SPEEDS,
     ) -> None:
         super().__init__()
-        self.features = SceneFeatures(layout)
+        self.features = SceneFeatures(layout, target_speeds)
         self.mlp = MLP(
             in_features=SceneFeatures.n_features,
             out_features=out_features,

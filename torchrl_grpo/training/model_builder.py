@@ -19,6 +19,7 @@ from torchrl_grpo.modules import (
     make_scripted_policy,
     make_value_net,
 )
+from torchrl_grpo.modules.scene import DEFAULT_TARGET_SPEEDS
 from torchrl_grpo.training.env_builder import make_layout
 
 __all__ = [
@@ -69,7 +70,12 @@ def make_net(model_cfg: DictConfig, env: EnvBase, out_features: int) -> nn.Modul
                 "observes something else"
             )
         try:
-            return SceneMLP(layout, out_features, num_cells=list(model_cfg.num_cells))
+            # The speed feature is centred on the env's own target speeds.
+            action = (getattr(env, "config", None) or {}).get("action", {})
+            speeds = action.get("target_speeds") or DEFAULT_TARGET_SPEEDS
+            return SceneMLP(
+                layout, out_features, num_cells=list(model_cfg.num_cells), target_speeds=speeds
+            )
         except ValueError as err:
             raise ValueError(f"model.kind=scene: {err}") from err
     if kind == "mlp":
