@@ -11,6 +11,7 @@ The selected tutorials run two at a time (one per core of a small machine), star
 when the first of these tests asks: each takes 8 to 15 s, about 5 s of it imports.
 """
 
+import os
 import re
 import subprocess
 import sys
@@ -109,12 +110,16 @@ def test_every_tutorial_is_run():
 
 def run_quick(name: str, out: Path) -> subprocess.CompletedProcess:
     """``python tutorials/<name>.py --quick --out <out>/out``, from ``out``."""
+    # A user's fresh shell: not the wandb service an in-process test of this session may
+    # have started (its WANDB_SERVICE variable would make the tutorial's run its client).
+    env = {k: v for k, v in os.environ.items() if not k.startswith("WANDB_")}
     return subprocess.run(
         [sys.executable, str(ROOT / "tutorials" / f"{name}.py"), "--quick", "--out", "out"],
         capture_output=True,
         text=True,
         timeout=300,
         cwd=out,  # anything a tutorial writes next to its cwd lands in the temporary folder
+        env=env,
     )
 
 

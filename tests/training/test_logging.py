@@ -10,6 +10,15 @@ from omegaconf import OmegaConf
 from torchrl_grpo.training import log_metrics, make_logger
 
 
+@pytest.fixture(autouse=True)
+def _wandb_service_ends_with_the_test(monkeypatch):
+    """Shut down the wandb service a test starts, so no later subprocess joins it."""
+    yield
+    wandb = pytest.importorskip("wandb")
+    wandb.teardown()
+    monkeypatch.delenv("WANDB_SERVICE", raising=False)
+
+
 def test_wandb_gets_one_history_row_per_call(tmp_path, monkeypatch):
     pytest.importorskip("wandb")
     monkeypatch.setenv("WANDB_SILENT", "true")

@@ -50,7 +50,7 @@ def test_a_tensor_smoke_run_trains_on_the_simulator_and_is_evaluated_on_highway_
     # Throughput and the transfer gap are logged beside the other metrics.
     [exp] = list((run_dir / "csv").iterdir())
     scalars = {p.stem for p in (exp / "scalars").rglob("*.csv")}
-    logged = {"env_steps_per_s", "fps", "transfer_return_gap", "transfer_crash_gap"}
+    logged = {"env_steps_per_s", "fps", "final_transfer_return_gap", "final_transfer_crash_gap"}
     assert logged <= scalars, scalars
     # The final evaluation drove highway-env itself: the saved policy, driven here by
     # hand on HighwayEnv from the final seeds, gives the same returns.

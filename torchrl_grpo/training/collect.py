@@ -214,7 +214,8 @@ def world_steps(collector: BaseCollector) -> int | None:
         True
     """
     steps = getattr(getattr(collector, "env", None), "world_steps", None)
-    return None if steps is None else int(steps)
+    # ParallelEnv answers any attribute with a dispatcher to its workers: only an int counts.
+    return steps if isinstance(steps, int) else None
 
 
 def collector_state(collector: BaseCollector) -> dict[str, Any]:
