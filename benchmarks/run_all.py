@@ -40,6 +40,7 @@ SCRIPTS: dict[str, tuple[str, list[str], str]] = {
     "env": ("bench_env.py", [], "env overhead, snapshot + restore, state size"),
     "branching": ("bench_branching.py", [], "branch throughput against workers"),
     "loss": ("bench_loss.py", [], "GRPOLoss against ClipPPOLoss"),
+    "loss_checks": ("bench_loss_checks.py", [], "GRPOLoss's value checks on against off"),
     "ray": ("bench_ray.py", [], "groups/s on Ray against the local collector"),
 }
 
