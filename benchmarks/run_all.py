@@ -41,6 +41,7 @@ SCRIPTS: dict[str, tuple[str, list[str], str]] = {
     "branching": ("bench_branching.py", [], "branch throughput against workers"),
     "ceiling": ("bench_ceiling.py", [], "branch workers against raw highway-env processes"),
     "loss": ("bench_loss.py", [], "GRPOLoss against ClipPPOLoss"),
+    "loss_checks": ("bench_loss_checks.py", [], "GRPOLoss's value checks on against off"),
     "ray": ("bench_ray.py", [], "groups/s on Ray against the local collector"),
 }
 

@@ -146,3 +146,34 @@ def test_shutdown_is_idempotent(no_workers_left):
     shutdown_env(env)
     shutdown_env(env)
     assert env.is_closed
+
+
+# Each corrupts the second of a batch of states
+def _zeroed_rng(states: TensorDictBase) -> None:
+    states["sim", "env", "rng"][1].fill_(0)
+
+
+def _nan_speed(states: TensorDictBase) -> None:
+    states["sim", "entities", "f64"][1].view(torch.float64)[1].fill_(float("nan"))
+
+
+def _nan_observation(states: TensorDictBase) -> None:
+    states["output", "observation"][1].view(torch.float32).fill_(float("nan"))
+
+
+@pytest.mark.parametrize(
+    "corrupt,match",
+    [(_zeroed_rng, r"env\.rng"), (_nan_speed, "entities"), (_nan_observation, "observation")],
+)
+def test_corrupted_roots_are_refused_and_the_workers_live_on(highway_parallel, corrupt, match):
+    # Issue #20: these states hung the main process or killed the workers
+    from torchrl_grpo.envs import StateCorruptedError
+
+    roots = reset_roots(plain_env("highway-fast-v0", seed=0), 2)
+    roots = roots.clone()
+    corrupt(roots.get("state"))
+    with pytest.raises(StateCorruptedError, match=match):
+        branch_rollout(highway_parallel, RandomPolicy(), roots, 2, 2)
+    good = reset_roots(plain_env("highway-fast-v0", seed=1), 1)
+    data = branch_rollout(highway_parallel, RandomPolicy(), good, 2, 2)
+    assert data["mask"].all()

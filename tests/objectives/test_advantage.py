@@ -125,6 +125,37 @@ def test_single_branch_group_is_an_error():
         GroupRelativeAdvantage()(td)
 
 
+def test_duplicate_group_branch_pairs_are_an_error_naming_first_group_id():
+    # torch.cat of two branch_rollout outputs: both batches number their roots from 0
+    a, b = group_td(torch.randn(2, 3, 4)), group_td(torch.randn(2, 3, 4))
+    both = torch.cat([a, b])
+    with pytest.raises(ValueError, match=r"\(group_id, branch\) pair \(0, 0\).*first_group_id"):
+        GroupRelativeAdvantage()(both.clone())
+    # the same data flattened to [N, T] or to [B] is refused the same way
+    with pytest.raises(ValueError, match="first_group_id"):
+        GroupRelativeAdvantage()(both.clone().reshape(12, 4))
+    with pytest.raises(ValueError, match="first_group_id"):
+        GroupRelativeAdvantage()(both.clone().reshape(-1))
+    # two rows holding one pair next to each other are two trajectories too
+    td = group_td(torch.randn(1, 2, 3)).reshape(2, 3)
+    td = torch.cat([td[:1], td[:1], td[1:], td[1:]])
+    with pytest.raises(ValueError, match=r"pair \(0, 0\)"):
+        GroupRelativeAdvantage()(td)
+    # distinct ids (what first_group_id gives the second batch) are accepted
+    b["group_id"] += 2
+    GroupRelativeAdvantage()(torch.cat([a, b]))
+
+
+def test_trajectories_may_end_early_without_being_duplicates():
+    # masked tails split no trajectory: the valid steps of each row stay one run
+    mask = torch.ones(2, 3, 4, dtype=torch.bool)
+    mask[0, 1, 2:] = False
+    mask[1, 0, 1:] = False
+    td = group_td(torch.randn(2, 3, 4), mask)
+    for layout in (td.clone(), td.clone().reshape(6, 4), td.clone().reshape(-1)):
+        GroupRelativeAdvantage()(layout)
+
+
 @pytest.mark.parametrize("key", ["group_id", "branch", "mask", ("next", "reward")])
 def test_missing_key_is_an_error(key):
     td = group_td(torch.randn(1, 2, 3))

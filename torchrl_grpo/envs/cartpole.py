@@ -12,6 +12,7 @@ from torchrl_grpo.envs.core.bits import check_state_layout
 from torchrl_grpo.envs.core.codec import StateCodec
 from torchrl_grpo.envs.core.errors import StateCorruptedError
 from torchrl_grpo.envs.core.gym_state import (
+    check_wrappers,
     decode_rng,
     encode_rng,
     encode_wrappers,
@@ -89,6 +90,9 @@ class CartPoleStateCodec(StateCodec):
         if not np.isfinite(physics).all():
             raise StateCorruptedError(f"CartPole physics holds non-finite values: {physics}")
         rng_state = decode_rng(state["rng"].numpy())
+        check_wrappers(
+            int(state["wrappers", "elapsed_steps"]), bool(state["wrappers", "has_reset"])
+        )
         beyond = int(state["steps_beyond_terminated"])
         return physics, rng_state, beyond
 

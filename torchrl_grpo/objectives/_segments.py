@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 
 __all__ = [
+    "check_distinct_trajectories",
     "positions_in_segments",
     "segment_mean_std",
     "segment_sum",
@@ -50,6 +51,67 @@ def trajectory_index(
     codes, traj = torch.unique(code, return_inverse=True)
     traj_group = torch.div(codes, n_branch, rounding_mode="floor")
     return traj, traj_group, group_values
+
+
+def check_distinct_trajectories(
+    traj: torch.Tensor,
+    flat_index: torch.Tensor,
+    row_length: int | None,
+    group_id: torch.Tensor,
+    branch: torch.Tensor,
+    *,
+    group_key: object,
+    branch_key: object,
+) -> None:
+    """Refuse a (group id, branch) pair held by two trajectories of one batch.
+
+    A trajectory's steps are one run in the row-major flattening of the batch (one
+    row of a ``[..., T]`` batch): a pair whose steps form two runs, or lie in two
+    rows, belongs to two trajectories that would be merged into one.
+
+    Args:
+        traj: the trajectory label of each step (from :func:`trajectory_index`).
+        flat_index: each step's position in the flattened batch, increasing.
+        row_length: ``T`` of a batch of two or more dims (a row is a trajectory);
+            ``None`` for a flat batch.
+        group_id: each step's group id.
+        branch: each step's branch.
+        group_key: key name of ``group_id``, used in the error.
+        branch_key: key name of ``branch``, used in the error.
+
+    Raises:
+        ValueError: naming the first shared pair and ``first_group_id``.
+
+    Example:
+        >>> ids, branch = torch.tensor([0, 0, 1, 0]), torch.tensor([0, 0, 0, 0])
+        >>> traj, _, _ = trajectory_index(ids, branch, group_key="g", branch_key="b")
+        >>> try:
+        ...     check_distinct_trajectories(
+        ...         traj, torch.arange(4), None, ids, branch, group_key="g", branch_key="b")
+        ... except ValueError as err:
+        ...     print(str(err)[:48])
+        the (g, b) pair (0, 0) is held by 2 trajectories
+    """
+    if traj.numel() < 2:
+        return
+    starts = torch.ones_like(traj, dtype=torch.bool)
+    starts[1:] = traj[1:] != traj[:-1]
+    if row_length is not None:
+        rows = torch.div(flat_index, row_length, rounding_mode="floor")
+        starts[1:] |= rows[1:] != rows[:-1]
+    runs = torch.bincount(traj[starts], minlength=int(traj.max()) + 1)
+    shared = runs > 1
+    if not bool(shared.any()):
+        return
+    first = int(torch.nonzero(shared[traj])[0, 0])
+    pair = (int(group_id[first]), int(branch[first]))
+    raise ValueError(
+        f"the ({group_key}, {branch_key}) pair {pair} is held by {int(runs[traj[first]])} "
+        "trajectories of the batch, but each root needs its own group id. Batches of "
+        "branch_rollout number their roots from first_group_id (0 by default): give each "
+        "batch its own range, e.g. first_group_id=<a running count of roots>, before "
+        "concatenating them."
+    )
 
 
 def segment_sum(values: torch.Tensor, index: torch.Tensor, n_segments: int) -> torch.Tensor:

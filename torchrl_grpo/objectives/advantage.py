@@ -11,6 +11,7 @@ from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from torchrl_grpo.objectives._segments import (
+    check_distinct_trajectories,
     positions_in_segments,
     segment_mean_std,
     segment_sum,
@@ -64,7 +65,10 @@ class GroupRelativeAdvantage(TensorDictModuleBase):
     A group whose returns are all equal (or, for per-step groups, that has a single
     member) gets exactly zero advantage. A root group with a single branch, a
     missing key, or a NaN reward on a valid step raises a ``ValueError`` naming the
-    key or the group ids.
+    key or the group ids; so does a ``(group_id, branch)`` pair held by two
+    trajectories (two rows, or two separate runs of a flat batch), as
+    ``torch.cat`` of two ``branch_rollout`` outputs that both start at
+    ``first_group_id=0`` gives.
 
     The module returns the tensordict it was given, so it can run before the loss
     or on writes to a replay buffer: ``rb.append_transform(module, invert=True)``.
@@ -197,6 +201,16 @@ class GroupRelativeAdvantage(TensorDictModuleBase):
             gid, branch[valid], group_key=keys.group_id, branch_key=keys.branch
         )
         n_traj, n_groups = traj_group.numel(), group_values.numel()
+        row_length = tensordict.batch_size[-1] if tensordict.batch_dims >= 2 else None
+        check_distinct_trajectories(
+            traj,
+            valid,
+            row_length,
+            gid,
+            branch[valid],
+            group_key=keys.group_id,
+            branch_key=keys.branch,
+        )
 
         bad = ~torch.isfinite(reward_v)
         if bad.any():

@@ -3,7 +3,8 @@
 The loss input is a tensordict of batch size ``[*batch]`` (``[R, G, T]``, ``[N, T]``
 or flat ``[B]``) with one value per step: these helpers read an entry with an error
 that names its key, flatten it to ``[numel(batch)]`` and sum a distribution's event
-dimensions. :func:`check_loss_args` checks the loss's arguments.
+dimensions. :func:`check_loss_args` checks the loss's arguments and
+:func:`check_finite` its per-step values.
 """
 
 from __future__ import annotations
@@ -15,7 +16,14 @@ from tensordict import NestedKey, TensorDictBase
 
 from torchrl_grpo.objectives.aggregation import check_aggregation
 
-__all__ = ["check_loss_args", "per_step", "require", "sum_event"]
+__all__ = [
+    "behaviour_log_prob",
+    "check_finite",
+    "check_loss_args",
+    "per_step",
+    "require",
+    "sum_event",
+]
 
 
 def require(tensordict: TensorDictBase, key: NestedKey, name: str, hint: str = "") -> torch.Tensor:
@@ -75,6 +83,57 @@ def sum_event(value: torch.Tensor, n_batch: int) -> torch.Tensor:
     return value
 
 
+def behaviour_log_prob(steps: TensorDictBase, key: NestedKey) -> torch.Tensor:
+    """The stored behaviour log-prob of each step, ``[numel(batch)]``, detached.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> steps = TensorDict(action_log_prob=torch.zeros(3), batch_size=[3])
+        >>> behaviour_log_prob(steps, "action_log_prob").shape
+        torch.Size([3])
+    """
+    value = steps.get(key, None)
+    if value is None:
+        others = [k for k in ("sample_log_prob", "action_log_prob") if k in steps.keys()]
+        hint = f" The input has {others}: call set_keys(sample_log_prob=...)." if others else ""
+        raise ValueError(f"the input has no {key!r} entry (behaviour log-prob).{hint}")
+    if value.requires_grad:
+        raise ValueError(f"{key!r} requires grad: store the behaviour log-prob detached.")
+    return per_step(sum_event(value, len(steps.batch_size)), steps.batch_size, key)
+
+
+def check_finite(values: dict[str, torch.Tensor | None]) -> None:
+    """Raise a ``ValueError`` naming the first of ``values`` that holds a NaN or an inf.
+
+    One device synchronisation for all of them; ``None`` entries are skipped. A
+    non-finite advantage or log-prob on a valid step makes the loss and every
+    gradient NaN, which an optimiser step would write into the weights.
+
+    Args:
+        values: per-step tensors of the valid steps, by the name the error gives.
+
+    Example:
+        >>> check_finite({"'advantage'": torch.tensor([0.5, float("nan")])})
+        Traceback (most recent call last):
+        ...
+        ValueError: 'advantage' is NaN or infinite on 1 of 2 valid steps: the loss and its gradients would be NaN. (GRPOLoss(check_values=False) skips this check.)
+    """  # noqa: E501 - a doctest's expected output is one line
+    present = {name: v for name, v in values.items() if v is not None}
+    if not present:
+        return
+    # A NaN or inf anywhere makes the sum non-finite: one reduction per tensor on the
+    # common path; finite values whose sum overflows fall through to the exact check.
+    if bool(torch.isfinite(torch.stack([v.sum() for v in present.values()]).sum())):
+        return
+    for name, value in present.items():
+        bad = int((~torch.isfinite(value)).sum())
+        if bad:
+            raise ValueError(
+                f"{name} is NaN or infinite on {bad} of {value.numel()} valid steps: the loss "
+                "and its gradients would be NaN. (GRPOLoss(check_values=False) skips this check.)"
+            )
+
+
 def check_loss_args(
     *,
     aggregation: str,
@@ -83,6 +142,8 @@ def check_loss_args(
     dual_clip: float | None,
     max_steps: int | None,
     samples_mc_entropy: int,
+    kl_to_ref_coeff: float | None = None,
+    entropy_coeff: float = 0.0,
 ) -> tuple[float, float]:
     """Checks :class:`~torchrl_grpo.objectives.GRPOLoss`'s arguments (see it for each).
 
@@ -101,8 +162,14 @@ def check_loss_args(
             f"kl_estimator must be 'k1', 'k2', 'k3' or 'analytic', got {kl_estimator!r}."
         )
     eps_low, eps_high = _clip_bounds(clip_epsilon)
-    if dual_clip is not None and dual_clip <= 1.0:
-        raise ValueError(f"dual_clip must be > 1, got {dual_clip}.")
+    if dual_clip is not None and not (1.0 < dual_clip < math.inf):
+        raise ValueError(f"dual_clip must be > 1 and finite, got {dual_clip}.")
+    if kl_to_ref_coeff is not None and not (0.0 <= kl_to_ref_coeff < math.inf):
+        raise ValueError(
+            f"kl_to_ref_coeff must be >= 0 and finite (or None), got {kl_to_ref_coeff}."
+        )
+    if not 0.0 <= entropy_coeff < math.inf:
+        raise ValueError(f"entropy_coeff must be >= 0 and finite, got {entropy_coeff}.")
     if max_steps is not None and max_steps < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps}.")
     if samples_mc_entropy < 1:

@@ -78,6 +78,37 @@ def from_bits(tensor: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     return tensor if tensor.dtype == dtype else tensor.view(dtype)
 
 
+def check_finite_floats(
+    leaves: dict[Any, torch.Tensor],
+    float_dtypes: dict[Any, torch.dtype],
+    where: str,
+    nan_allowed: frozenset[str] = frozenset(),
+) -> None:
+    """Raise :class:`StateCorruptedError` naming the first float leaf holding a NaN or inf.
+
+    Args:
+        leaves: a state's leaves by key (floats as bit patterns).
+        float_dtypes: the float dtype of each leaf stored as bits, by key.
+        where: the part of the state, named in the error.
+        nan_allowed: top-level keys whose NaN means "not reported" (inf is still refused).
+
+    Example:
+        >>> x = to_bits(torch.tensor([0.5, float("nan")], dtype=torch.float64))
+        >>> try:
+        ...     check_finite_floats({"x": x}, {"x": torch.float64}, "output")
+        ... except StateCorruptedError as err:
+        ...     print(err)
+        output.x holds nan: not finite
+    """
+    for key, dtype in float_dtypes.items():
+        values = from_bits(leaves[key], dtype)
+        path = key if isinstance(key, tuple) else (key,)
+        ok = ~values.isinf() if path[0] in nan_allowed else values.isfinite()
+        if not bool(ok.all()):
+            bad = values[~ok][0].item()
+            raise StateCorruptedError(f"{where}.{'.'.join(path)} holds {bad}: not finite")
+
+
 def spec_layout(spec: Composite) -> SpecLayout:
     """The ``{key: (shape, dtype)}`` of every leaf of a spec, for fast repeated checks.
 

@@ -52,11 +52,36 @@ def encode_rng(generator: np.random.Generator, out: np.ndarray) -> None:
     out[9] = state["uinteger"]
 
 
-def decode_rng(words: np.ndarray) -> dict:
-    """Validate encoded words and return the bit-generator state dict they describe."""
+def decode_rng(words: np.ndarray, where: str = "rng") -> dict:
+    """Validate encoded words and return the bit-generator state dict they describe.
+
+    Every word is a 32-bit value, the increment is odd (numpy's PCG64 always makes
+    it so; a zeroed generator would return zeros forever and hang any rejection
+    sampler that draws from it) and ``has_uint32`` is 0 or 1.
+
+    Args:
+        words: int64[RNG_WORDS] from :func:`encode_rng`.
+        where: the state entry the words come from, named in errors.
+
+    Raises:
+        StateCorruptedError: naming ``where``.
+
+    Example:
+        >>> try:
+        ...     decode_rng(np.zeros(RNG_WORDS, dtype=np.int64), "env.rng")
+        ... except StateCorruptedError as err:
+        ...     print(err)
+        env.rng: the PCG64 increment is even (a zeroed generator?): not a state numpy makes
+    """
     if words.shape != (RNG_WORDS,) or (words < 0).any() or (words > _MASK32).any():
-        raise StateCorruptedError("the random-generator words are out of range")
+        raise StateCorruptedError(f"{where}: the random-generator words are out of range")
     state, inc = (sum(int(words[4 * i + j]) << (32 * j) for j in range(4)) for i in (0, 1))
+    if not inc & 1:
+        raise StateCorruptedError(
+            f"{where}: the PCG64 increment is even (a zeroed generator?): not a state numpy makes"
+        )
+    if words[8] not in (0, 1):
+        raise StateCorruptedError(f"{where}: has_uint32 is {int(words[8])}, not 0 or 1")
     return {
         "bit_generator": "PCG64",
         "state": {"state": state, "inc": inc},
@@ -146,6 +171,29 @@ def encode_wrappers(env: gym.Env) -> dict[str, np.ndarray]:
         "elapsed_steps": np.asarray(elapsed, dtype=np.int64),
         "has_reset": np.asarray(has_reset, dtype=np.bool_),
     }
+
+
+def check_wrappers(elapsed_steps: int, has_reset: bool, where: str = "wrappers") -> None:
+    """Refuse wrapper counters no env can have had when its state was captured.
+
+    A state is captured from an env that was reset (``has_reset``; stepping one
+    that was not raises in gymnasium, which kills a batched env's worker), and the
+    ``TimeLimit`` counter is -1 (unset) or a count.
+
+    Example:
+        >>> check_wrappers(3, True)
+        >>> try:
+        ...     check_wrappers(3, False)
+        ... except StateCorruptedError as err:
+        ...     print(err)
+        wrappers.has_reset is False: the state of an env that was never reset
+    """
+    if elapsed_steps < -1:
+        raise StateCorruptedError(f"{where}.elapsed_steps is {elapsed_steps}, not -1 or a count")
+    if not has_reset:
+        raise StateCorruptedError(
+            f"{where}.has_reset is False: the state of an env that was never reset"
+        )
 
 
 def restore_wrappers(env: gym.Env, elapsed_steps: int, has_reset: bool) -> None:

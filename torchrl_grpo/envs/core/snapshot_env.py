@@ -23,6 +23,7 @@ from torchrl.envs.libs.gym import _gym_to_torchrl_spec_transform
 
 from torchrl_grpo.envs.core.bits import (
     bits_spec,
+    check_finite_floats,
     check_state_layout,
     flag_tensor,
     from_bits,
@@ -147,6 +148,9 @@ class SnapshotEnv(EnvBase):
         self.state_spec = Composite({STATE_KEY: state}, device=self.device)
         if self.return_state:
             self.observation_spec[STATE_KEY] = state.clone()
+
+    #: Output entries whose NaN means "not reported", so a stored NaN is not refused.
+    nan_outputs: frozenset[str] = frozenset()
 
     def _info_spec(self, info: dict) -> dict[Any, TensorSpec]:
         """Extra output entries; subclasses override it together with :meth:`_read_info`."""
@@ -317,7 +321,9 @@ class SnapshotEnv(EnvBase):
                 raise StateCorruptedError(f"the state is truncated: it has no {part!r} part")
         # A state from another env must be reported as such, before any shape check.
         self.codec.check_compatible(state.get("sim"))
-        return check_state_layout(state.get("output"), self._output_layout)
+        found = check_state_layout(state.get("output"), self._output_layout)
+        check_finite_floats(found, self._output_floats, "output", self.nan_outputs)
+        return found
 
     def _step(self, tensordict: TensorDictBase) -> TensorDict:
         action = self._to_gym_action(tensordict.get("action"))

@@ -46,6 +46,7 @@ from torchrl_grpo.envs.core.errors import (
     StateMismatchError,
 )
 from torchrl_grpo.envs.core.gym_state import (
+    check_wrappers,
     encode_wrappers,
     with_seeded_rng,
     wrapper_spec,
@@ -57,24 +58,6 @@ from torchrl_grpo.envs.highway.env_fields import EnvFields
 from torchrl_grpo.envs.highway.layout import OBJECT, VEHICLE, EntityLayout
 from torchrl_grpo.envs.highway.layout_decode import EntityDecoder
 from torchrl_grpo.envs.highway.layout_encode import EntityEncoder
-
-# Fields every road object has (RoadObject.__init__ sets them); a restored object
-# without them would fail later, in the middle of a step.
-_REQUIRED_FIELDS = frozenset(
-    {
-        "position",
-        "heading",
-        "speed",
-        "lane_index",
-        "collidable",
-        "solid",
-        "check_collisions",
-        "diagonal",
-        "crashed",
-        "hit",
-    }
-)
-_NOT_NONE = ("position", "heading", "speed")
 
 #: Every scenario highway-env 1.12 ships: HighwayEnv and the codec serve them all.
 HIGHWAY_SCENARIOS: tuple[str, ...] = (
@@ -162,8 +145,15 @@ class HighwayStateCodec(StateCodec):
             # A planned route is a shortest path: it visits each node at most once.
             max_route=min(16, len(nodes)),
             max_speeds=max(speeds, default=0),
-            required=_REQUIRED_FIELDS,
-            not_none=_NOT_NONE,
+            required=schema.required_fields,
+            not_none=schema.not_nullable_fields(),
+            lanes={
+                (a, b): len(lanes)
+                for a, destinations in road.network.graph.items()
+                for b, lanes in destinations.items()
+            },
+            max_magnitude=schema.MAX_MAGNITUDE,
+            domains=schema.FIELD_DOMAINS,
         )
         self.encoder = EntityEncoder(self.layout)
         self.decoder = EntityDecoder(self.layout)
@@ -303,6 +293,7 @@ class HighwayStateCodec(StateCodec):
             found[("wrappers", "elapsed_steps")].item(),
             found[("wrappers", "has_reset")].item(),
         )
+        check_wrappers(*plan["wrappers"])
         return plan
 
     def _commit(self, env: gym.Env, plan: dict[str, Any]) -> None:

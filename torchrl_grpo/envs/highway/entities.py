@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 from highway_env.vehicle.dynamics import BicycleVehicle
+from highway_env.vehicle.kinematics import Vehicle
 
 from torchrl_grpo.envs.core.errors import StateCorruptedError
 from torchrl_grpo.envs.highway.layout import KIND, VEHICLE
@@ -83,6 +84,11 @@ def decode_entities(
         )
     vehicles, objects = [], []
     for slot, kind, obj, refs in decoded:
+        if kind == VEHICLE and not isinstance(obj, Vehicle):
+            raise StateCorruptedError(
+                f"entities: slot {slot} of road.vehicles holds class {type(obj).__qualname__}, "
+                "not a Vehicle: its class id is corrupted"
+            )
         for name, target in refs.items():
             if target not in by_slot:
                 raise StateCorruptedError(f"entities.{name} of slot {slot} is empty slot {target}")

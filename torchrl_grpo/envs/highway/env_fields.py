@@ -28,8 +28,9 @@ from torchrl_grpo.envs.core.errors import (
 from torchrl_grpo.envs.core.gym_state import RNG_WORDS, decode_rng, encode_rng, restore_wrappers
 from torchrl_grpo.envs.highway.layout import NONE as _NONE
 from torchrl_grpo.envs.highway.layout import EntityLayout
+from torchrl_grpo.envs.highway.schema import CLASS_PARAMETER_DOMAINS, MAX_MAGNITUDE
 
-__all__ = ["EnvFields", "lane_index_of", "time_limit"]
+__all__ = ["EnvFields", "check_magnitude", "lane_index_of", "time_limit"]
 
 # Name-mangled private attributes of highway-env's action / observation types.
 _ACTION_VEHICLE = "_ActionType__controlled_vehicle"
@@ -241,14 +242,23 @@ class EnvFields:
 
         seed = t[("env", "seed")].item()
         road_steps = t[("env", "road_steps")].item()
+        n_points = t[("env", "trajectory_len")].item()
+        trajectory = t[("env", "trajectory")]
+        if not 0 <= n_points <= trajectory.shape[0]:
+            raise StateCorruptedError(f"env.trajectory_len is {n_points}")
+        for key in ("time", "class_params", "last_action", "features_range"):
+            check_magnitude(f"env.{key}", floats(key))
+        check_magnitude("env.trajectory", trajectory[:n_points].view(torch.float64))
         plan: dict[str, Any] = {
             "time": floats("time").item(),
             "steps": t[("env", "steps")].item(),
             "done": t[("env", "done")].item(),
             "seed": None if seed < 0 else seed,
-            "rng": decode_rng(t[("env", "rng")].numpy()),
+            "rng": decode_rng(t[("env", "rng")].numpy(), "env.rng"),
             "road_steps": None if road_steps < 0 else road_steps,
         }
+        if plan["steps"] < 0:
+            raise StateCorruptedError(f"env.steps is {plan['steps']}, not a count")
         if (plan["road_steps"] is None) == hasattr(core.road, "steps"):
             raise StateCorruptedError(
                 f"env.road_steps is {road_steps}, but this road "
@@ -265,8 +275,13 @@ class EnvFields:
         }
         if None in plan["controlled"]:
             raise StateCorruptedError("env.controlled holds an empty slot")
-        if not math.isfinite(plan["time"]):
-            raise StateCorruptedError(f"env.time is {plan['time']}")
+        for (cls, name), value in zip(self.class_parameters, plan["class_params"], strict=True):
+            low, high = CLASS_PARAMETER_DOMAINS.get((cls, name), (-math.inf, math.inf))
+            if not low < value < high:
+                raise StateCorruptedError(
+                    f"env.class_params: {cls.__qualname__}.{name} is {value}, "
+                    f"outside ({low}, {high})"
+                )
         ranges = zip(
             self.range_keys,
             floats("features_range").tolist(),
@@ -274,6 +289,12 @@ class EnvFields:
             strict=True,
         )
         plan["features_range"] = {k: r for k, r, m in ranges if m} or None
+        for key, (low, high) in (plan["features_range"] or {}).items():
+            if not low < high:
+                raise StateCorruptedError(
+                    f"env.features_range: {key} (set in env.features_range_mask) spans "
+                    f"[{low}, {high}]"
+                )
         lane_code = t[("env", "lane")].tolist()
         plan["lane"] = (
             None if lane_code[0] == _NONE - 1 else self.lane_object(core, lane_code, "env.lane")
@@ -281,13 +302,10 @@ class EnvFields:
         n_lanes = t[("env", "lanes_len")].item()
         if not 0 <= n_lanes <= 4:
             raise StateCorruptedError(f"env.lanes_len is {n_lanes}")
+        where = f"env.lanes (of env.lanes_len {n_lanes})"
         plan["lanes"] = [
-            self.lane_object(core, c, "env.lanes") for c in t[("env", "lanes")].tolist()[:n_lanes]
+            self.lane_object(core, c, where) for c in t[("env", "lanes")].tolist()[:n_lanes]
         ]
-        n_points = t[("env", "trajectory_len")].item()
-        trajectory = t[("env", "trajectory")]
-        if not 0 <= n_points <= trajectory.shape[0]:
-            raise StateCorruptedError(f"env.trajectory_len is {n_points}")
         points = trajectory[:n_points].view(torch.float64).numpy()
         plan["trajectory"] = [p.reshape(6, 1).copy() for p in points]
         if self.grayscale_shape is not None:
@@ -331,6 +349,24 @@ class EnvFields:
         if self.grayscale_shape is not None:
             core.observation_type.obs = plan["frames"]
         restore_wrappers(env, *plan["wrappers"])
+
+
+def check_magnitude(where: str, values: torch.Tensor) -> None:
+    """Refuse NaN, inf and magnitudes beyond :data:`~.schema.MAX_MAGNITUDE` in ``values``.
+
+    Example:
+        >>> check_magnitude("env.time", torch.tensor([1.5], dtype=torch.float64))
+        >>> try:
+        ...     check_magnitude("env.time", torch.tensor([float("nan")], dtype=torch.float64))
+        ... except StateCorruptedError as err:
+        ...     print(err)
+        env.time holds nan: not finite, or beyond 1e+09
+    """
+    bad = ~(values.abs() <= MAX_MAGNITUDE)  # NaN fails the comparison
+    if bool(bad.any()):
+        raise StateCorruptedError(
+            f"{where} holds {values[bad][0].item()}: not finite, or beyond {MAX_MAGNITUDE:g}"
+        )
 
 
 def lane_index_of(network: Any, lane: Any) -> tuple:

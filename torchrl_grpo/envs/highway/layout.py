@@ -19,6 +19,7 @@ lays the columns out; :mod:`.layout_encode` packs objects into them and
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -67,7 +68,13 @@ class EntityLayout:
         max_speeds: entries a target-speed array may hold.
         required: fields every decoded object must have; :meth:`decode` refuses a slot
             whose presence flags lack one (the object would fail later, mid-step).
-        not_none: required fields that must not be ``None`` either.
+            A callable gives them per class (``cls -> fields``).
+        not_none: fields that must not be ``None`` where they are present.
+        lanes: the lane count of every ``(from, to)`` edge of the road network, by node
+            names; lane codes off these edges are refused (``None``: not checked).
+        max_magnitude: the largest magnitude a decoded float may hold (larger ones and
+            NaN / inf are refused).
+        domains: closed ranges narrower than that for some float fields, by name.
 
     Example:
         >>> from torchrl_grpo.envs.highway.schema import Field
@@ -83,8 +90,11 @@ class EntityLayout:
         nodes: list,
         max_route: int = 16,
         max_speeds: int = 8,
-        required: frozenset[str] = frozenset(),
-        not_none: tuple[str, ...] = (),
+        required: frozenset[str] | Callable[[type], frozenset[str]] = frozenset(),
+        not_none: Iterable[str] = (),
+        lanes: dict[tuple, int] | None = None,
+        max_magnitude: float = math.inf,
+        domains: dict[str, tuple[float, float]] | None = None,
     ) -> None:
         self.fields = dict(fields)
         self.names = list(self.fields)
@@ -95,8 +105,19 @@ class EntityLayout:
             raise StateCapacityError(f"a road network of {len(self.nodes)} nodes is too large")
         self.max_route = max_route
         self.max_speeds = max_speeds
-        self.required = frozenset(required)
-        self.not_none = tuple(not_none)
+        self.required = required if callable(required) else frozenset(required)
+        self.not_none = frozenset(not_none)
+        self.max_magnitude = max_magnitude
+        self.domains = dict(domains or {})
+        self.lanes = (
+            None
+            if lanes is None
+            else {
+                (self.node_index[a], self.node_index[b]): n
+                for (a, b), n in lanes.items()
+                if a in self.node_index and b in self.node_index
+            }
+        )
         self.widths = {"f64": 0, "i16": 2, "i64": 0, "flags": 0}
         self.columns: dict[str, Columns] = {}
         for name, field in self.fields.items():
@@ -174,20 +195,29 @@ class EntityLayout:
         return (self.node_index[start], self.node_index[end], NONE if lane_id is None else lane_id)
 
     # ------------------------------------------------------------------ decode
-    def lane_index(self, code: list[int] | tuple[int, ...], where: str) -> tuple:
-        """The lane index a lane code stands for (validated)."""
+    def lane_index(
+        self, code: list[int] | tuple[int, ...], where: str, one_lane: bool = False
+    ) -> tuple:
+        """The lane index a lane code stands for (validated).
+
+        ``one_lane``: the code must name one lane (a vehicle's lane), not a whole road
+        edge ``(from, to, None)`` as a route's segments do.
+        """
         a, b, lane_id = code
         n = len(self.nodes)
-        if not (0 <= a < n and 0 <= b < n) or lane_id < NONE:
+        if not (0 <= a < n and 0 <= b < n) or lane_id < (0 if one_lane else NONE):
             raise StateCorruptedError(f"{where}: lane code {list(code)} is not on this road")
+        if self.lanes is not None and ((a, b) not in self.lanes or lane_id >= self.lanes[(a, b)]):
+            index = (self.nodes[a], self.nodes[b], None if lane_id == NONE else lane_id)
+            raise StateCorruptedError(f"{where}: lane {index} is not on this road")
         return (self.nodes[a], self.nodes[b], None if lane_id == NONE else lane_id)
 
-    def lane_at(self, a: int, b: int, lane_id: int, where: str) -> tuple:
+    def lane_at(self, a: int, b: int, lane_id: int, where: str, one_lane: bool = False) -> tuple:
         """:meth:`lane_index` of the code ``(a, b, lane_id)``, remembered once validated."""
         key = (a, b, lane_id)
         index = self._lane_indices.get(key)
-        if index is None:
-            index = self.lane_index(key, where)
+        if index is None or (one_lane and lane_id < 0):
+            index = self.lane_index(key, where, one_lane)
             if len(self._lane_indices) < _MAX_LANE_CODES:  # bounded: lane ids are not
                 self._lane_indices[key] = index
         return index

@@ -41,8 +41,17 @@ class EntityDecoder:
     def __init__(self, layout: EntityLayout) -> None:
         self.layout = layout
         self._readers = {name: self._make_reader(name, f) for name, f in layout.fields.items()}
+        # The range of each float column: the layout's magnitude, or the field's domain.
+        width = layout.widths["f64"]
+        self._low = np.full(width, -layout.max_magnitude)
+        self._high = np.full(width, layout.max_magnitude)
+        for name, (low, high) in layout.domains.items():
+            c = layout.columns.get(name)
+            if c is not None and c.block == "f64":
+                self._low[c.start : c.stop] = max(low, -layout.max_magnitude)
+                self._high[c.start : c.stop] = min(high, layout.max_magnitude)
         # Per presence pattern: its generated decoder and the required fields it lacks.
-        self._plans: dict[tuple[bool, ...], tuple[Callable, list[str]]] = {}
+        self._plans: dict[tuple, tuple[Callable, str, np.ndarray]] = {}
 
     def _make_reader(self, name: str, field: Field) -> Callable:
         layout = self.layout
@@ -65,7 +74,7 @@ class EntityDecoder:
             shape = field.shape
             return lambda rows: np.array(rows["f64"][s:e]).reshape(shape)
         if kind == "lane":
-            return lambda rows: lane_at(*rows["i16"][s:e], where)
+            return lambda rows: lane_at(*rows["i16"][s:e], where, True)
         if kind == "route":
             n_len, max_route = layout.columns[name + "#len"].start, layout.max_route
 
@@ -136,36 +145,67 @@ class EntityDecoder:
         if ((class_ids[used] < 0) | (class_ids[used] >= len(classes))).any():
             raise StateCorruptedError(f"entities: a class id is outside [0, {len(classes)})")
         p0, n0, n = self.layout.present.start, self.layout.is_none.start, len(self.layout.names)
-        out = []
+        out, float_masks = [], []
         for slot in used.tolist():
             f, s, ints, b = (as_lists[blk][slot] for blk in ("f64", "i16", "i64", "flags"))
-            decoder, lacking = self._decoder(tuple(b[p0 : p0 + n]), tuple(b[n0 : n0 + n]))
             cls = classes[s[CLASS_ID]]
+            decoder, lacking, floats = self._decoder(
+                cls, tuple(b[p0 : p0 + n]), tuple(b[n0 : n0 + n])
+            )
             if lacking:
                 raise StateCorruptedError(
-                    f"entity slot {slot} ({cls.__qualname__}) lacks required fields "
-                    f"{lacking}: its presence flags are corrupted"
+                    f"entity slot {slot} (class {cls.__qualname__}) {lacking}: its class id "
+                    "or its presence flags are corrupted"
                 )
+            float_masks.append(floats)
             obj = cls.__new__(cls)
             values, refs = decoder(f, s, ints, b, {"f64": f, "i16": s, "i64": ints, "flags": b})
             obj.__dict__.update(values)
             out.append((slot, s[KIND], obj, refs))
+        if out:
+            self._check_floats(blocks["f64"][used], np.stack(float_masks), used)
         return out
 
+    def _check_floats(self, values: np.ndarray, read: np.ndarray, slots: np.ndarray) -> None:
+        # Every float a slot's objects read: finite and within the layout's magnitude
+        # (NaN fails the comparison too). One vectorised test for the whole table.
+        bad = read & ~((values >= self._low) & (values <= self._high))
+        if bad.any():
+            row, column = (int(i[0]) for i in np.nonzero(bad))
+            name = next(
+                k
+                for k, c in self.layout.columns.items()
+                if c.block == "f64" and c.start <= column < c.stop
+            )
+            raise StateCorruptedError(
+                f"entities.{name.split('#')[0]} of slot {int(slots[row])} is "
+                f"{values[row, column]!r}: outside [{self._low[column]:g}, "
+                f"{self._high[column]:g}], or not finite"
+            )
+
     def _decoder(
-        self, present: tuple[bool, ...], is_none: tuple[bool, ...]
-    ) -> tuple[Callable, list[str]]:
+        self, cls: type, present: tuple[bool, ...], is_none: tuple[bool, ...]
+    ) -> tuple[Callable, str, np.ndarray]:
         # Objects of one class share their presence pattern: generate its decoder once
         # (straight-line code, like the encoders), and check its required fields once.
-        key = present + is_none
+        key = (cls, *present, *is_none)
         plan = self._plans.get(key)
         if plan is None:
-            here = {n for n, p in zip(self.layout.names, present, strict=True) if p}
-            nones = {n for n, p in zip(self.layout.names, is_none, strict=True) if p}
-            missing = sorted(self.layout.required - here)
-            lacking = missing or (
-                sorted(self.layout.not_none) if nones & set(self.layout.not_none) else []
+            layout = self.layout
+            here = {n for n, p in zip(layout.names, present, strict=True) if p}
+            nones = {n for n, p in zip(layout.names, is_none, strict=True) if p and n in here}
+            required = layout.required(cls) if callable(layout.required) else layout.required
+            missing, unset = sorted(required - here), sorted(nones & layout.not_none)
+            lacking = (
+                f"lacks the required fields {missing}"
+                if missing
+                else (f"holds None in {unset}" if unset else "")
             )
+            floats = np.zeros(layout.widths["f64"], dtype=np.bool_)
+            for name in here - nones:
+                c = layout.columns[name]
+                if c.block == "f64":
+                    floats[c.start : c.stop] = True
             namespace: dict[str, Any] = {"array": np.array, "LANE": self.layout.lane_at}
             values, refs = [], []
             for i, (name, here, none) in enumerate(
@@ -192,7 +232,7 @@ class EntityDecoder:
                     where = f"entities.{name}"
                     values.append(
                         f"{name!r}: LANE(s[{c.start}], s[{c.start + 1}], s[{c.start + 2}], "
-                        f"{where!r})"
+                        f"{where!r}, True)"
                     )
                 elif kind == "ref":
                     refs.append(f"{name!r}: s[{c.start}]")
@@ -204,5 +244,5 @@ class EntityDecoder:
                 f"    return {{{', '.join(values)}}}, {{{', '.join(refs)}}}"
             )
             exec(source, namespace)  # noqa: S102 - generated from the field table only
-            plan = self._plans[key] = (namespace["decode"], lacking)
+            plan = self._plans[key] = (namespace["decode"], lacking, floats)
         return plan

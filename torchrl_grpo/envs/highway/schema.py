@@ -18,7 +18,7 @@ from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.controller import ControlledVehicle, MDPVehicle
 from highway_env.vehicle.dynamics import BicycleVehicle
 from highway_env.vehicle.kinematics import Vehicle
-from highway_env.vehicle.objects import Landmark, Obstacle
+from highway_env.vehicle.objects import Landmark, Obstacle, RoadObject
 
 FieldKind = Literal[
     "float",
@@ -104,6 +104,8 @@ FIELDS: dict[str, Field] = {
     "yaw_rate": Field("float"),
 }
 
+BUILTIN_FIELDS: frozenset[str] = frozenset(FIELDS)
+
 # Rebuilt on restore rather than stored: references to the env's road and lane
 # objects, render-only buffers, and BicycleVehicle's linearised dynamics (a pure
 # function of class constants, recomputed before every use).
@@ -129,6 +131,78 @@ CLASS_PARAMETERS: list[tuple[type, str]] = [
     (IDMVehicle, "COMFORT_ACC_MIN"),
     (IDMVehicle, "DISTANCE_WANTED"),
 ]
+
+# Open intervals the class parameters must lie in: IDM's desired gap divides by
+# sqrt(COMFORT_ACC_MAX * -COMFORT_ACC_MIN), which is 0 or NaN outside them.
+CLASS_PARAMETER_DOMAINS: dict[tuple[type, str], tuple[float, float]] = {
+    (IDMVehicle, "COMFORT_ACC_MAX"): (0.0, float("inf")),
+    (IDMVehicle, "COMFORT_ACC_MIN"): (float("-inf"), 0.0),
+}
+
+#: The largest magnitude a float of a highway-env state may hold (metres, m/s,
+#: radians, seconds): a billion seconds of driving would not reach it, and larger
+#: values (a flipped exponent bit) overflow to inf within a few steps.
+MAX_MAGNITUDE = 1e9
+
+# Closed ranges of float fields narrower than MAX_MAGNITUDE: a road object of zero
+# length or width is a degenerate polygon, which the collision test cannot handle.
+FIELD_DOMAINS: dict[str, tuple[float, float]] = {
+    "LENGTH": (5e-324, MAX_MAGNITUDE),
+    "WIDTH": (5e-324, MAX_MAGNITUDE),
+}
+
+# Fields every instance of a class (and of its subclasses) holds: what the class's
+# __init__ sets. A restored object without them would fail mid-step.
+CLASS_FIELDS: dict[type, frozenset[str]] = {
+    RoadObject: frozenset(
+        {
+            "position",
+            "heading",
+            "speed",
+            "lane_index",
+            "collidable",
+            "solid",
+            "check_collisions",
+            "diagonal",
+            "crashed",
+            "hit",
+            "impact",
+        }
+    ),
+    Vehicle: frozenset({"action", "prediction_type"}),
+    ControlledVehicle: frozenset({"target_lane_index", "target_speed", "route"}),
+    MDPVehicle: frozenset({"target_speeds", "speed_index"}),
+    IDMVehicle: frozenset({"enable_lane_change", "timer"}),
+    BicycleVehicle: frozenset({"lateral_speed", "yaw_rate"}),
+}
+
+# The built-in fields highway-env sets to None: every other built-in field holds a
+# value (fields users register may be None).
+NULLABLE_FIELDS: frozenset[str] = frozenset({"impact", "route", "color", "goal"})
+
+
+def required_fields(cls: type) -> frozenset[str]:
+    """The fields every instance of ``cls`` holds (see :data:`CLASS_FIELDS`).
+
+    Example:
+        >>> sorted(required_fields(IDMVehicle) - required_fields(Vehicle))
+        ['enable_lane_change', 'route', 'target_lane_index', 'target_speed', 'timer']
+    """
+    out: frozenset[str] = frozenset()
+    for base in cls.__mro__:
+        out |= CLASS_FIELDS.get(base, frozenset())
+    return out
+
+
+def not_nullable_fields() -> frozenset[str]:
+    """The built-in fields that are never ``None``: the module's own but the nullable ones.
+
+    Example:
+        >>> {"speed", "impact"} & not_nullable_fields()
+        {'speed'}
+    """
+    return BUILTIN_FIELDS - NULLABLE_FIELDS
+
 
 # The values the classes are defined with, so that a fresh episode does not inherit
 # another scenario's overwrite (highway-env itself would).

@@ -57,6 +57,9 @@ class HighwayEnv(SnapshotEnv):
         True
     """
 
+    # highway-env reports no value for a reward component some steps: NaN stands for it.
+    nan_outputs = frozenset({"reward_components"})
+
     def __init__(
         self,
         scenario: str = "highway-fast-v0",
