@@ -67,7 +67,7 @@ def _sample(scenario: str, k: int, seed: int) -> list:
 
 @pytest.mark.parametrize("scenario", SAMPLE_SCENARIOS)
 def test_a_sample_of_corrupted_states_is_refused_or_steps(worker, scenario):
-    failures = _failures(worker, _sample(scenario, 60, seed=hash(scenario) % 1000))
+    failures = _failures(worker, _sample(scenario, 30, seed=len(scenario)))
     assert not failures, "\n".join(failures)
 
 

@@ -95,8 +95,9 @@ class EntityDecoder:
 
             def read(rows):
                 n = rows["i16"][n_len]
-                if not 0 <= n <= max_speeds:
-                    raise StateCorruptedError(f"{where}: length {n} outside [0, {max_speeds}]")
+                # MDPVehicle indexes its target speeds: an empty array fails mid-step
+                if not 1 <= n <= max_speeds:
+                    raise StateCorruptedError(f"{where}: length {n} outside [1, {max_speeds}]")
                 values = np.array(rows["f64"][s : s + n])
                 return values.astype(np.int64) if rows["flags"][is_int] else values
 
@@ -142,8 +143,14 @@ class EntityDecoder:
         if ((kinds < EMPTY) | (kinds > OBJECT)).any():
             raise StateCorruptedError("entities: a slot kind is not -1, 0 or 1")
         used = np.flatnonzero(kinds != EMPTY)
-        if ((class_ids[used] < 0) | (class_ids[used] >= len(classes))).any():
-            raise StateCorruptedError(f"entities: a class id is outside [0, {len(classes)})")
+        wrong = (class_ids[used] < 0) | (class_ids[used] >= len(classes))
+        if wrong.any():
+            slot = int(used[np.flatnonzero(wrong)[0]])
+            raise StateCorruptedError(
+                f"entities: slot {slot} (kind {int(kinds[slot])}) has class id "
+                f"{int(class_ids[slot])}, outside [0, {len(classes)}): its kind or class id "
+                "is corrupted"
+            )
         p0, n0, n = self.layout.present.start, self.layout.is_none.start, len(self.layout.names)
         out, float_masks = [], []
         for slot in used.tolist():
