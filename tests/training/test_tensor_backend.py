@@ -73,7 +73,11 @@ def test_a_tensor_smoke_run_trains_on_the_simulator_and_is_evaluated_on_highway_
     assert [r["name"] for r in results[1:]] == ["always-SLOWER"]
 
 
-@pytest.mark.parametrize("live", [False, True], ids=["queued_trunks", "live_trunks"])
+@pytest.mark.parametrize(
+    "live",
+    [pytest.param(False, marks=pytest.mark.slow), True],
+    ids=["queued_trunks", "live_trunks"],
+)
 def test_resume_on_the_tensor_simulator_continues_exactly(tmp_path, live):
     common = [*TINY, *TENSOR, f"rollout.live_trunks={live}", "experiment.checkpoint_every=1"]
 
