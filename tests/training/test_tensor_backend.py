@@ -188,3 +188,12 @@ def test_the_lookahead_baseline_is_the_planner_over_the_rule_policy(tmp_path):
     by_hand = LookaheadPolicy(make_env(cfg), rule, horizon=baselines_module.LOOKAHEAD_HORIZON)
     expected, _ = evaluate(env, by_hand, episodes=1, seed=3, max_steps=2)
     assert planner.returns == expected.returns
+
+
+def test_an_evaluation_on_the_tensor_simulator_leaves_the_training_rng_alone():
+    cfg = OmegaConf.create({"scenario": "highway-fast-v0", "config": {}, "max_episode_steps": 3})
+    torch.manual_seed(0)
+    expected = torch.rand(3)
+    torch.manual_seed(0)
+    evaluate_on_tensor(cfg, ConstantActionPolicy("IDLE"), episodes=2, seed=5)
+    assert torch.equal(torch.rand(3), expected)

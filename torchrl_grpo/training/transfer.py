@@ -69,7 +69,11 @@ def evaluate_on_tensor(
         highway.set_seed(seed + i)
         highway.reset()
         states.append(highway.get_state())
-    env = TensorHighwayEnv(str(env_cfg.scenario), env_overrides(env_cfg), num_envs=episodes)
+    # Seeded: an env drawn without a seed takes one from torch's generator, and an
+    # evaluation must not move the training's random stream.
+    env = TensorHighwayEnv(
+        str(env_cfg.scenario), env_overrides(env_cfg), num_envs=episodes, seed=seed
+    )
     start = env.state_from_highway(torch.stack(states))
     td = env.reset(TensorDict(state=start, batch_size=[episodes]), set_state=True)
     if isinstance(policy, TensorDictModuleBase) and hasattr(policy, "get_dist"):
