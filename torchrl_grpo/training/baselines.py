@@ -91,7 +91,7 @@ def evaluate_baselines(
     cache_dir: str | Path | None = None,
     policy_seed: int = 0,
 ) -> list[EvalResult]:
-    """Each baseline of ``names`` on episodes ``seed .. seed + episodes - 1``, from the cache.
+    """Each baseline of ``names`` on ``episodes`` episodes from ``seed`` on, cached.
 
     Args:
         env_cfg: the ``env`` config group (scenario, config, ``max_episode_steps``).
