@@ -83,8 +83,9 @@ def time_pair(a, b, td: TensorDict, reps: int, warmup: int = 5) -> tuple[float, 
     return statistics.median(times[0]), statistics.median(times[1])
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def parse_sizes(description: str) -> argparse.Namespace:
+    """The batch sizes, repetitions, seed and threads of a loss benchmark, applied to torch."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--roots", type=int, default=16, help="R, roots per batch")
     parser.add_argument("--branches", type=int, default=8, help="G, branches per root")
     parser.add_argument("--steps", type=int, default=40, help="T, steps per branch")
@@ -97,7 +98,11 @@ def main() -> None:
     warnings.filterwarnings("ignore", category=UserWarning)
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
+    return args
 
+
+def main() -> None:
+    args = parse_sizes(__doc__.splitlines()[0])
     actor = make_actor()
     td = make_batch(actor, args.roots, args.branches, args.steps, masked=False)
     ppo = ClipPPOLoss(actor, None, critic_coeff=None)

@@ -11,11 +11,8 @@ Run: ``python benchmarks/bench_loss_checks.py`` (``--help`` for the sizes).
 
 from __future__ import annotations
 
-import argparse
-import warnings
-
 import torch
-from bench_loss import make_actor, make_batch, time_pair
+from bench_loss import make_actor, make_batch, parse_sizes, time_pair
 from claims import claim
 
 from torchrl_grpo.objectives import GRPOLoss
@@ -24,20 +21,7 @@ GOAL = 1.05
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--roots", type=int, default=16, help="R, roots per batch")
-    parser.add_argument("--branches", type=int, default=8, help="G, branches per root")
-    parser.add_argument("--steps", type=int, default=40, help="T, steps per branch")
-    parser.add_argument("--reps", type=int, default=100, help="timed repetitions")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument(
-        "--threads", type=int, default=1, help="torch threads; 1 is steadier on a shared machine"
-    )
-    args = parser.parse_args()
-    warnings.filterwarnings("ignore", category=UserWarning)
-    torch.set_num_threads(args.threads)
-    torch.manual_seed(args.seed)
-
+    args = parse_sizes(__doc__.splitlines()[0])
     actor = make_actor()
     shape = (args.roots, args.branches, args.steps)
     print(f"batch {list(shape)}, torch threads {torch.get_num_threads()}")

@@ -19,7 +19,20 @@ def python_blocks(path: Path) -> list[str]:
     return re.findall(r"```python\n(.*?)```", path.read_text(), flags=re.S)
 
 
-@pytest.mark.parametrize("path", [p for p in DOCUMENTS if python_blocks(p)], ids=lambda p: p.name)
+# The longest example files (20 s each, worker processes and Ray) run with -m slow, to keep
+# the default suite within its 10-minute budget.
+SLOW_DOCUMENTS = {"distributed.md", "envs.md", "branching.md"}
+
+
+@pytest.mark.parametrize(
+    "path",
+    [
+        pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW_DOCUMENTS else p
+        for p in DOCUMENTS
+        if python_blocks(p)
+    ],
+    ids=lambda p: p.name,
+)
 def test_examples_run(path, tmp_path):
     script = tmp_path / "examples.py"
     body = "\n\n".join(python_blocks(path))

@@ -141,7 +141,14 @@ def quick_runs(request, tmp_path_factory):
     pool.shutdown(wait=True, cancel_futures=True)
 
 
-@pytest.mark.parametrize("name", RUN_HERE)
+# The longest quick runs are slow-marked (the default suite's 10-minute budget).
+SLOW_TUTORIALS = {"branch_scripted_policies"}
+
+
+@pytest.mark.parametrize(
+    "name",
+    [pytest.param(n, marks=pytest.mark.slow) if n in SLOW_TUTORIALS else n for n in RUN_HERE],
+)
 def test_tutorial_quick(name, quick_runs):
     out, future = quick_runs[name]
     result: subprocess.CompletedProcess = future.result(timeout=600)

@@ -140,6 +140,7 @@ def test_killed_actor_is_replaced_and_its_batch_redone():
     assert trunk_frames > 0
 
 
+@pytest.mark.slow
 def test_actor_killed_between_batches_is_replaced():
     policy = make_policy()
     collector = RayGroupCollector(
@@ -216,6 +217,7 @@ TINY_RAY = [
 ]
 
 
+@pytest.mark.slow
 def test_training_on_ray_resumes_exactly(tmp_path):
     from torchrl_grpo.training import Trainer
 

@@ -107,6 +107,7 @@ def test_restore_same_and_fresh_env(scenario, seed, policy):
     check_restore_and_replay(fresh, ref, "fresh env")
 
 
+@pytest.mark.slow
 def test_highway_v0_short_run():
     """highway-v0 (~180 ms a step) in the default suite: 2 warm-up + 6 steps, careful and random."""
     for seed, policy in [(0, "careful"), (1, "random")]:

@@ -74,6 +74,7 @@ def test_b_one_step_every_action(fast_worlds):
     assert report.agreement >= 0.995, report.misses
 
 
+@pytest.mark.slow
 def test_c_whole_episodes(fast_worlds):
     env, states, _ = fast_worlds
     small = TensorHighwayEnv("highway-fast-v0", num_envs=30, dtype=torch.float64)

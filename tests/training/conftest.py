@@ -34,13 +34,16 @@ def compose_config(
 
 
 def run_script(
-    script: str, args: list[str], timeout: float = 120, **kwargs
+    script: str, args: list[str], timeout: float = 120, cwd: Path = ROOT, **kwargs
 ) -> subprocess.CompletedProcess:
-    """Run ``scripts/<script>`` in a subprocess, wandb offline, from the repository root."""
+    """Run ``scripts/<script>`` in a subprocess, wandb offline, from ``cwd`` (the repository root).
+
+    Hydra's relative folders (``outputs/``, a relative ``experiment.out_dir``) land in ``cwd``.
+    """
     env = {**os.environ, "WANDB_MODE": "offline", "PYTHONUNBUFFERED": "1"}
     return subprocess.run(
         [sys.executable, str(ROOT / "scripts" / script), *args],
-        cwd=ROOT,
+        cwd=cwd,
         env=env,
         capture_output=True,
         text=True,

@@ -3,25 +3,14 @@
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 
-from conftest import ROOT, TINY, compose_config
+from conftest import ROOT, TINY, compose_config, run_script
 
 from torchrl_grpo.training import load_checkpoint
 
 
 def _script(script: str, args: list[str], cwd, timeout: float = 180):
-    """Run ``scripts/<script>`` from ``cwd`` (Hydra's relative folders land there)."""
-    env = {**os.environ, "WANDB_MODE": "offline", "PYTHONUNBUFFERED": "1"}
-    return subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / script), *args],
-        cwd=cwd,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
+    return run_script(script, args, timeout=timeout, cwd=cwd)
 
 
 def test_out_dir_holds_hydras_files_and_a_resume_writes_into_its_own_folder(tmp_path):

@@ -106,7 +106,13 @@ def _params(trainer: Trainer) -> dict[str, torch.Tensor]:
 @pytest.mark.parametrize(
     "algo,extra,first,total",
     [
-        ("grpo_branch", ["algo.group_size=2", "rollout.decision_interval=2"], 40, 110),
+        pytest.param(
+            "grpo_branch",
+            ["algo.group_size=2", "rollout.decision_interval=2"],
+            40,
+            110,
+            marks=pytest.mark.slow,  # grpo_branch_replay resumes the same loop and more
+        ),
         ("ppo", ["rollout.frames_per_batch=32"], 32, 96),
         ("grpo_branch", [*_REPLAY], 60, 160),
     ],

@@ -23,32 +23,18 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-from torchrl_grpo.branching.engine import BranchRun, KeepStates, Policy, run_branches
+from torchrl_grpo.branching.engine import (
+    BranchRun,
+    KeepStates,
+    Policy,
+    check_policy_actions,
+    run_branches,
+)
 from torchrl_grpo.branching.keys import BRANCH, GROUP_ID, ROOT_STEP, STATE, STEP_COUNT
 from torchrl_grpo.branching.pipelined import run_pipelined
 from torchrl_grpo.branching.slots import EnvSlots, has_batched_worlds
 
 __all__ = ["run_batched_branches", "run_on"]
-
-
-def _check_actions(td: TensorDictBase, env: EnvBase) -> None:
-    """Fail with a readable message before a bad action reaches the simulator."""
-    for key in env.action_keys:
-        spec = env.full_action_spec[key]
-        action = td.get(key, None)
-        if action is None:
-            raise ValueError(f"the policy wrote no {key!r} entry; it must write the env's action")
-        if not isinstance(action, torch.Tensor) or action.shape != spec.shape:
-            got = tuple(action.shape) if isinstance(action, torch.Tensor) else type(action).__name__
-            raise ValueError(
-                f"the policy's {key!r} does not match the env's action spec: got {got}, "
-                f"expected shape {tuple(spec.shape)} and dtype {spec.dtype}"
-            )
-        if action.dtype != spec.dtype or not spec.is_in(action):
-            raise ValueError(
-                f"the policy's {key!r} holds values outside the env's action spec "
-                f"({spec.dtype}): {action.reshape(-1).tolist()[:8]}"
-            )
 
 
 def run_batched_branches(
@@ -153,7 +139,7 @@ def _wave(env, policy, states, rows, horizon, labels, keep, mask, lengths, ended
         td.set(STEP_COUNT, (root_step[pad] + t).unsqueeze(-1))
         out = policy(td)
         td = td if out is None else out
-        _check_actions(td, env)
+        check_policy_actions(td, env.full_action_spec, env.action_keys)
         before = env.get_state() if keep == "all" else None
         stepped = env.step(td)
         if keep == "all":

@@ -18,12 +18,13 @@ copied when they are kept.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
+from torchrl.data import Composite
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_grpo.branching.keys import (
@@ -223,10 +224,28 @@ def _advance(cur: TensorDictBase, nxt: TensorDictBase, rows: torch.Tensor | None
 
 def check_actions(td: TensorDictBase, slots: EnvSlots) -> None:
     """Fail in the parent, with a readable message, before a bad action reaches a worker."""
-    spec = slots.action_spec
-    for key in slots.action_keys:
+    check_policy_actions(td, slots.action_spec, slots.action_keys, per_worker=not slots.batched)
+
+
+def check_policy_actions(
+    td: TensorDictBase, spec: Composite, keys: Sequence, *, per_worker: bool = False
+) -> None:
+    """Check that ``td`` holds an action for each of ``keys`` that ``spec`` admits.
+
+    Args:
+        td: the policy's output.
+        spec: the env's full action spec.
+        keys: the action keys to check.
+        per_worker: the action carries a leading dimension of 1 that the spec (one
+            worker's) does not.
+
+    Raises:
+        ValueError: an action is missing, has the wrong shape or dtype, or holds
+            values outside the spec; the message names the key and the spec.
+    """
+    for key in keys:
         leaf = spec[key]
-        expected = tuple(leaf.shape) if slots.batched else (1, *leaf.shape)
+        expected = (1, *leaf.shape) if per_worker else tuple(leaf.shape)
         action = td.get(key, None)
         if action is None:
             raise ValueError(
@@ -248,7 +267,7 @@ def check_actions(td: TensorDictBase, slots: EnvSlots) -> None:
                 f"expected shape {expected} and dtype {leaf.dtype} ({type(leaf).__name__} "
                 f"spec{_spec_range(leaf)})"
             )
-        if not leaf.is_in(action if slots.batched else action[0]):
+        if not leaf.is_in(action[0] if per_worker else action):
             raise ValueError(
                 f"the policy's {key!r} holds values outside the env's action spec"
                 f"{_spec_range(leaf)}: {action.reshape(-1).tolist()[:8]}"
