@@ -18,6 +18,7 @@ from torchrl.envs import EnvBase
 from torchrl_grpo.branching.keys import BRANCH, MASK, ROOT_STEP, STATE, STEP_COUNT
 from torchrl_grpo.branching.rollout import branch_rollout
 from torchrl_grpo.branching.root_builders import as_roots
+from torchrl_grpo.branching.slots import has_batched_worlds
 from torchrl_grpo.envs import to_bits
 
 __all__ = ["LookaheadPolicy"]
@@ -88,24 +89,32 @@ class LookaheadPolicy(TensorDictModuleBase):
         if tensordict.batch_dims == 0:
             return tensordict.set("action", self._plan(tensordict))
         flat = tensordict.reshape(-1)
-        actions = torch.stack([self._plan(flat[i]) for i in range(flat.shape[0])])
+        if has_batched_worlds(self.env):
+            # Every row's branches are rows of one batched rollout.
+            actions = self.returns(flat).argmax(-1).to(torch.int64)
+        else:
+            actions = torch.stack([self._plan(flat[i]) for i in range(flat.shape[0])])
         return tensordict.set("action", actions.reshape(tensordict.batch_size))
 
     def returns(self, tensordict: TensorDictBase) -> torch.Tensor:
-        """The branch return of every action from the state in ``tensordict`` (unbatched)."""
+        """The branch return of every action from the state(s) in ``tensordict``.
+
+        Returns:
+            ``[n_actions]`` for an unbatched input, ``[N, n_actions]`` for ``N`` rows.
+        """
         state = tensordict.get(STATE)
         _check_fresh(tensordict, state)
         data = branch_rollout(
             self.env, self._branch_policy, as_roots(state), self.n_actions, self.horizon
-        )[0]
+        )
         mask = data.get(MASK)
         self.frames += int(mask.sum())
         reward = data.get(("next", "reward")).reshape(mask.shape).double()
         # Summed step by step, in float64: the order of a sequential sum of the rewards.
-        scores = torch.zeros(self.n_actions, dtype=torch.float64)
+        scores = torch.zeros(mask.shape[:-1], dtype=torch.float64)
         for t in range(mask.shape[-1]):
-            scores += torch.where(mask[:, t], reward[:, t], 0.0)
-        return scores
+            scores += torch.where(mask[..., t], reward[..., t], 0.0)
+        return scores if tensordict.batch_dims else scores[0]
 
     def _plan(self, tensordict: TensorDictBase) -> torch.Tensor:
         # argmax returns the first maximum: ties go to the lowest action index.

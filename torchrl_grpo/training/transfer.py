@@ -36,6 +36,7 @@ def evaluate_on_tensor(
     episodes: int,
     seed: int,
     name: str = "policy (tensor simulator)",
+    return_state: bool = False,
 ) -> EvalResult:
     """The episodes of :func:`~torchrl_grpo.training.evaluate`, on the tensor simulator.
 
@@ -46,6 +47,8 @@ def evaluate_on_tensor(
             from seed ``seed + i`` starts.
         seed: the first episode's seed.
         name: the label of the result.
+        return_state: write each step's simulator state into the policy's input (for a
+            policy that plans from it, :class:`~torchrl_grpo.branching.LookaheadPolicy`).
 
     Raises:
         ValueError: a scenario or config the tensor simulator does not cover.
@@ -72,7 +75,11 @@ def evaluate_on_tensor(
     # Seeded: an env drawn without a seed takes one from torch's generator, and an
     # evaluation must not move the training's random stream.
     env = TensorHighwayEnv(
-        str(env_cfg.scenario), env_overrides(env_cfg), num_envs=episodes, seed=seed
+        str(env_cfg.scenario),
+        env_overrides(env_cfg),
+        num_envs=episodes,
+        seed=seed,
+        return_state=return_state,
     )
     start = env.state_from_highway(torch.stack(states))
     td = env.reset(TensorDict(state=start, batch_size=[episodes]), set_state=True)
