@@ -10,9 +10,13 @@ the rule policy, the lookahead planner over the rule policy (every action tried 
 every state, then ``--horizon`` steps of the rule policy: what the groups of
 ``algo=grpo_branch`` score; the planner's branches are rows of one batched rollout) and
 the greedy policy of each ``--checkpoint``. Each row prints its crash rate beside the
-planner's and always-SLOWER's.
+planner's and always-SLOWER's. With ``--anatomy``, the last five decisions before
+each crash of a checkpoint's policy are scored by the planner: a choice is costly when
+the planner's best action earns at least 0.5 more over its branch.
 
     python benchmarks/bench_crash_rates.py --checkpoint outputs/.../last.pt --episodes 1000
+    python benchmarks/bench_crash_rates.py --checkpoint outputs/.../last.pt --episodes 400 \
+        --no-planner --anatomy
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import argparse
 import logging
 import math
 import time
+from collections import Counter
 
 import torch
 from omegaconf import OmegaConf
@@ -28,11 +33,18 @@ from omegaconf import OmegaConf
 from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.modules import make_scripted_policy
-from torchrl_grpo.training import load_checkpoint, make_env, make_layout
+from torchrl_grpo.training import (
+    evaluate_on_tensor,
+    load_checkpoint,
+    make_env,
+    make_layout,
+    tensor_episodes,
+)
 from torchrl_grpo.training.config import typed_config
 from torchrl_grpo.training.env_builder import env_overrides
 from torchrl_grpo.training.model_builder import make_policy
-from torchrl_grpo.training.transfer import evaluate_on_tensor
+
+ACTIONS = ("LANE_LEFT", "IDLE", "LANE_RIGHT", "FASTER", "SLOWER")
 
 logging.basicConfig(level=logging.INFO, format="%(message)s")
 log = logging.getLogger("bench_crash_rates")
@@ -47,6 +59,34 @@ def trained(path: str):
     return run_cfg.env, policy
 
 
+def anatomy(env_cfg, policy, planner, episodes: int, seed: int, last: int = 5) -> None:
+    """Print how many crashes follow a costly choice among the ``last`` decisions."""
+    data, before = tensor_episodes(env_cfg, policy, episodes=episodes, seed=seed)
+    hits = data.get(("next", "crashed")).reshape(episodes, -1) & before
+    crashed = hits.any(1).nonzero().squeeze(-1).tolist()
+    at = hits.float().argmax(1)
+    rows = [(i, t) for i in crashed for t in range(max(0, int(at[i]) - last + 1), int(at[i]) + 1)]
+    if not rows:
+        print("no crash")
+        return
+    steps = torch.stack([data[i, t] for i, t in rows])
+    scores = planner.returns(steps)
+    action = steps.get("action").reshape(-1, 1)
+    regret = scores.max(-1).values - scores.gather(-1, action).squeeze(-1)
+    costly = regret >= 0.5
+    kinds = Counter(
+        f"{ACTIONS[int(a)]} instead of {ACTIONS[int(b)]}"
+        for a, b, c in zip(action.squeeze(-1), scores.argmax(-1), costly, strict=True)
+        if c
+    )
+    episodes_costly = len({rows[j][0] for j in costly.nonzero().squeeze(-1).tolist()})
+    print(
+        f"{len(crashed)} crashes in {episodes} episodes; {episodes_costly} follow a costly "
+        f"choice (regret >= 0.5) among the last {last} decisions; {int(costly.sum())} costly "
+        f"choices of {len(rows)}: {kinds.most_common(6)}"
+    )
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--checkpoint", action="append", default=[], help="a run's last.pt")
@@ -54,6 +94,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=30_000, help="first episode's seed")
     p.add_argument("--horizon", type=int, default=8, help="the planner's steps per branch")
     p.add_argument("--no-planner", action="store_true", help="skip the planner (minutes)")
+    p.add_argument("--anatomy", action="store_true", help="score the decisions before crashes")
     p.add_argument("--threads", type=int, default=1)
     args = p.parse_args()
     torch.set_num_threads(args.threads)
@@ -68,12 +109,12 @@ def main() -> None:
     rule = make_scripted_policy("rule", layout)
     baselines = [("always-SLOWER", make_scripted_policy("slower", layout), False)]
     baselines.append(("rule policy", rule, False))
+    # The planner's own env: every row's 5 branches are rows of one rollout.
+    plan_env = TensorHighwayEnv(
+        str(env_cfg.scenario), env_overrides(env_cfg), num_envs=5 * args.episodes, seed=1
+    )
+    planner = LookaheadPolicy(plan_env, rule, horizon=args.horizon)
     if not args.no_planner:
-        # The planner's own env: every row's 5 branches are rows of one rollout.
-        plan_env = TensorHighwayEnv(
-            str(env_cfg.scenario), env_overrides(env_cfg), num_envs=5 * args.episodes, seed=1
-        )
-        planner = LookaheadPolicy(plan_env, rule, horizon=args.horizon)
         baselines.append((f"lookahead H={args.horizon} over the rule policy", planner, True))
 
     rows = {}
@@ -112,6 +153,10 @@ def main() -> None:
             f"| {name} | {ret.mean():.2f} ± {ret.std():.2f} | {100 * crash:.1f}% ± "
             f"{100 * sem:.1f} | {vs_slower} | {vs_planner} |"
         )
+    if args.anatomy:
+        for path, policy, _ in policies:
+            print(f"{path}: ", end="")
+            anatomy(env_cfg, policy, planner, args.episodes, args.seed)
 
 
 if __name__ == "__main__":

@@ -54,7 +54,7 @@ from torchrl_grpo.training.optim_builder import make_optimizer
 from torchrl_grpo.training.plots import plot_comparison, plot_learning_curve, save_gif
 from torchrl_grpo.training.results import EvalResult, compare_paired, format_table
 from torchrl_grpo.training.trainer import Trainer, TrainResult
-from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
+from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap, tensor_episodes
 
 __all__ = [
     "ALGORITHMS",
@@ -116,6 +116,7 @@ __all__ = [
     "resume_config",
     "save_checkpoint",
     "save_gif",
+    "tensor_episodes",
     "to_container",
     "typed_config",
     "world_steps",

@@ -25,7 +25,7 @@ from torchrl_grpo.modules import DeterministicActor
 from torchrl_grpo.training.env_builder import env_overrides, make_env
 from torchrl_grpo.training.results import EvalResult
 
-__all__ = ["evaluate_on_tensor", "paired_gap"]
+__all__ = ["tensor_episodes", "evaluate_on_tensor", "paired_gap"]
 
 
 @torch.no_grad()
@@ -65,6 +65,46 @@ def evaluate_on_tensor(
         >>> round(paired_gap(highway, tensor)["return_gap"], 6)  # float32 rewards
         0.0
     """
+    data, before = tensor_episodes(
+        env_cfg, policy, episodes=episodes, seed=seed, return_state=return_state
+    )
+    reward = torch.where(before, data.get(("next", "reward")).reshape(episodes, -1), 0.0)
+    crashed = (data.get(("next", "crashed")).reshape(episodes, -1) & before).any(1)
+    speed = data.get(("next", "speed")).reshape(episodes, -1).double()
+    lengths = before.sum(1)
+    return EvalResult(
+        name,
+        returns=reward.double().sum(1).tolist(),
+        crashed=crashed.tolist(),
+        lengths=lengths.tolist(),
+        speeds=((speed * before).sum(1) / lengths.clamp(min=1)).tolist(),
+        seeds=list(range(seed, seed + episodes)),
+    )
+
+
+def tensor_episodes(
+    env_cfg: DictConfig,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    *,
+    episodes: int,
+    seed: int,
+    return_state: bool = False,
+) -> tuple[TensorDictBase, torch.Tensor]:
+    """The greedy rollout behind :func:`evaluate_on_tensor`, step by step.
+
+    Returns:
+        The ``[episodes, T]`` rollout and the ``[episodes, T]`` mask of the steps that
+        belong to each episode (up to its first done).
+
+    Example:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_grpo.modules import ConstantActionPolicy
+        >>> cfg = OmegaConf.create({"scenario": "highway-fast-v0", "config": {},
+        ...                         "max_episode_steps": 4})
+        >>> data, steps = tensor_episodes(cfg, ConstantActionPolicy("IDLE"), episodes=2, seed=0)
+        >>> data.batch_size, steps.shape
+        (torch.Size([2, 4]), torch.Size([2, 4]))
+    """
     max_steps = int(env_cfg.get("max_episode_steps", 1000))
     highway = make_env(env_cfg)
     states = []
@@ -92,18 +132,7 @@ def evaluate_on_tensor(
     done = data.get(("next", "done")).reshape(episodes, -1)
     # A row counts up to its first done; later steps belong to no episode.
     before = torch.cumsum(done.long(), 1) - done.long() == 0
-    reward = torch.where(before, data.get(("next", "reward")).reshape(episodes, -1), 0.0)
-    crashed = (data.get(("next", "crashed")).reshape(episodes, -1) & before).any(1)
-    speed = data.get(("next", "speed")).reshape(episodes, -1).double()
-    lengths = before.sum(1)
-    return EvalResult(
-        name,
-        returns=reward.double().sum(1).tolist(),
-        crashed=crashed.tolist(),
-        lengths=lengths.tolist(),
-        speeds=((speed * before).sum(1) / lengths.clamp(min=1)).tolist(),
-        seeds=list(range(seed, seed + episodes)),
-    )
+    return data, before
 
 
 def paired_gap(highway: EvalResult, tensor: EvalResult) -> dict[str, float]:
