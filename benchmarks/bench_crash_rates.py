@@ -61,7 +61,7 @@ def trained(path: str):
 
 def anatomy(env_cfg, policy, planner, episodes: int, seed: int, last: int = 5) -> None:
     """Print how many crashes follow a costly choice among the ``last`` decisions."""
-    data, before = tensor_episodes(env_cfg, policy, episodes=episodes, seed=seed)
+    data, before = tensor_episodes(env_cfg, policy, episodes=episodes, seed=seed, return_state=True)
     hits = data.get(("next", "crashed")).reshape(episodes, -1) & before
     crashed = hits.any(1).nonzero().squeeze(-1).tolist()
     at = hits.float().argmax(1)

@@ -82,3 +82,14 @@ def test_on_batched_worlds_all_rows_are_planned_in_one_rollout_as_row_by_row():
     actions = planner(td.clone())["action"]
     assert torch.equal(actions, scores.argmax(-1))
     assert len(set(scores.flatten().tolist())) > 1  # the control: the actions differ
+
+
+def test_a_stale_tensor_state_carried_from_the_reset_is_refused():
+    env = TensorHighwayEnv(SCENARIO, num_envs=3, seed=0)  # no return_state
+    data = env.rollout(2, ConstantActionPolicy("IDLE"))
+    planner = LookaheadPolicy(
+        TensorHighwayEnv(SCENARIO, num_envs=15), ConstantActionPolicy("IDLE"), 2
+    )
+    planner.returns(data[:, 0])  # the reset's own state: fresh
+    with pytest.raises(ValueError, match="return_state=True"):
+        planner.returns(data[:, 1])  # the reset's state, carried to the next step

@@ -146,12 +146,26 @@ def _check_fresh(tensordict: TensorDictBase, state: TensorDictBase) -> None:
     rollout carries that state to every later step: planning from it would silently
     plan from the episode's start.
     """
-    stored = state.get(("output", "observation"), None)
-    if stored is None or "observation" not in tensordict.keys():
-        return
-    observation = tensordict.get("observation")
-    if not torch.equal(to_bits(observation), stored):
+    if _stored_observation_differs(tensordict, state) or _ego_position_differs(tensordict, state):
         raise ValueError(
             f"the input's {STATE!r} is not the state its observation comes from (a stale "
             "state, carried from the reset): build the env it drives with return_state=True"
         )
+
+
+def _stored_observation_differs(tensordict: TensorDictBase, state: TensorDictBase) -> bool:
+    # A HighwayEnv state stores the observation it was taken with.
+    stored = state.get(("output", "observation"), None)
+    if stored is None or "observation" not in tensordict.keys():
+        return False
+    return not torch.equal(to_bits(tensordict.get("observation")), stored)
+
+
+def _ego_position_differs(tensordict: TensorDictBase, state: TensorDictBase) -> bool:
+    # A tensor simulator's state holds the ego in vehicle slot 0.
+    x, y = state.get(("vehicles", "x"), None), state.get(("vehicles", "y"), None)
+    if x is None or y is None or "ego_position" not in tensordict.keys():
+        return False
+    seen = tensordict.get("ego_position")
+    ego = torch.stack([x[..., 0], y[..., 0]], -1).to(seen.dtype)
+    return ego.shape != seen.shape or not torch.equal(ego, seen)
