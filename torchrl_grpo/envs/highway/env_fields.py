@@ -17,7 +17,11 @@ import gymnasium as gym
 import numpy as np
 import torch
 from highway_env.envs.common.action import ContinuousAction
-from highway_env.envs.common.observation import GrayscaleObservation, KinematicObservation
+from highway_env.envs.common.observation import (
+    GrayscaleObservation,
+    KinematicObservation,
+    KinematicsGoalObservation,
+)
 from torchrl.data import Unbounded
 
 from torchrl_grpo.envs.core.errors import (
@@ -36,10 +40,12 @@ from torchrl_grpo.envs.highway.env_checks import (
     check_class_parameters,
     check_features_range,
     check_magnitude,
+    check_observed_goal,
+    vehicle_in_slot,
 )
 from torchrl_grpo.envs.highway.lane_keeping_fields import LaneKeepingFields, lane_index_of
+from torchrl_grpo.envs.highway.layout import KIND, EntityLayout
 from torchrl_grpo.envs.highway.layout import NONE as _NONE
-from torchrl_grpo.envs.highway.layout import EntityLayout
 
 # check_magnitude (env_checks), lane_index_of (lane_keeping_fields) and time_limit
 # (core.gym_state) moved out; re-exported from here, where they were defined.
@@ -117,6 +123,11 @@ class EnvFields:
         self.continuous_action = isinstance(core.action_type, ContinuousAction)
         self.action_size = core.action_type.size if self.continuous_action else 0
         self.kinematic_obs = isinstance(obs_type, KinematicObservation)
+        # Goal observations read the observer's goal (parking-v0 rewards through one).
+        self.goal_observed = isinstance(obs_type, KinematicsGoalObservation)
+        self.goal_rewarded = isinstance(
+            getattr(core, "observation_type_parking", None), KinematicsGoalObservation
+        )
         self.range_keys = list(obs_type.features) if self.kinematic_obs else []
         if self.kinematic_obs and obs_type.features_range:
             self.range_keys += [k for k in obs_type.features_range if k not in self.range_keys]
@@ -210,15 +221,12 @@ class EnvFields:
 
     def decode(self, core: Any, t: dict[Any, torch.Tensor], by_slot: dict) -> dict:
         """Check the env-level entries ``t`` and build what a restore writes (nothing written)."""
-
         # Scalars through .item() and vectors through .tolist(): both give the exact
         # Python values, for a fraction of the cost of a numpy view per entry.
+        kinds = t[("entities", "i16")][:, KIND].tolist()
+
         def vehicle_at(code: int, what: str) -> Any:
-            if code == _NONE:
-                return None
-            if code not in by_slot:
-                raise StateCorruptedError(f"env.{what} refers to empty slot {code}")
-            return by_slot[code]
+            return vehicle_in_slot(code, f"env.{what}", by_slot, kinds)
 
         def floats(key: str) -> torch.Tensor:
             return t[("env", key)].view(torch.float64)
@@ -253,6 +261,7 @@ class EnvFields:
         }
         if None in plan["controlled"]:
             raise StateCorruptedError("env.controlled holds an empty slot")
+        self.check_goals(plan, by_slot)
         check_class_parameters(self.class_parameters, plan["class_params"])
         ranges = zip(
             self.range_keys,
@@ -266,6 +275,22 @@ class EnvFields:
         if self.grayscale_shape is not None:
             plan["frames"] = t[("env", "frames")].numpy().copy()
         return plan
+
+    def check_goals(self, plan: dict[str, Any], by_slot: dict[int, Any]) -> None:
+        """Refuse a plan whose goal observations observe a vehicle without a goal.
+
+        The observation's observer defaults to the first controlled vehicle, as
+        highway-env's does; parking-v0 also observes that vehicle's goal for its reward.
+        """
+        if not (self.goal_observed or self.goal_rewarded):
+            return
+        first = plan["controlled"][0] if plan["controlled"] else None
+        slot_of = {id(obj): slot for slot, obj in by_slot.items()}
+        if self.goal_observed:
+            observer = plan["observer_vehicle"] or first
+            check_observed_goal(observer, "the observation (env.observer_vehicle)", slot_of)
+        if self.goal_rewarded:
+            check_observed_goal(first, "the reward (env.controlled)", slot_of)
 
     def commit(self, env: gym.Env, plan: dict[str, Any]) -> None:
         """Write a decoded plan's env-level part into ``env`` (cannot fail)."""
