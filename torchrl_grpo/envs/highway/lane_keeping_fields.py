@@ -115,6 +115,11 @@ class LaneKeepingFields:
         check_magnitude("env.trajectory", points)
         lane_code = t[("env", "lane")].tolist()
         lane = None if lane_code[0] == _NO_LANE else self.lane_object(core, lane_code, "env.lane")
+        if lane is None and self.has_lane:
+            # Reset sets it and no step clears it: its reward reads it every step.
+            raise StateCorruptedError(
+                f"env.lane is {lane_code}, no lane, but lane-keeping-v0 always follows one"
+            )
         n_lanes = t[("env", "lanes_len")].item()
         if not 0 <= n_lanes <= MAX_LANES:
             raise StateCorruptedError(f"env.lanes_len is {n_lanes}")
