@@ -16,7 +16,7 @@ once ``stuck`` exceeds ``patience``. Registered with
 :func:`~torchrl_grpo.envs.register_vehicle_class`, it is used as the traffic
 (highway-env's ``other_vehicles_type``), the snapshot stores both fields, and a restore
 gives them back bit for bit. A class with an attribute that was not registered fails
-at the env's first snapshot (its first reset), with an ``UnknownFieldError`` naming the
+when the env is built (it fixes its state layout then), with an ``UnknownFieldError`` naming the
 attribute, instead of being silently left out of the state.
 
 Run it::
@@ -318,15 +318,14 @@ def custom_vehicle_demo(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarra
     stuck = layout.column(entities, "stuck").numpy()
     env.close()
 
-    # An attribute nobody registered fails loudly, naming itself, at the first snapshot
-    # (every reset returns one), rather than being silently dropped from the state.
-    moody = HighwayEnv(args.scenario, config={"other_vehicles_type": class_path(MoodyIDM)})
+    # An attribute nobody registered fails loudly, naming itself, when the env is built
+    # (it fixes its state layout then), rather than being silently dropped from the state.
     try:
-        moody.reset()
+        moody = HighwayEnv(args.scenario, config={"other_vehicles_type": class_path(MoodyIDM)})
+        moody.close()
         print("MoodyIDM: no error (unexpected)")
     except UnknownFieldError as err:
         print(f"MoodyIDM (an unregistered 'mood' attribute) -> UnknownFieldError: {err}")
-    moody.close()
     return patience, stuck
 
 

@@ -263,9 +263,10 @@ def main(argv: list[str] | None = None) -> None:
     print(f"gain of select-and-continue over the no-branching mean: {gain:+.2f}")
 
     # 4. Pictures.
+    # The trunk's row 0 holds the root's position, each row's "next" the one after it.
     trunk_xy = np.concatenate(
         [
-            res.groups[0, 0, 0]["ego_position"].double().numpy()[None],
+            trunk["ego_position"][:1].double().numpy(),
             trunk["next", "ego_position"].double().numpy(),
         ]
     )

@@ -113,6 +113,22 @@ def test_multi_turn_runs_each_episode_to_its_end():
         assert torch.equal(step["next", "observation"], trunk["next", "observation"][t])
 
 
+def test_the_trunk_starts_at_the_root_observation():
+    # Issue #20 said trunk() omits the root observation: row 0's "observation" is the
+    # root's (bit for bit), and each row's observation is the previous row's next one.
+    env = plain_env("merge-v0", seed=0)
+    roots = reset_roots(env, 2, seed=0)
+    out = multi_turn_rollout(env, RandomPolicy(seed=0), roots, 2, 2, max_turns=3)
+    for e in range(2):
+        trunk = out.trunk(e)
+        assert trunk.shape[0] == 6
+        root = roots["state", "output"][e]
+        for key in ("observation", "ego_position", "speed"):
+            assert torch.equal(trunk[key][0], root[key].view(torch.float32)), key
+        assert torch.equal(trunk["observation"][1:], trunk["next", "observation"][:-1])
+        assert trunk["step_count"][:, 0].tolist() == list(range(6))
+
+
 def test_trunk_selection_follows_branch_zero():
     roots = reset_roots(plain_env("merge-v0", seed=0), 1)
     out = multi_turn_rollout(

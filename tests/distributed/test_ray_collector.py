@@ -190,6 +190,99 @@ def test_weights_reach_the_actors():
     assert (batch["action"][batch[MASK]] == 3).all()
 
 
+# ---------------------------------------------------------------- refused states (#20)
+def _refused_states(n_good: int):
+    """A sample of corrupted merge-v0 root states, each refused at restore, and good roots.
+
+    Returns ``(bad, good, names)``: ``bad[k]`` is refused naming ``names[k]``.
+    """
+    from torchrl_grpo.branching import reset_roots
+    from torchrl_grpo.envs import HighwayEnv
+
+    env = HighwayEnv("merge-v0", seed=0)
+    good = reset_roots(env, n_good)
+    layout = env.codec.layout
+    obstacle = env.codec.max_vehicles  # merge-v0's road object: an Obstacle
+
+    def f64(state, field, slot, value):
+        column = layout.columns[field].start
+        state["sim", "entities", "f64"].view(torch.float64)[:, slot, column] = value
+
+    corruptions = {
+        r"env\.rng": lambda s: s["sim", "env", "rng"].fill_(0),
+        r"entities\.speed": lambda s: f64(s, "speed", 1, float("nan")),
+        r"entities\.heading": lambda s: f64(s, "heading", 0, float("inf")),
+        r"output\.observation": lambda s: (
+            s["output", "observation"].view(torch.float32).fill_(float("nan"))
+        ),
+        r"env\.controlled": lambda s: s["sim", "env", "controlled"].fill_(obstacle),
+        r"env\.class_params": lambda s: s["sim", "env", "class_params"].fill_(0),
+        r"wrappers\.has_reset": lambda s: s["sim", "wrappers", "has_reset"].fill_(False),
+        "kind": lambda s: s["sim", "entities", "i16"][:, 1, 0].fill_(7),
+    }
+    bad = []
+    for corrupt in corruptions.values():
+        root = good[:1].clone()  # states of a batch of one root
+        corrupt(root["state"])
+        bad.append(root)
+    return bad, good, list(corruptions)
+
+
+def test_a_refused_state_reaches_the_caller_and_the_actor_steps_on():
+    from torchrl_grpo.branching import StoredRoots
+    from torchrl_grpo.distributed import GroupWorker
+    from torchrl_grpo.envs import StateCorruptedError
+
+    bad, good, names = _refused_states(2)
+    # the actor's roots alternate: a refused one, then a good one
+    roots = torch.cat([torch.cat([b, good[k % 2 : k % 2 + 1]]) for k, b in enumerate(bad)])
+    kwargs = dict(SMALL, groups_per_batch=1, roots=StoredRoots(roots))
+    actor = (
+        ray.remote(GroupWorker)
+        .options(num_cpus=0.5)
+        .remote(ENV_FACTORY, make_policy(), kwargs, 0, 1)
+    )
+    try:
+        pid = ray.get(actor.pid.remote())
+        for k, name in enumerate(names):
+            with pytest.raises(StateCorruptedError, match=name):
+                ray.get(actor.collect.remote(None, 2 * k))
+            result = ray.get(actor.collect.remote(None, 2 * k + 1))
+            assert result.data is not None and result.data[MASK].all(), name
+            # the branches start from that good root
+            want = good["state", "output", "observation"][k % 2].view(torch.float32)
+            assert (result.data["observation"][0, :, 0] == want).all(), name
+        assert ray.get(actor.pid.remote()) == pid  # the same process all along
+    finally:
+        ray.get(actor.close.remote())
+        ray.kill(actor, no_restart=True)
+
+
+@pytest.mark.slow  # one more actor start (about 5 s)
+def test_a_refused_state_stops_a_ray_collection_with_its_error_not_a_restart():
+    from torchrl_grpo.branching import StoredRoots
+    from torchrl_grpo.envs import StateCorruptedError
+
+    bad, good, names = _refused_states(1)
+    collector = RayGroupCollector(
+        ENV_FACTORY,
+        make_policy(),
+        num_actors=1,
+        groups_per_batch=1,
+        seed=0,
+        num_cpus_per_actor=0.5,
+        roots=StoredRoots(torch.cat([good, bad[0]])),
+        wait_timeout=60.0,
+        **SMALL,
+    )
+    it = iter(collector)
+    assert next(it)[MASK].all()
+    with pytest.raises(StateCorruptedError, match=names[0]):
+        next(it)
+    assert collector.restarts == 0  # an error of the collection, not an actor that died
+    assert not collector.actors  # and the collection stopped, its actors ended
+
+
 def _compose(overrides: list[str]):
     from hydra import compose, initialize_config_dir
 

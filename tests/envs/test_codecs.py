@@ -252,16 +252,24 @@ def test_registered_vehicle_class_with_an_extra_field(isolated_registry):
     assert runs_differ(ref, impatient)
 
 
-def test_unregistered_vehicle_class_fails_loudly(isolated_registry):
-    env = _patient_env(seed=0)
-    with pytest.raises(UnknownFieldError, match="PatientIDM"):
-        env.get_state()
+def test_unregistered_vehicle_class_fails_loudly_when_the_env_is_built(isolated_registry):
+    with pytest.raises(UnknownFieldError, match="PatientIDM is not registered"):
+        _patient_env(seed=0)
 
 
-def test_registered_class_without_its_field_names_the_field(isolated_registry):
+def test_registered_class_without_its_field_names_the_field_when_the_env_is_built(
+    isolated_registry,
+):
+    # Issue #20: caught at the first snapshot before, after the env was built and used
     register_vehicle_class(PatientIDM)
-    env = _patient_env(seed=0)
-    with pytest.raises(UnknownFieldError, match=r"PatientIDM\.patience"):
+    with pytest.raises(UnknownFieldError, match=r"PatientIDM\.patience is not a field"):
+        _patient_env(seed=0)
+
+
+def test_an_attribute_added_after_the_build_is_caught_at_the_snapshot(isolated_registry):
+    env = HighwayEnv("highway-fast-v0", seed=0)
+    env.gym_env.unwrapped.road.vehicles[1].patience = 1.0
+    with pytest.raises(UnknownFieldError, match=r"IDMVehicle\.patience is not a field"):
         env.get_state()
 
 

@@ -22,6 +22,7 @@ from env_helpers import (
 )
 from tensordict import TensorDict
 from torchrl.envs import ParallelEnv, SerialEnv
+from torchrl.envs.utils import check_env_specs
 
 from torchrl_grpo.envs import (
     HIGHWAY_SCENARIOS,
@@ -149,6 +150,28 @@ def test_return_state_in_a_batched_env():
         assert "state" in out["next"].keys()
         for w, state in enumerate(env.get_state()):
             assert_bitwise_equal(out["next", "state"][w], state, f"worker {w}")
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("cls", [SnapshotSerialEnv, SnapshotParallelEnv])
+@pytest.mark.parametrize("return_state", [False, True])
+@pytest.mark.parametrize("use_buffers", [True, False])
+def test_check_env_specs_on_a_batched_highway_env(cls, return_state, use_buffers):
+    # Issue #20: failed unless return_state=True (state_spec holds the state, and a
+    # batched reset did not return it): the reset returns the workers' states now
+    extra = {"mp_start_method": "fork"} if cls is SnapshotParallelEnv else {}
+    make = functools.partial(HighwayEnv, "merge-v0", seed=0, return_state=return_state)
+    env = cls(2, make, use_buffers=use_buffers, **extra)
+    try:
+        check_env_specs(env)
+        reset = env.reset()
+        for w, state in enumerate(env.get_state()):  # dispatched: one state per worker
+            assert_bitwise_equal(reset["state"][w], state, f"worker {w}")
+        env.rollout(2)
+        back = env.reset(TensorDict(state=reset["state"], batch_size=[2]), set_state=True)
+        assert_bitwise_equal(back["state"], reset["state"], "restored states")
+        assert torch.equal(back["observation"], reset["observation"])
     finally:
         env.close()
 

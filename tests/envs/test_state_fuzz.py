@@ -135,6 +135,18 @@ def test_reachable_states_are_admitted():
         env.step(TensorDict(action=env.action_spec.zero()))
 
 
+def test_lane_keeping_without_its_lane_is_refused():
+    # its reward reads env.lane every step: a state without one (a sign-flipped lane
+    # code reads as "no lane") raised AttributeError mid-step
+    env = HighwayEnv("lane-keeping-v0", seed=0)
+    state = env.get_state()
+    state["sim", "env", "lane"].fill_(-2)
+    with pytest.raises(StateCorruptedError, match=r"env\.lane is \[-2, -2, -2\], no lane"):
+        env.set_state(state)
+    env.reset()
+    env.step(TensorDict(action=env.action_spec.zero()))
+
+
 def test_parallel_envs_stay_usable_after_refused_states():
     env = HighwayEnv("merge-v0", seed=0)
     clean = env.get_state()

@@ -68,3 +68,20 @@ def test_help_lists_only_choices_that_compose():
             continue
         for choice in choices:
             compose_config([f"{group}={choice}"])
+
+
+def test_evaluate_help_lists_only_the_env_choices_that_compose():
+    # The template evaluate.py --help prints (in this process: a subprocess costs ~6 s).
+    from hydra import compose, initialize_config_dir
+
+    from torchrl_grpo.training import register_configs
+
+    register_configs()
+    with initialize_config_dir(str(ROOT / "conf"), version_base=None):
+        text = compose("evaluate", return_hydra_config=True).hydra.help.template
+    groups = text.split("== Configuration groups ==")[1].split("== Config ==")[0]
+    lines = [line for line in groups.splitlines() if ": " in line and "(" not in line]
+    assert [line.split(": ")[0] for line in lines] == ["env"]  # evaluate composes env only
+    assert "base_" not in text
+    for choice in lines[0].split(": ")[1].split(", "):
+        compose_config([f"env={choice}"], config_name="evaluate")

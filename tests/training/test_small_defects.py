@@ -23,12 +23,28 @@ def test_episodes_of_zero_steps_are_refused_at_start(tmp_path):
 @pytest.mark.parametrize("tail", ["rule", "slower"])
 def test_a_scripted_tail_on_ray_is_refused_when_the_config_loads(tail):
     cfg = compose_config(
-        [*TINY, "rollout.backend=ray", "algo.explore_steps=1", f"algo.tail_policy={tail}"]
+        [
+            *TINY,
+            "rollout.backend=ray",
+            "algo.explore_steps=1",
+            f"algo.tail_policy={tail}",
+            "algo.replay_groups=null",  # refused on Ray on its own (next test)
+        ]
     )
     with pytest.raises(ValueError, match=f"algo.tail_policy={tail} is not supported"):
         check_config(cfg)
     learner = ["algo.tail_policy=learner", "algo.replay_groups=null"]
     check_config(compose_config([*TINY, "rollout.backend=ray", *learner]))
+
+
+def test_replayed_groups_on_ray_are_refused_naming_them_when_the_config_loads():
+    # replay needs a scripted tail, which Ray actors do not run: the error says so
+    scripted = ["algo.explore_steps=1", "algo.first_action=enumerate", "algo.tail_policy=rule"]
+    for tail in (scripted, ["algo.tail_policy=learner"]):
+        cfg = compose_config([*TINY, "rollout.backend=ray", *tail, "algo.replay_groups=8"])
+        with pytest.raises(ValueError, match="algo.replay_groups=8 is not supported with rollout"):
+            check_config(cfg)
+    check_config(compose_config([*TINY, *scripted, "algo.replay_groups=8"]))  # not on Ray: fine
 
 
 def test_recording_an_evaluation_prints_no_sdl_error(tmp_path):

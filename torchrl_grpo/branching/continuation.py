@@ -117,7 +117,25 @@ class MultiTurnResult:
     ended: torch.Tensor
 
     def trunk(self, episode: int) -> TensorDict:
-        """The steps episode ``episode`` actually took: its chosen branches, in order."""
+        """The steps episode ``episode`` actually took: its chosen branches, in order.
+
+        One row per step, as a TorchRL rollout: row ``t`` holds what the policy saw
+        before step ``t`` (``"observation"``, ``"ego_position"``, ...: row 0 holds the
+        root's), the action, and ``("next", ...)`` what came after it. The ``T + 1``
+        observations of a ``T``-step trunk are ``trunk["observation"][0]`` followed by
+        ``trunk["next", "observation"]``.
+
+        Example:
+            >>> from torchrl_grpo.branching import reset_roots
+            >>> from torchrl_grpo.envs import HighwayEnv
+            >>> from torchrl_grpo.modules import RandomPolicy
+            >>> env = HighwayEnv("merge-v0", seed=0)
+            >>> roots = reset_roots(env, 1, seed=0)
+            >>> trunk = multi_turn_rollout(env, RandomPolicy(seed=0), roots, 2, 2).trunk(0)
+            >>> root = roots["state", "output", "observation"][0].view(torch.float32)
+            >>> torch.equal(trunk["observation"][0], root)
+            True
+        """
         rows = (self.episode == episode).nonzero().squeeze(-1)
         rows = rows[torch.argsort(self.turn[rows])]
         steps = [self.groups[i, self.selected[i]] for i in rows.tolist()]

@@ -20,6 +20,7 @@ from torchrl.envs import EnvBase
 
 from torchrl_grpo.branching import GroupCollector
 from torchrl_grpo.branching.roots import RootSource
+from torchrl_grpo.envs import SnapshotError
 
 logger = logging.getLogger(__name__)
 
@@ -188,6 +189,9 @@ class GroupWorker:
 
         The ids are assigned by the learner, so that they are unique over all actors,
         and set before the batch because ``rng="per_branch"`` seeds depend on them.
+        A root state the env refuses raises its :class:`~torchrl_grpo.envs.SnapshotError`
+        and leaves the actor usable (the next call goes on with the next roots); any
+        other error shuts the collector down.
         """
         if weights is not None:
             self.collector.update_policy_weights_(weights)
@@ -195,11 +199,19 @@ class GroupWorker:
         state["next_group_id"] = int(first_group_id)
         self.collector.load_state_dict(state)
         if self._iterator is None:
-            self._iterator = iter(self.collector)
+            self._iterator = self.collector.iterator()
         try:
             data = next(self._iterator)
         except StopIteration:
             data = None
+        except SnapshotError:
+            # A refused state reached no env (its workers live on) and the root source
+            # has moved past it: the actor stays usable, its next batch iterates afresh.
+            self._iterator = None
+            raise
+        except BaseException:
+            self.collector.shutdown()  # as iterating the collector itself would
+            raise
         snapshot = self.snapshot() if keep_snapshot else None
         return GroupResult(data=data, snapshot=snapshot, trunk_frames=self.collector.trunk_frames)
 

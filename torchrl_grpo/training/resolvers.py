@@ -38,18 +38,28 @@ def run_dir(out_dir: str | None, resume: str | None, default: str) -> str:
     return str(default)
 
 
-def config_choices(conf_dir: str | Path | None = None) -> str:
+def config_choices(*groups: str, conf_dir: str | Path | None = None) -> str:
     """One line per config group of ``conf_dir``: ``group: choice, choice, ...``.
 
     A choice is a YAML file of the group's folder; the schemas the files start from
     (``base_*``, registered by :func:`~torchrl_grpo.training.register_configs`) are not.
 
+    Args:
+        groups: the groups to list (none: every group), as ``${config_choices:env}``
+            in a help template (evaluate.py composes ``env`` only).
+        conf_dir: the config folder (default :data:`CONF_DIR`).
+
     Example:
         >>> print(config_choices().splitlines()[0])
         algo: grpo_branch, grpo_episode, ppo
+        >>> print(config_choices("env"))
+        env: highway, highway_fast, merge, roundabout
     """
     lines = []
-    for group in sorted(p for p in Path(conf_dir or CONF_DIR).iterdir() if p.is_dir()):
+    folders = sorted(p for p in Path(conf_dir or CONF_DIR).iterdir() if p.is_dir())
+    for group in folders:
+        if groups and group.name not in groups:
+            continue
         choices = sorted(f.stem for f in group.glob("*.yaml"))
         if choices:
             lines.append(f"{group.name}: {', '.join(choices)}")

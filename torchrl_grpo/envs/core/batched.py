@@ -15,7 +15,8 @@ from __future__ import annotations
 import weakref
 from typing import Any
 
-from tensordict import TensorDictBase
+from tensordict import TensorDictBase, unravel_key
+from torchrl.data import Composite
 from torchrl.envs import EnvBase, ParallelEnv, SerialEnv, TransformedEnv
 
 from torchrl_grpo.envs.core.errors import SnapshotError
@@ -135,7 +136,25 @@ def check_worker_states(env: EnvBase, tensordict: TensorDictBase) -> None:
 
 
 class _ChecksStatesFirst:
-    """Mixin for ``SerialEnv`` / ``ParallelEnv``: check every state before restoring."""
+    """Mixin for ``SerialEnv`` / ``ParallelEnv``: check every state before restoring.
+
+    A reset also returns the workers' states, as a single snapshot env's reset does:
+    the state is in ``state_spec`` (it routes a restore to every worker), so an output
+    without it would not match the specs (``check_env_specs``) unless the workers
+    return it at every step (``return_state=True``).
+    """
+
+    def _create_td(self) -> None:
+        super()._create_td()
+        if "_selected_reset_keys" not in self.__dict__:
+            return  # no shared buffers: a reset returns the workers' outputs whole
+        # Before the workers start: they receive the reset keys they write back.
+        states = {
+            unravel_key((STATE_KEY, key))
+            for key in self.state_spec.get(STATE_KEY, Composite()).keys(True, True)
+        }
+        self._selected_reset_keys = self._selected_reset_keys | states
+        self._selected_reset_keys_filt = self._selected_reset_keys_filt | states
 
     def _reset(self, tensordict: TensorDictBase | None, **kwargs: Any) -> TensorDictBase:
         if kwargs.get("set_state") and tensordict is not None:

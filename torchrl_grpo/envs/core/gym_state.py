@@ -205,6 +205,19 @@ def restore_wrappers(env: gym.Env, elapsed_steps: int, has_reset: bool) -> None:
             wrapper._has_reset = bool(has_reset)
 
 
+def time_limit(env: gym.Env) -> int | None:
+    """The ``TimeLimit`` wrapper's limit of ``env``, or ``None``.
+
+    Example:
+        >>> time_limit(gym.make("CartPole-v1"))
+        500
+    """
+    for wrapper in _wrappers(env):
+        if isinstance(wrapper, gym.wrappers.TimeLimit):
+            return wrapper._max_episode_steps
+    return None
+
+
 def _wrappers(env: gym.Env):
     while isinstance(env, gym.Wrapper):
         yield env

@@ -115,7 +115,12 @@ class HighwayStateCodec(StateCodec):
 
     # ------------------------------------------------------------------ binding
     def bind(self, env: gym.Env) -> None:
-        """Fix the layout from a freshly reset env: capacities, vocabulary, node names."""
+        """Fix the layout from a freshly reset env: capacities, vocabulary, node names.
+
+        The env's road objects are encoded once, so that a class or an attribute the
+        layout cannot store raises :class:`~torchrl_grpo.envs.UnknownFieldError` here,
+        when the env is built, and not at its first snapshot.
+        """
         core = env.unwrapped
         road = core.road
         if road is None:
@@ -177,6 +182,11 @@ class HighwayStateCodec(StateCodec):
         self._float_keys = {_dotted(k) for k in float_keys}
         self._spec_layout = spec_layout(self._spec)
         self._bound = True
+        if len(road.vehicles) <= self.max_vehicles and len(road.objects) <= self.max_objects:
+            # Fail now, not at the first snapshot, on what the layout cannot store: an
+            # unregistered class, or an attribute outside the field vocabulary (named
+            # with its class). A road too large for the padding fails at the snapshot.
+            self.encode(env)
 
     def fingerprint(self, env: gym.Env) -> int:
         """A hash of the config, the road network and the state layout."""

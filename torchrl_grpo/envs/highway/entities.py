@@ -91,7 +91,15 @@ def decode_entities(
             )
         for name, target in refs.items():
             if target not in by_slot:
-                raise StateCorruptedError(f"entities.{name} of slot {slot} is empty slot {target}")
+                # Name the kind: a corrupted kind column empties the slot referred to.
+                what = (
+                    f"which is empty (kind {int(blocks['i16'][target, KIND])})"
+                    if 0 <= target < blocks["i16"].shape[0]
+                    else "outside the table"
+                )
+                raise StateCorruptedError(
+                    f"entities.{name} of slot {slot} refers to slot {target}, {what}"
+                )
             obj.__dict__[name] = by_slot[target]
         try:
             rebuild_derived(core, obj, slot, history_sizes)

@@ -2,34 +2,53 @@
 
 Time and counters, the generator, which vehicles are controlled, acted on and
 observed, the action and observation types' own state (a continuous action's last
-command, the Kinematics ``features_range``, grayscale frames), and the extras of
-lane-keeping and racetrack (env-level lanes and the growing trajectory). Built by
-:class:`~torchrl_grpo.envs.HighwayStateCodec` when it binds to an env.
+command, the Kinematics ``features_range``, grayscale frames), and lane-keeping's
+extras (its env-level lanes and growing trajectory, stored by
+:mod:`.lane_keeping_fields`). The rules a restore checks these entries against are in
+:mod:`.env_checks`. Built by :class:`~torchrl_grpo.envs.HighwayStateCodec` when it
+binds to an env.
 """
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch
 from highway_env.envs.common.action import ContinuousAction
-from highway_env.envs.common.observation import GrayscaleObservation, KinematicObservation
+from highway_env.envs.common.observation import (
+    GrayscaleObservation,
+    KinematicObservation,
+    KinematicsGoalObservation,
+)
 from torchrl.data import Unbounded
 
 from torchrl_grpo.envs.core.errors import (
-    SnapshotError,
     StateCapacityError,
     StateCorruptedError,
     UnknownFieldError,
 )
-from torchrl_grpo.envs.core.gym_state import RNG_WORDS, decode_rng, encode_rng, restore_wrappers
+from torchrl_grpo.envs.core.gym_state import (
+    RNG_WORDS,
+    decode_rng,
+    encode_rng,
+    restore_wrappers,
+    time_limit,
+)
+from torchrl_grpo.envs.highway.env_checks import (
+    check_class_parameters,
+    check_features_range,
+    check_magnitude,
+    check_observed_goal,
+    vehicle_in_slot,
+)
+from torchrl_grpo.envs.highway.lane_keeping_fields import LaneKeepingFields, lane_index_of
+from torchrl_grpo.envs.highway.layout import KIND, EntityLayout
 from torchrl_grpo.envs.highway.layout import NONE as _NONE
-from torchrl_grpo.envs.highway.layout import EntityLayout
-from torchrl_grpo.envs.highway.schema import CLASS_PARAMETER_DOMAINS, MAX_MAGNITUDE
 
+# check_magnitude (env_checks), lane_index_of (lane_keeping_fields) and time_limit
+# (core.gym_state) moved out; re-exported from here, where they were defined.
 __all__ = ["EnvFields", "check_magnitude", "lane_index_of", "time_limit"]
 
 # Name-mangled private attributes of highway-env's action / observation types.
@@ -99,14 +118,16 @@ class EnvFields:
         self.layout = layout
         self.class_parameters = class_parameters
         self.n_controlled = len(core.controlled_vehicles)
-        self.has_lane = hasattr(core, "lane")
-        self.has_lanes = hasattr(core, "lanes")
-        self.has_trajectory = hasattr(core, "trajectory")
-        limit = time_limit(env)
-        self.max_trajectory = max_trajectory or (limit + 8 if limit else 1024)
+        self.lane_keeping = LaneKeepingFields(env, layout, max_trajectory)
+        self.max_trajectory = self.lane_keeping.max_trajectory
         self.continuous_action = isinstance(core.action_type, ContinuousAction)
         self.action_size = core.action_type.size if self.continuous_action else 0
         self.kinematic_obs = isinstance(obs_type, KinematicObservation)
+        # Goal observations read the observer's goal (parking-v0 rewards through one).
+        self.goal_observed = isinstance(obs_type, KinematicsGoalObservation)
+        self.goal_rewarded = isinstance(
+            getattr(core, "observation_type_parking", None), KinematicsGoalObservation
+        )
         self.range_keys = list(obs_type.features) if self.kinematic_obs else []
         if self.kinematic_obs and obs_type.features_range:
             self.range_keys += [k for k in obs_type.features_range if k not in self.range_keys]
@@ -134,11 +155,7 @@ class EnvFields:
             "last_action": u((self.action_size,), torch.float64),
             "features_range": u((len(self.range_keys), 2), torch.float64),
             "features_range_mask": u((len(self.range_keys),), torch.bool),
-            "lane": u((3,), torch.int64),
-            "lanes": u((4, 3), torch.int64),
-            "lanes_len": u((), torch.int64),
-            "trajectory": u((self.max_trajectory if self.has_trajectory else 0, 6), torch.float64),
-            "trajectory_len": u((), torch.int64),
+            **self.lane_keeping.spec(),
         }
         if self.grayscale_shape is not None:
             env["frames"] = u(tuple(self.grayscale_shape), torch.uint8)
@@ -197,58 +214,27 @@ class EnvFields:
             mask[self.range_keys.index(key)] = True
         out[("env", "features_range")] = ranges
         out[("env", "features_range_mask")] = mask
-        lane = np.full(3, _NONE - 1, dtype=np.int64)  # -2: no env-level lane
-        if self.has_lane and core.lane is not None:
-            lane[:] = self.layout.lane_code(lane_index_of(core.road.network, core.lane))
-        out[("env", "lane")] = lane
-        lanes = np.zeros((4, 3), dtype=np.int64)
-        lane_list = core.lanes if self.has_lanes else []
-        for j, each in enumerate(lane_list):
-            lanes[j] = self.layout.lane_code(lane_index_of(core.road.network, each))
-        out[("env", "lanes")] = lanes
-        put("lanes_len", len(lane_list), np.int64)
-        rows = self.max_trajectory if self.has_trajectory else 0
-        trajectory = np.zeros((rows, 6))
-        points = core.trajectory if self.has_trajectory else []
-        if len(points) > rows:
-            raise StateCapacityError(
-                f"the trajectory holds {len(points)} points, the state pads to {rows}: "
-                "build the env with a larger max_trajectory"
-            )
-        if points:
-            trajectory[: len(points)] = np.asarray(points).reshape(len(points), 6)
-        out[("env", "trajectory")] = trajectory
-        put("trajectory_len", len(points), np.int64)
-        if getattr(core, "interval_trajectory", None):
-            raise SnapshotError("lane-keeping interval trajectories are not supported")
+        out.update(self.lane_keeping.encode(env))
         if self.grayscale_shape is not None:
             out[("env", "frames")] = np.array(core.observation_type.obs, dtype=np.uint8)
         return out
 
     def decode(self, core: Any, t: dict[Any, torch.Tensor], by_slot: dict) -> dict:
         """Check the env-level entries ``t`` and build what a restore writes (nothing written)."""
-
         # Scalars through .item() and vectors through .tolist(): both give the exact
         # Python values, for a fraction of the cost of a numpy view per entry.
+        kinds = t[("entities", "i16")][:, KIND].tolist()
+
         def vehicle_at(code: int, what: str) -> Any:
-            if code == _NONE:
-                return None
-            if code not in by_slot:
-                raise StateCorruptedError(f"env.{what} refers to empty slot {code}")
-            return by_slot[code]
+            return vehicle_in_slot(code, f"env.{what}", by_slot, kinds)
 
         def floats(key: str) -> torch.Tensor:
             return t[("env", key)].view(torch.float64)
 
         seed = t[("env", "seed")].item()
         road_steps = t[("env", "road_steps")].item()
-        n_points = t[("env", "trajectory_len")].item()
-        trajectory = t[("env", "trajectory")]
-        if not 0 <= n_points <= trajectory.shape[0]:
-            raise StateCorruptedError(f"env.trajectory_len is {n_points}")
         for key in ("time", "class_params", "last_action", "features_range"):
             check_magnitude(f"env.{key}", floats(key))
-        check_magnitude("env.trajectory", trajectory[:n_points].view(torch.float64))
         plan: dict[str, Any] = {
             "time": floats("time").item(),
             "steps": t[("env", "steps")].item(),
@@ -275,13 +261,8 @@ class EnvFields:
         }
         if None in plan["controlled"]:
             raise StateCorruptedError("env.controlled holds an empty slot")
-        for (cls, name), value in zip(self.class_parameters, plan["class_params"], strict=True):
-            low, high = CLASS_PARAMETER_DOMAINS.get((cls, name), (-math.inf, math.inf))
-            if not low < value < high:
-                raise StateCorruptedError(
-                    f"env.class_params: {cls.__qualname__}.{name} is {value}, "
-                    f"outside ({low}, {high})"
-                )
+        self.check_goals(plan, by_slot)
+        check_class_parameters(self.class_parameters, plan["class_params"])
         ranges = zip(
             self.range_keys,
             floats("features_range").tolist(),
@@ -289,36 +270,27 @@ class EnvFields:
             strict=True,
         )
         plan["features_range"] = {k: r for k, r, m in ranges if m} or None
-        for key, (low, high) in (plan["features_range"] or {}).items():
-            if not low < high:
-                raise StateCorruptedError(
-                    f"env.features_range: {key} (set in env.features_range_mask) spans "
-                    f"[{low}, {high}]"
-                )
-        lane_code = t[("env", "lane")].tolist()
-        plan["lane"] = (
-            None if lane_code[0] == _NONE - 1 else self.lane_object(core, lane_code, "env.lane")
-        )
-        n_lanes = t[("env", "lanes_len")].item()
-        if not 0 <= n_lanes <= 4:
-            raise StateCorruptedError(f"env.lanes_len is {n_lanes}")
-        where = f"env.lanes (of env.lanes_len {n_lanes})"
-        plan["lanes"] = [
-            self.lane_object(core, c, where) for c in t[("env", "lanes")].tolist()[:n_lanes]
-        ]
-        points = trajectory[:n_points].view(torch.float64).numpy()
-        plan["trajectory"] = [p.reshape(6, 1).copy() for p in points]
+        check_features_range(plan["features_range"])
+        plan |= self.lane_keeping.decode(core, t)
         if self.grayscale_shape is not None:
             plan["frames"] = t[("env", "frames")].numpy().copy()
         return plan
 
-    def lane_object(self, core: Any, code: list[int], where: str) -> Any:
-        """The lane object of a stored lane code (``where`` names the entry in errors)."""
-        index = self.layout.lane_index(code, where)
-        try:
-            return core.road.network.get_lane(index)
-        except (KeyError, IndexError) as err:
-            raise StateCorruptedError(f"{where}: lane {index} is not on this road") from err
+    def check_goals(self, plan: dict[str, Any], by_slot: dict[int, Any]) -> None:
+        """Refuse a plan whose goal observations observe a vehicle without a goal.
+
+        The observation's observer defaults to the first controlled vehicle, as
+        highway-env's does; parking-v0 also observes that vehicle's goal for its reward.
+        """
+        if not (self.goal_observed or self.goal_rewarded):
+            return
+        first = plan["controlled"][0] if plan["controlled"] else None
+        slot_of = {id(obj): slot for slot, obj in by_slot.items()}
+        if self.goal_observed:
+            observer = plan["observer_vehicle"] or first
+            check_observed_goal(observer, "the observation (env.observer_vehicle)", slot_of)
+        if self.goal_rewarded:
+            check_observed_goal(first, "the reward (env.controlled)", slot_of)
 
     def commit(self, env: gym.Env, plan: dict[str, Any]) -> None:
         """Write a decoded plan's env-level part into ``env`` (cannot fail)."""
@@ -340,61 +312,7 @@ class EnvFields:
             core.action_type.last_action = plan["last_action"]
         if self.kinematic_obs:
             core.observation_type.features_range = plan["features_range"]
-        if self.has_lane:
-            core.lane = plan["lane"]
-        if self.has_lanes:
-            core.lanes = plan["lanes"]
-        if self.has_trajectory:
-            core.trajectory = plan["trajectory"]
+        self.lane_keeping.commit(core, plan)
         if self.grayscale_shape is not None:
             core.observation_type.obs = plan["frames"]
         restore_wrappers(env, *plan["wrappers"])
-
-
-def check_magnitude(where: str, values: torch.Tensor) -> None:
-    """Refuse NaN, inf and magnitudes beyond :data:`~.schema.MAX_MAGNITUDE` in ``values``.
-
-    Example:
-        >>> check_magnitude("env.time", torch.tensor([1.5], dtype=torch.float64))
-        >>> try:
-        ...     check_magnitude("env.time", torch.tensor([float("nan")], dtype=torch.float64))
-        ... except StateCorruptedError as err:
-        ...     print(err)
-        env.time holds nan: not finite, or beyond 1e+09
-    """
-    bad = ~(values.abs() <= MAX_MAGNITUDE)  # NaN fails the comparison
-    if bool(bad.any()):
-        raise StateCorruptedError(
-            f"{where} holds {values[bad][0].item()}: not finite, or beyond {MAX_MAGNITUDE:g}"
-        )
-
-
-def lane_index_of(network: Any, lane: Any) -> tuple:
-    """The ``(from, to, id)`` index of a lane object of ``network``.
-
-    Example:
-        >>> from highway_env.road.road import RoadNetwork
-        >>> net = RoadNetwork.straight_road_network(2)
-        >>> lane_index_of(net, net.get_lane(("0", "1", 1)))
-        ('0', '1', 1)
-    """
-    for start, destinations in network.graph.items():
-        for end, lanes in destinations.items():
-            for lane_id, candidate in enumerate(lanes):
-                if candidate is lane:
-                    return (start, end, lane_id)
-    raise SnapshotError("an env-level lane is not part of the road network")
-
-
-def time_limit(env: gym.Env) -> int | None:
-    """The ``TimeLimit`` wrapper's limit of ``env``, or ``None``.
-
-    Example:
-        >>> time_limit(gym.make("CartPole-v1"))
-        500
-    """
-    while isinstance(env, gym.Wrapper):
-        if isinstance(env, gym.wrappers.TimeLimit):
-            return env._max_episode_steps
-        env = env.env
-    return None

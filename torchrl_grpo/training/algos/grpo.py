@@ -222,10 +222,18 @@ class GRPO(Algorithm):
                 "branches: set algo.explore_steps too (e.g. 1), and leave "
                 "algo.tail_sync_batches null (it refreshes a learner's copy)"
             )
+        rollout = cfg.get("rollout")
+        on_ray = rollout is not None and str(rollout.backend) == "ray"
         replay = algo.replay_groups
         if replay is not None:
             if replay < 1:
                 raise ValueError(f"algo.replay_groups must be >= 1, got {replay}")
+            if on_ray:
+                raise ValueError(
+                    f"algo.replay_groups={replay} is not supported with rollout.backend=ray: "
+                    "replay needs a scripted algo.tail_policy, which the Ray actors do not run "
+                    "yet; set algo.replay_groups=null or use the parallel, serial or single backend"
+                )
             if str(algo.first_action) != "enumerate" or tail_policy == "learner":
                 raise ValueError(
                     f"algo.replay_groups={replay} replays old groups, which is sound only when "
@@ -243,8 +251,7 @@ class GRPO(Algorithm):
                 f"algo.first_action={first_action} chooses the first action of "
                 "greedy-tail branches: set algo.explore_steps too (e.g. 1)"
             )
-        rollout = cfg.get("rollout")
-        if rollout is not None and str(rollout.backend) == "ray" and tail_policy != "learner":
+        if on_ray and tail_policy != "learner":
             raise ValueError(
                 f"algo.tail_policy={tail_policy} is not supported with rollout.backend=ray "
                 "yet; use the parallel, serial or single backend"
