@@ -25,7 +25,7 @@ from torchrl_grpo.modules import DeterministicActor
 from torchrl_grpo.training.env_builder import env_overrides, make_env
 from torchrl_grpo.training.results import EvalResult
 
-__all__ = ["tensor_episodes", "evaluate_on_tensor", "paired_gap"]
+__all__ = ["evaluate_on_tensor", "paired_gap", "tensor_episodes"]
 
 
 @torch.no_grad()
@@ -82,6 +82,7 @@ def evaluate_on_tensor(
     )
 
 
+@torch.no_grad()
 def tensor_episodes(
     env_cfg: DictConfig,
     policy: Callable[[TensorDictBase], TensorDictBase],
