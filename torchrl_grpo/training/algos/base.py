@@ -170,6 +170,10 @@ class Algorithm:
     def on_optimizer_step(self) -> None:
         """Called after every optimiser step of :meth:`optimise`."""
 
+    def loss_terms(self, minibatch: TensorDictBase) -> TensorDictBase:
+        """The loss's output on ``minibatch``: every ``loss_*`` entry is summed and minimised."""
+        return self.loss(minibatch)
+
     def optimise(
         self, data: TensorDictBase, refresh: Callable[[], TensorDictBase] | None = None
     ) -> dict[str, float]:
@@ -196,7 +200,7 @@ class Algorithm:
                 data = refresh()
             perm = torch.randperm(n)
             for start in range(0, n - mb + 1, mb):
-                out = self.loss(data[perm[start : start + mb]])
+                out = self.loss_terms(data[perm[start : start + mb]])
                 loss = sum(v for k, v in out.items() if k.startswith("loss_"))
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()

@@ -4,7 +4,8 @@ With ``algo.first_action=enumerate`` and a scripted ``algo.tail_policy``, a grou
 every action of its root under a fixed base policy: the advantages do not depend on the
 policy that collected them, so old groups stay valid targets (:func:`make_replay`), and
 each action's term can be weighed by the probability the policy gives it
-(:func:`policy_weighted`).
+(:func:`policy_weighted`), or distilled as a target distribution per root
+(:func:`distill_targets`).
 """
 
 from __future__ import annotations
@@ -13,7 +14,20 @@ from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
-__all__ = ["make_replay", "policy_weighted", "replay_rows"]
+from torchrl_grpo.branching import GROUP_ID
+from torchrl_grpo.objectives import group_softmax_target
+
+__all__ = [
+    "DISTILL_WEIGHT",
+    "check_distill",
+    "distill_targets",
+    "make_replay",
+    "policy_weighted",
+    "replay_rows",
+]
+
+#: Each trained step's weight in its root's distillation target (``algo.distill_coeff``).
+DISTILL_WEIGHT = "distill_weight"
 
 
 def make_replay(algo: DictConfig) -> ReplayBuffer | None:
@@ -63,3 +77,49 @@ def policy_weighted(data: TensorDictBase, n_actions: int) -> TensorDictBase:
     advantage = data.get("advantage")
     weighted = advantage * weight.reshape(advantage.shape)
     return data.clone(recurse=False).set("advantage", weighted)
+
+
+def check_distill(algo: DictConfig) -> None:
+    """Refuse ``algo.distill_*`` settings whose target would not be one root's actions.
+
+    Raises:
+        ValueError: a negative or non-finite coefficient or temperature; or a positive
+            coefficient without ``algo.first_action=enumerate`` and
+            ``algo.explore_steps=1`` (the rows of a group must be the actions of one state).
+
+    Example:
+        >>> from omegaconf import OmegaConf
+        >>> check_distill(OmegaConf.create({"distill_coeff": 1.0, "distill_temperature": 0.1,
+        ...                                 "first_action": "sample", "explore_steps": 1}))
+        Traceback (most recent call last):
+        ...
+        ValueError: algo.distill_coeff=1.0 distils each root's enumerated actions: set algo.first_action=enumerate and algo.explore_steps=1
+    """
+    coeff, tau = float(algo.distill_coeff), float(algo.distill_temperature)
+    if not 0 <= coeff < float("inf"):
+        raise ValueError(f"algo.distill_coeff must be a finite number >= 0, got {coeff}")
+    if not 0 <= tau < float("inf"):
+        raise ValueError(f"algo.distill_temperature must be a finite number >= 0, got {tau}")
+    if coeff > 0 and (str(algo.first_action) != "enumerate" or algo.explore_steps != 1):
+        raise ValueError(
+            f"algo.distill_coeff={coeff} distils each root's enumerated actions: set "
+            "algo.first_action=enumerate and algo.explore_steps=1"
+        )
+
+
+def distill_targets(data: TensorDictBase, temperature: float) -> TensorDictBase:
+    """``data`` (a batch's trained steps) with :data:`DISTILL_WEIGHT`, its groups' targets.
+
+    The weight is computed when the steps are collected, so replayed steps keep the
+    target of their own group (group ids are reused across batches).
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> data = TensorDict(advantage=torch.tensor([[0.0], [1.0]]),
+        ...                   group_id=torch.tensor([3, 3]), batch_size=[2])
+        >>> distill_targets(data, 0.0)["distill_weight"].squeeze(-1)
+        tensor([0., 1.])
+    """
+    weight = group_softmax_target(data.get("advantage"), data.get(GROUP_ID), temperature)
+    return data.set(DISTILL_WEIGHT, weight)

@@ -23,13 +23,20 @@ from torchrl.objectives import LossModule
 from torchrl_grpo.branching import GROUP_ID, MASK
 from torchrl_grpo.modules import EXPLORED
 from torchrl_grpo.objectives import (
+    GroupDistillLoss,
     GroupRelativeAdvantage,
     GRPOLoss,
     HorizonBootstrap,
     ReferenceSync,
 )
 from torchrl_grpo.training.algos.base import AlgoConfig, Algorithm, register_algorithm
-from torchrl_grpo.training.algos.enumerated import make_replay, policy_weighted, replay_rows
+from torchrl_grpo.training.algos.enumerated import (
+    check_distill,
+    distill_targets,
+    make_replay,
+    policy_weighted,
+    replay_rows,
+)
 from torchrl_grpo.training.choices import (
     AggregationName,
     BaselineName,
@@ -119,6 +126,8 @@ class GRPOConfig(AlgoConfig):
     tail_policy: TailPolicyName = TailPolicyName["learner"]
     replay_groups: int | None = None
     trunk: TrunkPolicyName = TrunkPolicyName["sample"]
+    distill_coeff: float = 0.0
+    distill_temperature: float = 0.1
 
 
 @register_algorithm
@@ -156,6 +165,8 @@ class GRPO(Algorithm):
         self.ref_sync = self.make_reference_sync(algo, self.loss)
         self.tail_policy = _tail_policy(algo, policy, env)
         self.replay = make_replay(algo)
+        coeff = float(algo.distill_coeff)
+        self.distill = GroupDistillLoss(policy, coeff=coeff) if coeff > 0 else None
 
     @classmethod
     def make_loss(
@@ -240,6 +251,7 @@ class GRPO(Algorithm):
                     "their advantages do not depend on the policy that collected them: set "
                     "algo.first_action=enumerate and a scripted algo.tail_policy (e.g. rule)"
                 )
+        check_distill(algo)
         first_action = str(algo.first_action)
         if str(algo.action_weights) != "uniform" and first_action != "enumerate":
             raise ValueError(
@@ -283,6 +295,8 @@ class GRPO(Algorithm):
                 # Greedy-tail steps score the sampled ones; their actions were not sampled.
                 train = train & data.get(EXPLORED)
             data = data[train]
+            if self.distill is not None:
+                data = distill_targets(data, float(self.cfg.algo.distill_temperature))
         adv = data.get("advantage")
         shape = batch.get(MASK).shape
         stats = {
@@ -318,6 +332,13 @@ class GRPO(Algorithm):
             dist = self.policy.get_dist(data.select(*self.policy.in_keys).clone())
             data.set("action_log_prob", dist.log_prob(data.get("action")))
         return data
+
+    def loss_terms(self, minibatch: TensorDictBase) -> TensorDictBase:
+        """The GRPO loss's terms, and ``loss_distill`` with ``algo.distill_coeff > 0``."""
+        out = self.loss(minibatch)
+        if self.distill is not None:
+            out.update(self.distill(minibatch))
+        return out
 
     def on_optimizer_step(self) -> None:  # noqa: D102
         if self.ref_sync is not None:

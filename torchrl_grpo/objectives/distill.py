@@ -1,0 +1,166 @@
+"""Distilling a group's comparison of actions: a soft target per root and its cross-entropy.
+
+A group whose branches each take a different first action from the same root and then
+follow a fixed policy scores every action of that root: its advantages are
+``Q(s, a) - mean_a Q(s, a)``. The clipped surrogate moves each state's probabilities by
+at most the clip ratio per update, however costly the wrong action is. The cross-entropy
+to ``q(a|s) = softmax(A(s, a) / tau)`` (MPO's non-parametric target, here exact because
+every action was tried) pulls the policy towards the group's best action on every
+update, hardest where one action is much better than the others.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import NestedKey, TensorDict, TensorDictBase
+from tensordict.nn import ProbabilisticTensorDictSequential
+from torchrl.objectives import LossModule
+
+from torchrl_grpo.objectives.checks import check_finite, require
+
+__all__ = ["GroupDistillLoss", "group_softmax_target"]
+
+
+def group_softmax_target(
+    advantage: torch.Tensor, group_id: torch.Tensor, temperature: float
+) -> torch.Tensor:
+    """Each row's weight in its group's target: ``softmax(advantage / temperature)`` per group.
+
+    Rows are the branches' first steps, one per enumerated action. Within every group
+    the weights sum to 1. ``temperature=0`` gives the hard target: the group's best
+    rows share the weight equally.
+
+    Args:
+        advantage: one advantage per row, ``[N]`` or ``[N, 1]``.
+        group_id: the integer id of each row's root, ``[N]``.
+        temperature: ``tau >= 0``, in the advantage's units (returns for unscaled
+            advantages).
+
+    Returns:
+        The weights, shaped like ``advantage``.
+
+    Raises:
+        ValueError: a negative or non-finite temperature, or shapes that disagree.
+
+    Example:
+        >>> import torch
+        >>> adv = torch.tensor([0.0, 1.0, 1.0, -2.0, 2.0])
+        >>> gid = torch.tensor([0, 0, 0, 1, 1])
+        >>> group_softmax_target(adv, gid, 0.0)
+        tensor([0.0000, 0.5000, 0.5000, 0.0000, 1.0000])
+        >>> group_softmax_target(adv, gid, 1.0).round(decimals=3)
+        tensor([0.1550, 0.4220, 0.4220, 0.0180, 0.9820])
+    """
+    if not (temperature >= 0 and temperature < float("inf")):
+        raise ValueError(f"temperature must be a finite number >= 0, got {temperature}")
+    flat = advantage.reshape(-1)
+    gid = group_id.reshape(-1).long()
+    if flat.shape != gid.shape:
+        raise ValueError(
+            f"one advantage per row: advantage has {flat.numel()} values, group_id {gid.numel()}"
+        )
+    _, inverse = torch.unique(gid, return_inverse=True)
+    n_groups = int(inverse.max()) + 1 if inverse.numel() else 0
+    best = flat.new_full((n_groups,), -float("inf")).scatter_reduce(
+        0, inverse, flat, reduce="amax"
+    )
+    gap = flat - best[inverse]
+    if temperature == 0:
+        score = (gap == 0).to(flat.dtype)
+    else:
+        # Shifted by the group's best: exp never overflows, the best row scores 1.
+        score = (gap / temperature).exp()
+    total = flat.new_zeros(n_groups).index_add(0, inverse, score)
+    return (score / total[inverse]).reshape(advantage.shape)
+
+
+class GroupDistillLoss(LossModule):
+    r"""Cross-entropy from each root's group target to the policy: ``-sum_a q(a|s) log pi(a|s)``.
+
+    Each row is one branch's first step and carries its weight ``q(a|s)`` in its
+    group's target (:func:`group_softmax_target`), so the row's term is
+    ``-q(a|s) log pi(a|s)``; a group's rows add up to the cross-entropy of its root.
+    The loss is their weighted mean, ``coeff * sum(-q log pi) / sum(q)``, so a
+    minibatch of whole groups gives ``coeff`` times the mean cross-entropy per root.
+    Use it beside :class:`~torchrl_grpo.objectives.GRPOLoss`.
+
+    Args:
+        actor_network: the policy; its ``get_dist`` gives the distribution. Its
+            parameters are used as they are (not copied), so an optimiser over the
+            GRPO loss's parameters trains this term too.
+
+    Keyword Args:
+        coeff: the weight of the term (``> 0``).
+
+    Keys (change them with :meth:`set_keys`): ``action`` (``"action"``) and
+    ``target_weight`` (``"distill_weight"``).
+
+    Outputs: ``loss_distill`` and the diagnostic ``distill_cross_entropy`` (the
+    weighted mean of ``-log pi(a|s)``, without ``coeff``).
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from tensordict.nn import TensorDictModule
+        >>> from torchrl.modules import ProbabilisticActor
+        >>> net = TensorDictModule(torch.nn.Linear(3, 2), ["observation"], ["logits"])
+        >>> torch.nn.init.zeros_(net.module.weight); torch.nn.init.zeros_(net.module.bias)
+        Parameter containing:...
+        >>> actor = ProbabilisticActor(net, ["logits"],
+        ...                            distribution_class=torch.distributions.Categorical)
+        >>> data = TensorDict(observation=torch.ones(2, 3), action=torch.tensor([0, 1]),
+        ...                   distill_weight=torch.tensor([1.0, 0.0]), batch_size=[2])
+        >>> out = GroupDistillLoss(actor, coeff=1.0)(data)
+        >>> round(float(out["loss_distill"]), 4)  # -log(1/2): uniform policy, hard target
+        0.6931
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Tensordict keys read by :class:`GroupDistillLoss`, set with ``set_keys``.
+
+        Attributes:
+            action: the row's action (its branch's first action).
+            target_weight: the row's weight ``q(a|s)`` in its group's target.
+        """
+
+        action: NestedKey = "action"
+        target_weight: NestedKey = "distill_weight"
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    out_keys = ["loss_distill", "distill_cross_entropy"]
+
+    def __init__(self, actor_network: ProbabilisticTensorDictSequential, *, coeff: float) -> None:
+        if not (coeff > 0 and coeff < float("inf")):
+            raise ValueError(f"coeff must be a finite number > 0, got {coeff}")
+        super().__init__()
+        self.actor_network = actor_network
+        self.coeff = coeff
+
+    @property
+    def in_keys(self) -> list[NestedKey]:  # noqa: D102
+        keys = self.tensor_keys
+        return list(dict.fromkeys([*self.actor_network.in_keys, keys.action, keys.target_weight]))
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """The weighted cross-entropy of ``tensordict``'s rows (a flat batch)."""
+        keys = self.tensor_keys
+        weight = require(tensordict, keys.target_weight, "target_weight").reshape(-1)
+        action = require(tensordict, keys.action, "action")
+        dist = self.actor_network.get_dist(tensordict)
+        log_prob = dist.log_prob(action).reshape(-1)
+        check_finite({repr(keys.target_weight): weight, "the policy's log-prob": log_prob})
+        total = weight.sum()
+        if not bool(total > 0):
+            raise ValueError(
+                f"{keys.target_weight!r} sums to {float(total)}: no row carries a target"
+            )
+        cross_entropy = -(weight * log_prob).sum() / total
+        return TensorDict(
+            loss_distill=self.coeff * cross_entropy,
+            distill_cross_entropy=cross_entropy.detach(),
+            batch_size=[],
+        )
