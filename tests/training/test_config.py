@@ -196,6 +196,25 @@ def test_policy_action_weights_need_enumerated_actions():
     check_config(cfg)
 
 
+def test_distillation_needs_one_roots_enumerated_actions():
+    cfg = OmegaConf.structured(Config(algo=GRPOConfig(explore_steps=1, distill_coeff=1.0)))
+    with pytest.raises(ValueError, match="algo.distill_coeff=1.0 distils.*first_action=enumerate"):
+        check_config(cfg)
+    cfg.algo.first_action = "enumerate"
+    check_config(cfg)
+    cfg.algo.explore_steps = 2  # rows of a group at step 1 are not one state's actions
+    with pytest.raises(ValueError, match="explore_steps=1"):
+        check_config(cfg)
+    cfg.algo.explore_steps = 1
+    cfg.algo.distill_temperature = -0.5
+    with pytest.raises(ValueError, match="algo.distill_temperature must be a finite number >= 0"):
+        check_config(cfg)
+    cfg.algo.distill_temperature = 0.0
+    cfg.algo.distill_coeff = -1.0
+    with pytest.raises(ValueError, match="algo.distill_coeff must be a finite number >= 0"):
+        check_config(cfg)
+
+
 def test_evaluate_config_composes():
     cfg = compose_config(["checkpoint=x.pt", "env=merge"], config_name="evaluate")
     assert cfg.checkpoint == "x.pt" and cfg.env.scenario == "merge-v0" and cfg.episodes >= 30

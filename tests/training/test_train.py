@@ -227,6 +227,28 @@ def test_policy_weights_scale_advantages_by_n_pi_and_leave_the_replay_alone(tmp_
     assert torch.equal(trainer.algo.replay[:]["advantage"], plain)  # stored unweighted
 
 
+def test_distillation_stores_each_groups_target_and_trains_on_it(tmp_path):
+    overrides = [*_REPLAY, "algo.distill_coeff=2.0", "algo.distill_temperature=0.0", "logger=csv"]
+    trainer = _train(tmp_path, "distill", [*overrides, "experiment.total_frames=60"])
+    stored = trainer.algo.replay[:]
+    weight, advantage = stored["distill_weight"].squeeze(-1), stored["advantage"].squeeze(-1)
+    # A group's 5 rows are stored together; hard targets split its weight over its best.
+    assert (stored["group_id"].reshape(-1, 5) == stored["group_id"].reshape(-1, 5)[:, :1]).all()
+    advantage, weight = advantage.reshape(-1, 5), weight.reshape(-1, 5)
+    best = (advantage == advantage.max(-1, keepdim=True).values).float()
+    torch.testing.assert_close(weight, best / best.sum(-1, keepdim=True))
+    assert weight.shape[0] >= 3 and bool((best.sum(-1) < 5).any())  # some groups disagree
+    scalars = _csv_scalars(tmp_path / "distill")
+    assert len(scalars["train/loss_distill"]) == trainer.iteration
+    ratio = [
+        d / c
+        for d, c in zip(
+            scalars["train/loss_distill"], scalars["train/distill_cross_entropy"], strict=True
+        )
+    ]
+    assert ratio == pytest.approx([2.0] * trainer.iteration)
+
+
 def test_policy_weights_give_the_expected_surrogates_gradient():
     """Against autograd of ``sum_a pi(a|s) A(s, a)``, the all-action policy gradient."""
     n_states, n_actions = 3, 5

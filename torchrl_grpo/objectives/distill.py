@@ -63,9 +63,7 @@ def group_softmax_target(
         )
     _, inverse = torch.unique(gid, return_inverse=True)
     n_groups = int(inverse.max()) + 1 if inverse.numel() else 0
-    best = flat.new_full((n_groups,), -float("inf")).scatter_reduce(
-        0, inverse, flat, reduce="amax"
-    )
+    best = flat.new_full((n_groups,), -float("inf")).scatter_reduce(0, inverse, flat, reduce="amax")
     gap = flat - best[inverse]
     if temperature == 0:
         score = (gap == 0).to(flat.dtype)

@@ -94,7 +94,7 @@ def check_distill(algo: DictConfig) -> None:
         Traceback (most recent call last):
         ...
         ValueError: algo.distill_coeff=1.0 distils each root's enumerated actions: set algo.first_action=enumerate and algo.explore_steps=1
-    """
+    """  # noqa: E501 - a doctest's expected output is one line
     coeff, tau = float(algo.distill_coeff), float(algo.distill_temperature)
     if not 0 <= coeff < float("inf"):
         raise ValueError(f"algo.distill_coeff must be a finite number >= 0, got {coeff}")
