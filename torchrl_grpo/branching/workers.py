@@ -82,7 +82,7 @@ class BranchParallelEnv(SnapshotParallelEnv):
 
     sleep_while_waiting: bool = True
     branch_fast_paths: bool = True
-    branch_lanes: int = 2
+    branch_lanes: int = 3
     _MIN_SLEEP = 1e-5
     _MAX_SLEEP = 5e-4
     # Waits of branch_restore / branch_step: a first sleep of this share of the
