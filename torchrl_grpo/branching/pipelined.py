@@ -15,7 +15,9 @@ state's and actions': results match the serial backend bit for bit for policies 
 choose a branch's actions from its own inputs (scripted ones, or deterministic ones).
 
 A slot whose branch ends takes the next branch with a restore job; the restored
-observations come back with the lane's next answers. No slot is stepped past its
+observations come back with the lane's next answers. In the last wave, a worker that
+has more steps queued than the others leaves the next branch to them
+(:func:`leave_to_others`), so that the workers finish together. No slot is stepped past its
 branch's end, so no auto-reset data reaches a branch.
 """
 
@@ -38,7 +40,7 @@ from torchrl_grpo.branching.lanes import (
 )
 from torchrl_grpo.branching.slots import EnvSlots
 
-__all__ = ["run_pipelined"]
+__all__ = ["leave_to_others", "run_pipelined"]
 
 # A slot's branch: none, being restored (its answer is pending), or being stepped.
 _FREE, _RESTORING, _STEPPING = 0, 1, 2
@@ -85,6 +87,24 @@ def run_pipelined(
             run.drain()
             raise
     return run.result()
+
+
+def leave_to_others(queued: list[int], worker: int, horizon: int) -> bool:
+    """In a rollout's last wave, whether ``worker`` leaves the next branch to another.
+
+    ``queued[w]`` is the most steps worker ``w``'s branches may still take. The rollout
+    ends when its last worker does, and a worker with nothing left idles until then;
+    so a worker that has half a branch (``horizon / 2`` steps) more queued than the
+    least loaded one takes no new branch. It depends on the schedule only, never on
+    timing, so runs stay reproducible.
+
+    Example:
+        >>> leave_to_others([12, 1], 0, 8), leave_to_others([12, 1], 1, 8)
+        (True, False)
+        >>> leave_to_others([5, 1], 0, 8), leave_to_others([0, 0], 0, 8)
+        (False, False)
+    """
+    return queued[worker] > 0 and 2 * queued[worker] > 2 * min(queued) + horizon
 
 
 class _Pipeline:
@@ -183,12 +203,29 @@ class _Pipeline:
                 continue
             if self.next_branch >= self.n_branches:
                 return
+            if self.holds_back(w):
+                continue
             b = self.next_branch
             state = {k: v[b, ...] for k, v in self.state_arrays.items()}
             self.send(w, ("restore", lane, state, self.keep == "all"))
             self.slot_branch[lane][w], self.slot_t[lane][w] = b, 0
             self.phase[lane][w] = _RESTORING
             self.next_branch += 1
+
+    def holds_back(self, worker: int) -> bool:
+        """Whether ``worker``'s free slot stays empty for now (see :func:`leave_to_others`)."""
+        if self.n_branches - self.next_branch >= self.width * self.lanes:
+            return False  # not the last wave yet: every free slot takes a branch
+        queued = [self.queued_steps(w) for w in range(self.width)]
+        return leave_to_others(queued, worker, self.horizon)
+
+    def queued_steps(self, worker: int) -> int:
+        """The most steps ``worker``'s branches may still take (``horizon - t`` each)."""
+        return sum(
+            self.horizon - self.slot_t[lane][worker]
+            for lane in range(self.lanes)
+            if self.phase[lane][worker] != _FREE
+        )
 
     def set_rows(self, lane: int, rows: dict[int, Arrays]) -> None:
         """Write the workers' ``rows`` (answers' ``"out"``) into ``lane``'s policy rows."""
