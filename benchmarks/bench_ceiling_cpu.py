@@ -27,7 +27,13 @@ import warnings
 import torch
 from bench_ceiling import make_policy
 
-from torchrl_grpo.branching import branch_rollout, make_branch_env, reset_roots, shutdown_env
+from torchrl_grpo.branching import (
+    BranchParallelEnv,
+    branch_rollout,
+    make_branch_env,
+    reset_roots,
+    shutdown_env,
+)
 from torchrl_grpo.envs import HighwayEnv
 
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -154,7 +160,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scenarios", nargs="+", default=["highway-fast-v0", "merge-v0"])
     parser.add_argument("--workers", type=int, default=2, help="W")
-    parser.add_argument("--lanes", type=int, default=2)
+    parser.add_argument(
+        "--lanes", type=int, default=BranchParallelEnv.branch_lanes, help="branch_lanes"
+    )
     parser.add_argument("--roots", type=int, default=2, help="R roots per worker")
     parser.add_argument("--group-size", type=int, default=4)
     parser.add_argument("--horizon", type=int, default=8)

@@ -68,6 +68,9 @@ class BranchParallelEnv(SnapshotParallelEnv):
         sleep_while_waiting: set to ``False`` to use TorchRL's spinning wait.
         branch_fast_paths: set to ``False`` to make branch rollouts use TorchRL's
             ``reset`` and ``step``.
+        branch_lanes: envs per worker for pipelined branch rollouts (3 by default: a
+            worker steps one lane while the parent runs the policy for the others;
+            ``0`` runs the lock-step engine).
 
     Example:
         >>> import functools
