@@ -8,7 +8,7 @@ and interleaved round by round (so that load from other processes hits both side
 alike), this script times ``branch_rollout`` on a ``BranchParallelEnv`` of W workers
 (``make_branch_env``, an MLP actor in this process):
 
-- ``lanes``: pipelined rollouts (the default, ``branch_lanes = 2``);
+- ``lanes``: pipelined rollouts (the default, ``branch_lanes = 3``);
 - ``lockstep``: the lock-step engine (``branch_lanes = 0``): every step, the policy,
   then all workers step, then the parent waits for the slowest.
 
@@ -18,7 +18,9 @@ with the load average. Start-up (forks, env construction, the first restores of 
 lane) is not timed.
 
 Run: ``python benchmarks/bench_ceiling.py [--workers 1 2] [--repeats 3]``
-(``--workers 1 2 4 8 14`` on a 16-core host).
+(``--workers 1 2 4 8 14`` on a 16-core host). Where the cores go (CPU, run-queue
+wait and sleep per step of the parent, the workers and the raw processes):
+``bench_ceiling_cpu.py``.
 """
 
 from __future__ import annotations
@@ -33,7 +35,13 @@ import warnings
 import torch
 from claims import claim
 
-from torchrl_grpo.branching import branch_rollout, make_branch_env, reset_roots, shutdown_env
+from torchrl_grpo.branching import (
+    BranchParallelEnv,
+    branch_rollout,
+    make_branch_env,
+    reset_roots,
+    shutdown_env,
+)
 from torchrl_grpo.envs import HighwayEnv
 from torchrl_grpo.modules import KinematicsMLP, make_discrete_actor
 
@@ -115,6 +123,7 @@ def main() -> None:
             branch_rollout(env, make_policy(plain), roots, args.group_size, 2)
             setups[scenario, w] = (env, make_policy(plain), roots)
     steps_per_branch_run = args.roots * args.group_size * args.horizon
+    lanes_default = BranchParallelEnv.branch_lanes
     ratios: dict[tuple, dict[str, list[float]]] = {k: {"lanes": [], "lockstep": []} for k in setups}
     ceilings: dict[tuple, list[float]] = {k: [] for k in setups}
     load = [os.getloadavg()[0]]
@@ -123,7 +132,7 @@ def main() -> None:
             for (scenario, w), (env, policy, roots) in setups.items():
                 # Raw processes take as many steps each as one worker takes in a rollout.
                 ceiling = ceiling_rate(scenario, w, steps_per_branch_run, args.horizon)
-                env.branch_lanes = 2
+                env.branch_lanes = lanes_default
                 lanes = branch_rate(env, policy, roots, args.group_size, args.horizon)
                 env.branch_lanes = 0
                 lockstep = branch_rate(env, policy, roots, args.group_size, args.horizon)

@@ -10,6 +10,7 @@ from tensordict import TensorDict
 
 from torchrl_grpo.branching import branch_rollout, make_branch_env, reset_roots, shutdown_env
 from torchrl_grpo.branching.batched import run_on
+from torchrl_grpo.branching.pipelined import leave_to_others
 from torchrl_grpo.branching.slots import EnvSlots
 from torchrl_grpo.envs import states_equal
 from torchrl_grpo.modules import KinematicsMLP, make_discrete_actor
@@ -140,3 +141,14 @@ def test_a_worker_error_is_raised_with_its_traceback(short_parallel, roots):
         short_parallel.branch_receive(0)
     data = branch_rollout(short_parallel, ScheduledPolicy(_table()), roots, 2, 3)
     assert data["mask"].any()
+
+
+def test_the_last_wave_goes_to_the_workers_with_least_work_queued():
+    # Steps queued per worker; horizon 8: more than half a branch above the least loaded
+    # worker leaves the branch to the others; a worker with nothing queued always takes it.
+    assert leave_to_others([12, 1], 0, 8)
+    assert not leave_to_others([12, 1], 1, 8)
+    assert not leave_to_others([5, 1], 0, 8)
+    assert leave_to_others([6, 1], 0, 8)
+    assert not leave_to_others([0, 9], 0, 8)
+    assert leave_to_others([9, 0, 4], 0, 8) and not leave_to_others([9, 0, 4], 2, 8)

@@ -18,10 +18,11 @@ copied when they are kept.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
+import numpy as np
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.data import Composite
@@ -71,6 +72,7 @@ class StepRows:
         self.skip = {k if isinstance(k, tuple) else (k,) for k in skip}
         self.keys: list[NestedKey] = []
         self.leaves: list[torch.Tensor] = []
+        self.views: list[np.ndarray] = []
 
     def _allocate(self, td: TensorDictBase) -> None:
         for key, value in td.items(True, True):
@@ -87,6 +89,27 @@ class StepRows:
         for key, leaf in zip(self.keys, self.leaves, strict=True):
             value = td.get(key)
             leaf.index_copy_(0, where, value if rows is None else value[rows])
+
+    def write_rows(self, where: Sequence[int], rows: Sequence[Mapping[tuple, np.ndarray]]) -> None:
+        """``self[where[i]] = rows[i]``: rows as workers send them (numpy arrays by tuple key).
+
+        The first call fixes the keys (those of ``rows[0]`` minus ``skip``), shapes and
+        dtypes; the rows are written through numpy views of the leaves, without
+        building a tensordict.
+        """
+        if not self.keys:
+            for key, value in rows[0].items():
+                if any(key[: len(s)] == s for s in self.skip):
+                    continue
+                self.keys.append(key)
+                self.leaves.append(
+                    torch.from_numpy(np.zeros((self.size, *value.shape), value.dtype))
+                )
+        if not self.views:
+            self.views = [leaf.numpy() for leaf in self.leaves]
+        for key, view in zip(self.keys, self.views, strict=True):
+            for i, row in zip(where, rows, strict=True):
+                view[i] = row[key]
 
     def tensordict(self, *shape: int) -> TensorDict:
         """The leaves as a tensordict of batch size ``shape`` (``prod(shape) == size``)."""

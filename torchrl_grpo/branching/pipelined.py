@@ -15,14 +15,17 @@ state's and actions': results match the serial backend bit for bit for policies 
 choose a branch's actions from its own inputs (scripted ones, or deterministic ones).
 
 A slot whose branch ends takes the next branch with a restore job; the restored
-observations come back with the lane's next answers. No slot is stepped past its
+observations come back with the lane's next answers. In the last wave, a worker that
+has more steps queued than the others leaves the next branch to them
+(:func:`leave_to_others`), so that the workers finish together. No slot is stepped past its
 branch's end, so no auto-reset data reaches a branch.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
-from tensordict import TensorDictBase
+from tensordict import NestedKey, TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_grpo.branching.engine import BranchRun, KeepStates, Policy, StepRows, check_actions
@@ -31,12 +34,13 @@ from torchrl_grpo.branching.lanes import (
     STATE_ALWAYS,
     STATE_AT_END,
     STATE_NEVER,
+    Arrays,
     from_arrays,
     to_arrays,
 )
 from torchrl_grpo.branching.slots import EnvSlots
 
-__all__ = ["run_pipelined"]
+__all__ = ["leave_to_others", "run_pipelined"]
 
 # A slot's branch: none, being restored (its answer is pending), or being stepped.
 _FREE, _RESTORING, _STEPPING = 0, 1, 2
@@ -85,8 +89,33 @@ def run_pipelined(
     return run.result()
 
 
+def leave_to_others(queued: list[int], worker: int, horizon: int) -> bool:
+    """In a rollout's last wave, whether ``worker`` leaves the next branch to another.
+
+    ``queued[w]`` is the most steps worker ``w``'s branches may still take. The rollout
+    ends when its last worker does, and a worker with nothing left idles until then;
+    so a worker that has half a branch (``horizon / 2`` steps) more queued than the
+    least loaded one takes no new branch. It depends on the schedule only, never on
+    timing, so runs stay reproducible.
+
+    Example:
+        >>> leave_to_others([12, 1], 0, 8), leave_to_others([12, 1], 1, 8)
+        (True, False)
+        >>> leave_to_others([5, 1], 0, 8), leave_to_others([0, 0], 0, 8)
+        (False, False)
+    """
+    return queued[worker] > 0 and 2 * queued[worker] > 2 * min(queued) + horizon
+
+
 class _Pipeline:
-    """The bookkeeping of one pipelined rollout: slots ``[L, W]``, rows, pending answers."""
+    """The bookkeeping of one pipelined rollout: slots ``[L, W]``, rows, pending answers.
+
+    The parent's every millisecond per step is taken from the workers (W workers on
+    W cores), so the bookkeeping works on the workers' numpy answers directly: slot
+    state in Python lists, answers written into preallocated leaves through numpy
+    views (:meth:`StepRows.write_rows`), one tensordict per lane (its rows updated in
+    place) for the policy to read.
+    """
 
     def __init__(
         self,
@@ -96,36 +125,36 @@ class _Pipeline:
         keep: KeepStates,
         ids: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
     ) -> None:
-        self.slots, self.env, self.states, self.horizon, self.keep = (
-            slots,
-            slots.env,
-            states,
-            horizon,
-            keep,
-        )
+        self.slots, self.env, self.horizon, self.keep = slots, slots.env, horizon, keep
         self.ids = ids
-        self.n_branches, self.width, self.lanes = (
-            states.shape[0],
-            slots.num_slots,
-            self.env.branch_lanes,
-        )
+        self.n_branches, self.width = states.shape[0], slots.num_slots
+        self.lanes = self.env.branch_lanes
         size = self.n_branches * horizon
         self.keys = ([*slots.obs_keys, *slots.done_keys], slots.next_keys)
-        shape = (self.lanes, self.width)
-        self.slot_branch = torch.full(shape, -1, dtype=torch.long)
-        self.slot_t = torch.zeros(shape, dtype=torch.long)
-        self.phase = torch.full(shape, _FREE, dtype=torch.long)
+        # Each restore sends one row of these: a numpy index per leaf, no tensordict.
+        self.state_arrays = to_arrays(states)
+        self.slot_branch = [[-1] * self.width for _ in range(self.lanes)]
+        self.slot_t = [[0] * self.width for _ in range(self.lanes)]
+        self.phase = [[_FREE] * self.width for _ in range(self.lanes)]
         self.pending = [0] * self.width
         self.lengths = torch.zeros(self.n_branches, dtype=torch.long)
         self.ended = torch.zeros(self.n_branches, dtype=torch.bool)
         self.mask = torch.zeros(size, dtype=torch.bool)
         self.final = states.clone() if keep != "none" else None
+        self.final_views = (
+            [(k, self.final.get(k).numpy()) for k in self.state_arrays]
+            if self.final is not None
+            else []
+        )
         self.root_rows = StepRows(size, skip=(STATE, "next", "_step"))
         self.next_rows = StepRows(size, skip=(STATE,))
         self.state_rows = (StepRows(size), StepRows(size)) if keep == "all" else None
         self.step_mode = {"none": STATE_NEVER, "final": STATE_AT_END, "all": STATE_ALWAYS}[keep]
-        self.cur: list[TensorDictBase | None] = [None] * self.lanes  # each lane's [W] rows
-        self.before: list[TensorDictBase | None] = [None] * self.lanes  # states before a step
+        # Each lane's [W] rows for the policy, and numpy views of their leaves.
+        self.cur: list[TensorDictBase | None] = [None] * self.lanes
+        self.cur_views: list[list[tuple[tuple, np.ndarray]]] = [[] for _ in range(self.lanes)]
+        # keep="all": each slot's state before its next step.
+        self.before: list[list[Arrays | None]] = [[None] * self.width for _ in range(self.lanes)]
         self.next_branch = 0
 
     # ------------------------------------------------------------------ messages
@@ -151,90 +180,118 @@ class _Pipeline:
         for lane in range(self.lanes):
             self.restore_free(lane)
         lane = 0
-        while bool((self.phase != _FREE).any()):
-            busy = (self.phase[lane] != _FREE).nonzero().squeeze(-1).tolist()
+        while any(p != _FREE for phases in self.phase for p in phases):
+            phase = self.phase[lane]
+            busy = [w for w in range(self.width) if phase[w] != _FREE]
             answers = {w: self.receive(w) for w in busy}
-            restored = [w for w in busy if self.phase[lane, w] == _RESTORING]
-            stepped = [w for w in busy if self.phase[lane, w] == _STEPPING]
+            restored = [w for w in busy if phase[w] == _RESTORING]
+            stepped = [w for w in busy if phase[w] == _STEPPING]
             if restored:
                 self.take_restores(lane, restored, answers)
             if stepped:
                 self.take_steps(lane, stepped, answers)
             self.restore_free(lane)
-            ready = (self.phase[lane] == _STEPPING).nonzero().squeeze(-1)
-            if len(ready):
+            ready = [w for w in range(self.width) if phase[w] == _STEPPING]
+            if ready:
                 self.step_lane(policy, lane, ready)
             lane = (lane + 1) % self.lanes
 
     def restore_free(self, lane: int) -> None:
         """Send the next pending branches to the free slots of ``lane``."""
-        for w in (self.phase[lane] == _FREE).nonzero().squeeze(-1).tolist():
+        for w in range(self.width):
+            if self.phase[lane][w] != _FREE:
+                continue
             if self.next_branch >= self.n_branches:
                 return
+            if self.holds_back(w):
+                continue
             b = self.next_branch
-            self.send(w, ("restore", lane, to_arrays(self.states[b]), self.keep == "all"))
-            self.slot_branch[lane, w], self.slot_t[lane, w] = b, 0
-            self.phase[lane, w] = _RESTORING
+            state = {k: v[b, ...] for k, v in self.state_arrays.items()}
+            self.send(w, ("restore", lane, state, self.keep == "all"))
+            self.slot_branch[lane][w], self.slot_t[lane][w] = b, 0
+            self.phase[lane][w] = _RESTORING
             self.next_branch += 1
 
-    def take_restores(self, lane: int, restored: list[int], answers: dict) -> None:
-        rows = torch.tensor(restored)
-        out = from_arrays([answers[w]["out"] for w in restored])
+    def holds_back(self, worker: int) -> bool:
+        """Whether ``worker``'s free slot stays empty for now (see :func:`leave_to_others`)."""
+        if self.n_branches - self.next_branch >= self.width * self.lanes:
+            return False  # not the last wave yet: every free slot takes a branch
+        queued = [self.queued_steps(w) for w in range(self.width)]
+        return leave_to_others(queued, worker, self.horizon)
+
+    def queued_steps(self, worker: int) -> int:
+        """The most steps ``worker``'s branches may still take (``horizon - t`` each)."""
+        return sum(
+            self.horizon - self.slot_t[lane][worker]
+            for lane in range(self.lanes)
+            if self.phase[lane][worker] != _FREE
+        )
+
+    def set_rows(self, lane: int, rows: dict[int, Arrays]) -> None:
+        """Write the workers' ``rows`` (answers' ``"out"``) into ``lane``'s policy rows."""
         if self.cur[lane] is None:
-            self.cur[lane] = out[:1].expand(self.width).clone()
-        self.cur[lane][rows] = out
-        if self.state_rows is not None:
-            snaps = from_arrays([answers[w]["state"] for w in restored])
-            if self.before[lane] is None:
-                self.before[lane] = snaps[:1].expand(self.width).clone()
-            self.before[lane][rows] = snaps
-        self.phase[lane, rows] = _STEPPING
+            # Rows no branch has reached yet hold a copy of the first row.
+            self.cur[lane] = from_arrays([next(iter(rows.values()))] * self.width)
+            self.cur_views[lane] = [
+                (key, self.cur[lane].get(key).numpy()) for key in next(iter(rows.values()))
+            ]
+        for key, view in self.cur_views[lane]:
+            for w, row in rows.items():
+                view[w] = row[key]
+
+    def take_restores(self, lane: int, restored: list[int], answers: dict) -> None:
+        self.set_rows(lane, {w: answers[w]["out"] for w in restored})
+        for w in restored:
+            if self.state_rows is not None:
+                self.before[lane][w] = answers[w]["state"]
+            self.phase[lane][w] = _STEPPING
 
     def take_steps(self, lane: int, stepped: list[int], answers: dict) -> None:
-        rows = torch.tensor(stepped)
-        b, t = self.slot_branch[lane, rows], self.slot_t[lane, rows]
-        where = b * self.horizon + t
-        nxt = from_arrays([answers[w]["out"] for w in stepped])
-        self.next_rows.write(where, nxt, None)
-        done = nxt.get("done").reshape(len(stepped))
-        t = t + 1
-        finished = done | (t >= self.horizon)
-        self.lengths[b], self.ended[b] = t, done
+        horizon, slot_b, slot_t = self.horizon, self.slot_branch[lane], self.slot_t[lane]
+        where = [slot_b[w] * horizon + slot_t[w] for w in stepped]
+        rows = [answers[w]["out"] for w in stepped]
+        self.next_rows.write_rows(where, rows)
         if self.state_rows is not None:
-            snaps = from_arrays([answers[w]["state"] for w in stepped])
-            self.state_rows[0].write(where, self.before[lane][rows], None)
-            self.state_rows[1].write(where, snaps, None)
-            self.before[lane][rows] = snaps
-        if self.final is not None and bool(finished.any()):
-            ends = finished.nonzero().squeeze(-1).tolist()
-            self.final[b[ends]] = from_arrays([answers[stepped[i]]["state"] for i in ends])
-        for key, leaf in self.cur[lane].items(True, True):
-            leaf[rows] = nxt.get(key)
-        self.slot_t[lane, rows] = t
-        self.phase[lane, rows[finished]] = _FREE
-        self.slot_branch[lane, rows[finished]] = -1
+            snaps = [answers[w]["state"] for w in stepped]
+            self.state_rows[0].write_rows(where, [self.before[lane][w] for w in stepped])
+            self.state_rows[1].write_rows(where, snaps)
+            for w, snap in zip(stepped, snaps, strict=True):
+                self.before[lane][w] = snap
+        self.set_rows(lane, dict(zip(stepped, rows, strict=True)))
+        for w, row in zip(stepped, rows, strict=True):
+            b, t, done = slot_b[w], slot_t[w] + 1, bool(row[("done",)].any())
+            self.lengths[b], self.ended[b] = t, done
+            slot_t[w] = t
+            if done or t >= horizon:
+                if self.final is not None:
+                    for key, view in self.final_views:
+                        view[b] = answers[w]["state"][key]
+                self.phase[lane][w] = _FREE
+                slot_b[w] = -1
 
-    def step_lane(self, policy: Policy, lane: int, ready: torch.Tensor) -> None:
+    def step_lane(self, policy: Policy, lane: int, ready: list[int]) -> None:
         """Run the policy on ``lane``'s ``[W]`` rows; send the ``ready`` slots their steps."""
         group_id, branch, root_step = self.ids
-        slot_branch, slot_t = self.slot_branch[lane], self.slot_t[lane]
+        slot_b, slot_t = self.slot_branch[lane], self.slot_t[lane]
         td = self.cur[lane].clone(False)
-        idx = slot_branch.clamp(min=0)
+        idx = torch.tensor([max(b, 0) for b in slot_b])
         td.set(GROUP_ID, group_id[idx])
         td.set(BRANCH, branch[idx])
         td.set(ROOT_STEP, root_step[idx])
-        td.set(STEP_COUNT, (root_step[idx] + slot_t).unsqueeze(-1))
+        td.set(STEP_COUNT, (root_step[idx] + torch.tensor(slot_t)).unsqueeze(-1))
         out = policy(td)
         td = td if out is None else out
         check_actions(td, self.slots)
-        b, t = slot_branch[ready], slot_t[ready]
-        where = b * self.horizon + t
-        self.root_rows.write(where, td, ready)
+        where = [slot_b[w] * self.horizon + slot_t[w] for w in ready]
+        self.root_rows.write(
+            torch.tensor(where), td, None if len(ready) == self.width else torch.tensor(ready)
+        )
         self.mask[where] = True
-        actions = td.select(*self.slots.action_keys)
-        last = (t + 1 >= self.horizon).tolist()
-        for i, w in enumerate(ready.tolist()):
-            self.send(w, ("step", lane, to_arrays(actions[w]), self.step_mode, last[i]))
+        actions = [(_as_tuple(k), td.get(k).numpy()) for k in self.slots.action_keys]
+        for w in ready:
+            last = slot_t[w] + 1 >= self.horizon
+            action = {key: value[w, ...] for key, value in actions}
+            self.send(w, ("step", lane, action, self.step_mode, last))
 
     def result(self) -> BranchRun:
         n, h = self.n_branches, self.horizon
@@ -250,3 +307,7 @@ class _Pipeline:
             ended=self.ended,
             final_states=self.final,
         )
+
+
+def _as_tuple(key: NestedKey) -> tuple[str, ...]:
+    return key if isinstance(key, tuple) else (key,)

@@ -68,6 +68,9 @@ class BranchParallelEnv(SnapshotParallelEnv):
         sleep_while_waiting: set to ``False`` to use TorchRL's spinning wait.
         branch_fast_paths: set to ``False`` to make branch rollouts use TorchRL's
             ``reset`` and ``step``.
+        branch_lanes: envs per worker for pipelined branch rollouts (3 by default: a
+            worker steps one lane while the parent runs the policy for the others;
+            ``0`` runs the lock-step engine).
 
     Example:
         >>> import functools
@@ -82,7 +85,7 @@ class BranchParallelEnv(SnapshotParallelEnv):
 
     sleep_while_waiting: bool = True
     branch_fast_paths: bool = True
-    branch_lanes: int = 2
+    branch_lanes: int = 3
     _MIN_SLEEP = 1e-5
     _MAX_SLEEP = 5e-4
     # Waits of branch_restore / branch_step: a first sleep of this share of the
