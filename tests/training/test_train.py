@@ -247,6 +247,12 @@ def test_distillation_stores_each_groups_target_and_trains_on_it(tmp_path):
         )
     ]
     assert ratio == pytest.approx([2.0] * trainer.iteration)
+    # Its replay holds targets: a resume without distillation is refused when it loads.
+    resume = f"resume={tmp_path / 'distill' / 'last.pt'}"
+    plain = compose_config([*TINY, *_REPLAY, resume])
+    plain.algo.distill_coeff = 0.0  # a config composed elsewhere (a resume keeps the run's)
+    with pytest.raises(ValueError, match="stored with distillation targets.*distill_coeff=0.0"):
+        Trainer(plain, run_dir=tmp_path / "plain")
 
 
 def test_policy_weights_give_the_expected_surrogates_gradient():

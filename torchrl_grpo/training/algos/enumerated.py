@@ -20,6 +20,7 @@ from torchrl_grpo.objectives import group_softmax_target
 __all__ = [
     "DISTILL_WEIGHT",
     "check_distill",
+    "check_replay_targets",
     "distill_targets",
     "make_replay",
     "policy_weighted",
@@ -123,3 +124,35 @@ def distill_targets(data: TensorDictBase, temperature: float) -> TensorDictBase:
     """
     weight = group_softmax_target(data.get("advantage"), data.get(GROUP_ID), temperature)
     return data.set(DISTILL_WEIGHT, weight)
+
+
+def check_replay_targets(saved: DictConfig, algo: DictConfig, source: str = "") -> None:
+    """Refuse a resume whose replayed steps hold targets this config does not, or lack them.
+
+    A replay stores :data:`DISTILL_WEIGHT` with each step when ``algo.distill_coeff > 0``:
+    the first write of steps with other keys would fail mid-run.
+
+    Args:
+        saved: the checkpoint's ``algo`` config.
+        algo: this run's ``algo`` config.
+        source: the checkpoint's path, for the error.
+
+    Raises:
+        ValueError: distillation is on in one and off in the other.
+
+    Example:
+        >>> from omegaconf import OmegaConf
+        >>> check_replay_targets(OmegaConf.create({}), OmegaConf.create({"distill_coeff": 1.0}))
+        Traceback (most recent call last):
+        ...
+        ValueError: resume= replays steps stored without distillation targets and this config has algo.distill_coeff=1.0: resume with the run's algo.distill_coeff (0 or > 0)
+    """  # noqa: E501 - a doctest's expected output is one line
+    saved_on = float(saved.get("distill_coeff", 0.0)) > 0
+    coeff = float(algo.distill_coeff)
+    if saved_on != (coeff > 0):
+        stored = "with" if saved_on else "without"
+        raise ValueError(
+            f"resume={source} replays steps stored {stored} distillation targets and this "
+            f"config has algo.distill_coeff={coeff}: resume with the run's algo.distill_coeff "
+            "(0 or > 0)"
+        )

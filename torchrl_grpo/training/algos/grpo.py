@@ -32,6 +32,7 @@ from torchrl_grpo.objectives import (
 from torchrl_grpo.training.algos.base import AlgoConfig, Algorithm, register_algorithm
 from torchrl_grpo.training.algos.enumerated import (
     check_distill,
+    check_replay_targets,
     distill_targets,
     make_replay,
     policy_weighted,
@@ -363,7 +364,9 @@ class GRPO(Algorithm):
         if self.tail_policy is not None and checkpoint.get("tail_policy") is not None:
             self.tail_policy.load_state_dict(checkpoint["tail_policy"])
         if self.replay is not None and checkpoint.get("replay") is not None:
-            saved = replay_rows(OmegaConf.create(checkpoint["config"]["algo"]))
+            saved_algo = OmegaConf.create(checkpoint["config"]["algo"])
+            check_replay_targets(saved_algo, self.cfg.algo, source)
+            saved = replay_rows(saved_algo)
             if saved != self.replay.storage.max_size:
                 # A loaded storage keeps its saved size: the first write past it would fail.
                 raise ValueError(
