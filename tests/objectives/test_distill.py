@@ -105,8 +105,9 @@ def test_bad_inputs_are_refused_naming_them():
     rows = {"state": torch.zeros(2, dtype=torch.long), "action": torch.arange(2)}
     with pytest.raises(ValueError, match="no .distill_weight. entry"):
         loss(TensorDict(rows, batch_size=[2]))
-    with pytest.raises(ValueError, match="sums to 0.0: no row carries a target"):
-        loss(TensorDict({**rows, "distill_weight": torch.zeros(2)}, batch_size=[2]))
+    # Rows that are none of their groups' best: no pull, no error.
+    out = loss(TensorDict({**rows, "distill_weight": torch.zeros(2)}, batch_size=[2]))
+    assert float(out["loss_distill"]) == 0.0
     with pytest.raises(ValueError, match="'distill_weight'"):
         nan = torch.tensor([1.0, float("nan")])
         loss(TensorDict({**rows, "distill_weight": nan}, batch_size=[2]))

@@ -81,7 +81,8 @@ class GroupDistillLoss(LossModule):
     group's target (:func:`group_softmax_target`), so the row's term is
     ``-q(a|s) log pi(a|s)``; a group's rows add up to the cross-entropy of its root.
     The loss is their weighted mean, ``coeff * sum(-q log pi) / sum(q)``, so a
-    minibatch of whole groups gives ``coeff`` times the mean cross-entropy per root.
+    minibatch of whole groups gives ``coeff`` times the mean cross-entropy per root; a
+    minibatch whose rows all have weight 0 gives 0.
     Use it beside :class:`~torchrl_grpo.objectives.GRPOLoss`.
 
     Args:
@@ -151,11 +152,9 @@ class GroupDistillLoss(LossModule):
         dist = self.actor_network.get_dist(tensordict)
         log_prob = dist.log_prob(action).reshape(-1)
         check_finite({repr(keys.target_weight): weight, "the policy's log-prob": log_prob})
-        total = weight.sum()
-        if not bool(total > 0):
-            raise ValueError(
-                f"{keys.target_weight!r} sums to {float(total)}: no row carries a target"
-            )
+        # A minibatch may hold none of its groups' best rows (hard targets): then the
+        # term is 0, not an error that would stop a training run.
+        total = weight.sum().clamp_min(torch.finfo(weight.dtype).tiny)
         cross_entropy = -(weight * log_prob).sum() / total
         return TensorDict(
             loss_distill=self.coeff * cross_entropy,
