@@ -49,7 +49,8 @@ warnings.filterwarnings("ignore", message=".*is out of date.*")
 SCENARIOS = ("highway-fast-v0", "merge-v0")
 
 
-def _raw_worker(scenario: str, steps: int, horizon: int, seed: int, barrier, out) -> None:
+def make_raw_env(scenario: str, seed: int):
+    """A raw highway-env env (``gymnasium.make``), reset and its action space seeded."""
     import gymnasium as gym
     import highway_env  # noqa: F401  (registers the scenarios)
 
@@ -57,19 +58,31 @@ def _raw_worker(scenario: str, steps: int, horizon: int, seed: int, barrier, out
     env = gym.make(scenario)
     env.reset(seed=seed)
     env.action_space.seed(seed)
-    barrier.wait()
+    return env
+
+
+def step_segments(env, steps: int, horizon: int, clock=time.perf_counter) -> float:
+    """Take ``steps`` random steps in segments of ``horizon``; the time stepping took.
+
+    Segments of H steps from episode starts, as branches from reset roots are; only
+    the steps are timed by ``clock`` (resets cost more than restores).
+    """
     stepping = 0.0
     for i in range(steps):
-        # Segments of H steps from episode starts, as branches from reset roots are;
-        # only the steps are timed (resets cost more than restores).
         if i % horizon == 0:
             env.reset()
-        start = time.perf_counter()
+        start = clock()
         _, _, terminated, truncated, _ = env.step(env.action_space.sample())
-        stepping += time.perf_counter() - start
+        stepping += clock() - start
         if terminated or truncated:
             env.reset()
-    out.put(steps / stepping)
+    return stepping
+
+
+def _raw_worker(scenario: str, steps: int, horizon: int, seed: int, barrier, out) -> None:
+    env = make_raw_env(scenario, seed)
+    barrier.wait()
+    out.put(steps / step_segments(env, steps, horizon))
 
 
 def ceiling_rate(scenario: str, workers: int, steps: int, horizon: int) -> float:

@@ -25,7 +25,7 @@ import time
 import warnings
 
 import torch
-from bench_ceiling import make_policy
+from bench_ceiling import make_policy, make_raw_env, step_segments
 
 from torchrl_grpo.branching import (
     BranchParallelEnv,
@@ -87,24 +87,9 @@ def account(before: list, after: list, wall: float, steps: int) -> dict[str, flo
 
 
 def _raw_worker(scenario: str, steps: int, horizon: int, seed: int, go, done, out) -> None:
-    import gymnasium as gym
-    import highway_env  # noqa: F401  (registers the scenarios)
-
-    warnings.filterwarnings("ignore")
-    env = gym.make(scenario)
-    env.reset(seed=seed)
-    env.action_space.seed(seed)
+    env = make_raw_env(scenario, seed)
     go.wait()
-    step_cpu = 0.0
-    for i in range(steps):
-        if i % horizon == 0:
-            env.reset()
-        start = time.process_time()
-        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
-        step_cpu += time.process_time() - start
-        if terminated or truncated:
-            env.reset()
-    out.put(step_cpu)
+    out.put(step_segments(env, steps, horizon, clock=time.process_time))
     done.wait()
 
 
