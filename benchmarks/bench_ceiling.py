@@ -6,16 +6,22 @@ segments of H steps from episode starts (as branches from reset roots run), timi
 the steps only: what the machine gives highway-env alone. Against it, in the same run
 and interleaved round by round (so that load from other processes hits both sides
 alike), this script times ``branch_rollout`` on a ``BranchParallelEnv`` of W workers
-(``make_branch_env``, an MLP actor in this process):
+(``make_branch_env``, an MLP actor), with each engine:
 
-- ``lanes``: pipelined rollouts (the default, ``branch_lanes = 3``);
+- ``whole``: whole branches in the workers, each with its own copy of the policy
+  (the default: ``whole_branches = True``, ``branch_queue_depth = 2``);
+- ``whole-q1``: the same with one branch at a time per worker
+  (``branch_queue_depth = 1``);
+- ``lanes``: pipelined lanes, the policy in this process (``whole_branches = False``,
+  ``branch_lanes = 3``);
 - ``lockstep``: the lock-step engine (``branch_lanes = 0``): every step, the policy,
   then all workers step, then the parent waits for the slowest.
 
-Each round times the three back to back and takes the ratios of that round; the
-script prints the median ratio (and range) to the ceiling for every scenario and W,
-with the load average. Start-up (forks, env construction, the first restores of each
-lane) is not timed.
+Each round times the ceiling, then the engines back to back (in an order that turns
+round by round), and takes the ratios of that round; the script prints the median
+ratio (and range) to the ceiling for every scenario, W and engine, with the load
+average. Start-up (forks, env construction, the first restores of each lane) is
+not timed.
 
 Run: ``python benchmarks/bench_ceiling.py [--workers 1 2] [--repeats 3]``
 (``--workers 1 2 4 8 14`` on a 16-core host). Where the cores go (CPU, run-queue
@@ -26,11 +32,13 @@ wait and sleep per step of the parent, the workers and the raw processes):
 from __future__ import annotations
 
 import argparse
+import contextlib
 import multiprocessing
 import os
 import statistics
 import time
 import warnings
+from collections.abc import Iterator
 
 import torch
 from claims import claim
@@ -47,6 +55,23 @@ from torchrl_grpo.modules import KinematicsMLP, make_discrete_actor
 
 warnings.filterwarnings("ignore", message=".*is out of date.*")
 SCENARIOS = ("highway-fast-v0", "merge-v0")
+# Engine -> (whole_branches, branch_queue_depth, branch_lanes); the first is the default.
+ENGINES = {
+    "whole": (True, 2, 3),
+    "whole-q1": (True, 1, 3),
+    "lanes": (False, 1, 3),
+    "lockstep": (False, 1, 0),
+}
+
+
+@contextlib.contextmanager
+def use_engine(env: BranchParallelEnv, name: str) -> Iterator[None]:
+    """Run ``env``'s branch rollouts with engine ``name`` (see ``ENGINES``)."""
+    env.whole_branches, env.branch_queue_depth, env.branch_lanes = ENGINES[name]
+    try:
+        yield
+    finally:
+        del env.whole_branches, env.branch_queue_depth, env.branch_lanes
 
 
 def make_raw_env(scenario: str, seed: int):
@@ -122,6 +147,7 @@ def main() -> None:
     parser.add_argument("--group-size", type=int, default=4, help="G branches per root")
     parser.add_argument("--horizon", type=int, default=8, help="H steps per branch")
     parser.add_argument("--repeats", type=int, default=3, help="interleaved rounds")
+    parser.add_argument("--engines", nargs="+", default=list(ENGINES), choices=ENGINES)
     args = parser.parse_args()
     # The policy runs in this process next to the workers: one thread.
     torch.set_num_threads(1)
@@ -132,61 +158,55 @@ def main() -> None:
         for w in args.workers:
             roots = reset_roots(plain, args.roots * w, seed=w)
             env = make_branch_env(scenario, w, mp_start_method="fork")
-            # Builds every lane and warms the workers up.
-            branch_rollout(env, make_policy(plain), roots, args.group_size, 2)
+            # Builds every lane and warms the workers up, for each engine.
+            for name in ENGINES:
+                with use_engine(env, name):
+                    branch_rollout(env, make_policy(plain), roots, args.group_size, 2)
             setups[scenario, w] = (env, make_policy(plain), roots)
     steps_per_branch_run = args.roots * args.group_size * args.horizon
-    lanes_default = BranchParallelEnv.branch_lanes
-    ratios: dict[tuple, dict[str, list[float]]] = {k: {"lanes": [], "lockstep": []} for k in setups}
+    engines = [e for e in ENGINES if e in args.engines]
+    ratios = {k: {e: [] for e in engines} for k in setups}
     ceilings: dict[tuple, list[float]] = {k: [] for k in setups}
     load = [os.getloadavg()[0]]
     try:
-        for _ in range(args.repeats):
+        for round_ in range(args.repeats):
             for (scenario, w), (env, policy, roots) in setups.items():
                 # Raw processes take as many steps each as one worker takes in a rollout.
                 ceiling = ceiling_rate(scenario, w, steps_per_branch_run, args.horizon)
-                env.branch_lanes = lanes_default
-                lanes = branch_rate(env, policy, roots, args.group_size, args.horizon)
-                env.branch_lanes = 0
-                lockstep = branch_rate(env, policy, roots, args.group_size, args.horizon)
                 ceilings[scenario, w].append(ceiling)
-                ratios[scenario, w]["lanes"].append(lanes / ceiling)
-                ratios[scenario, w]["lockstep"].append(lockstep / ceiling)
+                turn = round_ % len(engines)
+                for name in engines[turn:] + engines[:turn]:
+                    with use_engine(env, name):
+                        rate = branch_rate(env, policy, roots, args.group_size, args.horizon)
+                    ratios[scenario, w][name].append(rate / ceiling)
             load.append(os.getloadavg()[0])
     finally:
         for env, _, _ in setups.values():
             shutdown_env(env)
     print(
         f"R={args.roots}*W G={args.group_size} H={args.horizon}, {args.repeats} interleaved "
-        f"rounds, medians (ranges); {os.cpu_count()} cores, load average "
-        f"{min(load):.1f}-{max(load):.1f} (1-minute, sampled between rounds)"
+        f"rounds, medians (ranges) of branch steps/s over the ceiling; {os.cpu_count()} cores, "
+        f"load average {min(load):.1f}-{max(load):.1f} (1-minute, sampled between rounds)"
     )
-    print(
-        f"  {'scenario':<16} {'W':>2} {'ceiling steps/s':>16} {'lanes/ceiling':>20} "
-        f"{'lockstep/ceiling':>20}"
-    )
+    print(f"  {'scenario':<16} {'W':>2} {'ceiling/s':>9}" + "".join(f" {e:>16}" for e in engines))
     for (scenario, w), r in ratios.items():
-        cells = [
-            f"{statistics.median(v):.2f} ({min(v):.2f}-{max(v):.2f})"
-            for v in (r["lanes"], r["lockstep"])
-        ]
+        cells = [f"{statistics.median(v):.2f} ({min(v):.2f}-{max(v):.2f})" for v in r.values()]
         print(
-            f"  {scenario:<16} {w:>2} {statistics.median(ceilings[scenario, w]):16.1f} "
-            f"{cells[0]:>20} {cells[1]:>20}"
+            f"  {scenario:<16} {w:>2} {statistics.median(ceilings[scenario, w]):9.1f}"
+            + "".join(f" {c:>16}" for c in cells)
         )
     note = f"load {min(load):.1f}-{max(load):.1f} on {os.cpu_count()} cores"
     for (scenario, w), r in ratios.items():
-        claim(
-            f"{scenario}: branch steps/s on {w} worker(s) / {w} raw highway-env processes",
-            statistics.median(r["lanes"]),
-            ">=0.85",
-            note=note,
-        )
-        claim(
-            f"{scenario}: the same, lock-step engine (branch_lanes=0)",
-            statistics.median(r["lockstep"]),
-            note=note,
-        )
+        for name, values in r.items():
+            default = name == next(iter(ENGINES))
+            claim(
+                f"{scenario}: branch steps/s on {w} worker(s) / {w} raw processes"
+                if default
+                else f"{scenario}, W={w}: the same, {name}",
+                statistics.median(values),
+                ">=0.85" if default else None,
+                note=note,
+            )
 
 
 if __name__ == "__main__":

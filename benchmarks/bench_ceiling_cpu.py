@@ -1,6 +1,7 @@
 """Where the cores go in branch rollouts: CPU seconds per step of every process.
 
-Runs ``branch_rollout`` on a ``BranchParallelEnv`` of W workers (pipelined lanes)
+Runs ``branch_rollout`` on a ``BranchParallelEnv`` of W workers (the default engine:
+whole branches in the workers; ``--engine`` picks another, see ``bench_ceiling.py``)
 and, interleaved with it, W raw highway-env processes (the ceiling of
 ``bench_ceiling.py``), and reads each process's CPU time (``utime + stime`` of
 ``/proc/<pid>/stat``) and context switches (``/proc/<pid>/status``) before and
@@ -11,7 +12,9 @@ CPU) or by waiting (idle = W * wall - CPU of all processes, when W cores are fre
 
 Prints, per scenario: ms of CPU per step of the parent, of the workers (per branch
 step) and of the raw processes (per raw step, resets of the segments included),
-wall ms per step, idle share, and context switches per step.
+wall ms per step, idle share, and context switches per step; for the workers, the
+part of their sleep spent at the end of rollouts (from a worker's last answer of a
+rollout to the rollout's end, summed over workers).
 
 Run: ``python benchmarks/bench_ceiling_cpu.py [--workers 2] [--rollouts 4]``.
 """
@@ -25,10 +28,9 @@ import time
 import warnings
 
 import torch
-from bench_ceiling import make_policy, make_raw_env, step_segments
+from bench_ceiling import ENGINES, make_policy, make_raw_env, step_segments, use_engine
 
 from torchrl_grpo.branching import (
-    BranchParallelEnv,
     branch_rollout,
     make_branch_env,
     reset_roots,
@@ -122,15 +124,34 @@ def raw_run(scenario: str, workers: int, steps: int, horizon: int) -> dict:
 def branch_run(env, policy, roots, group_size: int, horizon: int, rollouts: int) -> dict:
     """Accounting of the parent and the workers over ``rollouts`` branch rollouts."""
     workers = [p.pid for p in env._workers]
+    # When each worker's last answer of a rollout came: a worker idles from then on
+    # until the rollout ends (the end-of-rollout idle).
+    answered: dict[int, float] = {}
+    read = env.branch_answer
+
+    def logged(worker: int):
+        out = read(worker)
+        answered[worker] = time.perf_counter()
+        return out
+
+    env.branch_answer = logged
+    idle = 0.0
     before, start = sample(["self", *workers]), time.perf_counter()
     steps = 0
-    for _ in range(rollouts):
-        data = branch_rollout(env, policy, roots, group_size, horizon)
-        steps += int(data["mask"].sum())
+    try:
+        for _ in range(rollouts):
+            answered.clear()
+            data = branch_rollout(env, policy, roots, group_size, horizon)
+            end = time.perf_counter()
+            steps += int(data["mask"].sum())
+            idle += sum(end - answered.get(w, end) for w in range(len(workers)))
+    finally:
+        del env.branch_answer
     wall = time.perf_counter() - start
     after = sample(["self", *workers])
     worker = account(before[1:], after[1:], wall, steps)
     worker["wall"] = 1e3 * wall * len(workers) / steps
+    worker["tail"] = 1e3 * idle / steps
     return {"parent": account(before[:1], after[:1], wall, steps), "workers": worker}
 
 
@@ -145,9 +166,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scenarios", nargs="+", default=["highway-fast-v0", "merge-v0"])
     parser.add_argument("--workers", type=int, default=2, help="W")
-    parser.add_argument(
-        "--lanes", type=int, default=BranchParallelEnv.branch_lanes, help="branch_lanes"
-    )
+    parser.add_argument("--engine", default=next(iter(ENGINES)), choices=ENGINES)
     parser.add_argument("--roots", type=int, default=2, help="R roots per worker")
     parser.add_argument("--group-size", type=int, default=4)
     parser.add_argument("--horizon", type=int, default=8)
@@ -158,7 +177,7 @@ def main() -> None:
     torch.manual_seed(0)
     w = args.workers
     print(
-        f"W={w} lanes={args.lanes} R={args.roots}*W G={args.group_size} H={args.horizon}; "
+        f"W={w} engine={args.engine} R={args.roots}*W G={args.group_size} H={args.horizon}; "
         f"ms per step (per branch step of all workers / raw step of all raw processes); "
         f"load {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
     )
@@ -170,21 +189,25 @@ def main() -> None:
         plain = HighwayEnv(scenario, seed=0)
         roots = reset_roots(plain, args.roots * w, seed=w)
         env = make_branch_env(scenario, w, mp_start_method="fork")
-        env.branch_lanes = args.lanes
         policy = make_policy(plain)
-        branch_rollout(env, policy, roots, args.group_size, 2)
         steps = args.roots * args.group_size * args.horizon * args.rollouts
         try:
+            with use_engine(env, args.engine):
+                branch_rollout(env, policy, roots, args.group_size, 2)
             for _ in range(args.repeats):
                 raw = raw_run(scenario, w, steps, args.horizon)
-                branch = branch_run(
-                    env, policy, roots, args.group_size, args.horizon, args.rollouts
-                )
+                with use_engine(env, args.engine):
+                    branch = branch_run(
+                        env, policy, roots, args.group_size, args.horizon, args.rollouts
+                    )
                 print(
                     row(scenario, "raw", raw["raw"])
                     + f"  (steps only {raw['raw']['step_cpu']:.2f})"
                 )
-                print(row(scenario, "workers", branch["workers"]))
+                print(
+                    row(scenario, "workers", branch["workers"])
+                    + f"  (end-of-rollout idle {branch['workers']['tail']:.2f})"
+                )
                 print(row(scenario, "parent", branch["parent"]))
         finally:
             shutdown_env(env)

@@ -7,7 +7,9 @@ CPU-only. One test checks the default start method.
 
 from __future__ import annotations
 
+import contextlib
 import warnings
+from collections.abc import Iterator
 
 import torch
 from tensordict import TensorDictBase
@@ -49,6 +51,17 @@ def branch_env(scenario: str, backend: str, num_workers: int = 2, **kwargs):
         num_workers = 1
     extra = {"mp_start_method": "fork"} if backend == "parallel" else {}
     return make_branch_env(scenario, num_workers, backend=backend, **extra, **kwargs)
+
+
+@contextlib.contextmanager
+def engine(env, *, whole: bool = False, lanes: int = 0) -> Iterator[None]:
+    """Run ``env``'s branch rollouts with one engine: whole branches in the workers
+    (``whole=True``), else ``lanes`` pipelined lanes, else (``lanes=0``) lock-step."""
+    env.whole_branches, env.branch_lanes = whole, lanes
+    try:
+        yield
+    finally:
+        del env.whole_branches, env.branch_lanes
 
 
 class ScheduledPolicy:

@@ -22,6 +22,8 @@ CONFIG = SHORT[SCENARIO]
 @pytest.fixture(scope="module")
 def short_parallel():
     env = make_branch_env(SCENARIO, 2, config=CONFIG, mp_start_method="fork")
+    # These tests are about the lanes: whole branches in the workers are off.
+    env.whole_branches = False
     yield env
     shutdown_env(env)
 

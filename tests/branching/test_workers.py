@@ -6,7 +6,14 @@ import time
 
 import pytest
 import torch
-from branching_helpers import SHORT, ScheduledPolicy, actions, bitwise_equal, plain_env
+from branching_helpers import (
+    SHORT,
+    ScheduledPolicy,
+    actions,
+    bitwise_equal,
+    engine,
+    plain_env,
+)
 from tensordict import TensorDict
 from torchrl.envs import ParallelEnv, TransformedEnv
 from torchrl.envs.transforms import Transform
@@ -138,25 +145,28 @@ def test_branch_fast_paths_match_torchrl_reset_and_step(highway_parallel, return
         "highway-fast-v0", 2, config=SHORT["highway-fast-v0"], mp_start_method="fork"
     )
     try:
-        fast = branch_rollout(env, ScheduledPolicy(table), roots, 5, 6, return_states=return_states)
+        fast = {}
+        for name, whole, lanes in (("whole", True, 0), ("lanes", False, 3), ("lockstep", False, 0)):
+            with engine(env, whole=whole, lanes=lanes):
+                fast[name] = branch_rollout(
+                    env, ScheduledPolicy(table), roots, 5, 6, return_states=return_states
+                )
         env.branch_fast_paths = False
         assert not EnvSlots(env)._fast
         slow = branch_rollout(env, ScheduledPolicy(table), roots, 5, 6, return_states=return_states)
     finally:
         shutdown_env(env)
-    assert not fast["mask"].all()
-    assert bitwise_equal(fast, slow) == []
+    assert not slow["mask"].all()
+    for name, data in fast.items():
+        assert bitwise_equal(data, slow) == [], name
 
 
 def test_sleeping_wait_learns_the_wait_lengths(highway_parallel):
     # After a few steps, a step's wait starts with one long sleep: a handful of
     # wake-ups per wait instead of one every 0.5 ms (the lock-step path: no lanes).
     roots = reset_roots(plain_env("highway-fast-v0"), 1, seed=0)
-    highway_parallel.branch_lanes = 0
-    try:
+    with engine(highway_parallel, lanes=0):
         branch_rollout(highway_parallel, ScheduledPolicy(torch.ones(2, 4)), roots, 2, 4)
-    finally:
-        del highway_parallel.branch_lanes
     recent = highway_parallel.__dict__["_recent_waits"]
     assert recent["step"] > 0 and recent["restore"] > 0
     assert highway_parallel.__dict__.get("_wait_kind") is None

@@ -33,6 +33,7 @@ from torchrl_grpo.branching.engine import (
 from torchrl_grpo.branching.keys import BRANCH, GROUP_ID, ROOT_STEP, STATE, STEP_COUNT
 from torchrl_grpo.branching.pipelined import run_pipelined
 from torchrl_grpo.branching.slots import EnvSlots, has_batched_worlds
+from torchrl_grpo.branching.whole import run_whole_branches
 
 __all__ = ["run_batched_branches", "run_on"]
 
@@ -171,6 +172,11 @@ def run_on(
 ) -> BranchRun:
     """Run branches on ``slots``' env: rows of one rollout for a batched simulator, else slots.
 
+    On a :class:`~torchrl_grpo.branching.BranchParallelEnv`, whole branches run in the
+    workers when the policy can be sent there (:mod:`~torchrl_grpo.branching.whole`),
+    else pipelined lanes run (:mod:`~torchrl_grpo.branching.pipelined`), else the
+    lock-step engine (:func:`~torchrl_grpo.branching.engine.run_branches`).
+
     The arguments are :func:`run_batched_branches`' (``kwargs``: ``group_id``, ``branch``,
     ``root_step``, ``keep``, ``exploration_type``).
 
@@ -186,6 +192,10 @@ def run_on(
     """
     if has_batched_worlds(slots.env):
         return run_batched_branches(slots.env, policy, states, horizon, **kwargs)
+    if slots.whole_branches:
+        run = run_whole_branches(slots, policy, states, horizon, **kwargs)
+        if run is not None:
+            return run
     if slots.pipelined:
         return run_pipelined(slots, policy, states, horizon, **kwargs)
     return run_branches(slots, policy, states, horizon, **kwargs)

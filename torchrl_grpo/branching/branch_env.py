@@ -158,6 +158,10 @@ def shutdown_env(env: EnvBase, timeout: float = 10.0) -> None:
         base = base.base_env
     # Read the instance dict: ParallelEnv.__getattr__ would start a stopped env.
     for process in base.__dict__.get("_workers") or []:
+        if getattr(process, "_closed", False):
+            # TorchRL closes the others' process objects when it finds a dead worker
+            # (it has terminated and reaped them): is_alive() would raise.
+            continue
         if process.is_alive():
             process.join(timeout)
         if process.is_alive():

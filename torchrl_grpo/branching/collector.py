@@ -46,7 +46,9 @@ class GroupCollector(GroupCollectorBase):
 
     Frames count the steps branches took (``mask.sum()``), so a batch counts at
     most ``R * G * T`` frames. The policy runs in this process, on CPU, on the
-    batched tensordict of the env's W workers.
+    batched tensordict of the env's W workers; on a
+    :class:`~torchrl_grpo.branching.BranchParallelEnv`, a policy that pickles runs in
+    the workers instead, each with its copy, sent at every batch.
 
     The collector owns the env: :meth:`shutdown` closes it and its workers, and so
     does the end of the collection (``total_frames`` reached or the roots run out)
@@ -70,7 +72,8 @@ class GroupCollector(GroupCollectorBase):
         seed: seeds the episodes the root source resets, the branch selection and
             the per-branch simulator seeds. Without it, episode seeds are drawn from
             torch's global generator. The policy samples from torch's global
-            generator too: seed it with ``torch.manual_seed``.
+            generator too (in a ``BranchParallelEnv``'s workers, from seeds drawn
+            from it): seed it with ``torch.manual_seed``.
         return_states: add ``"state"`` / ``("next", "state")`` to every step.
         set_truncated: see :func:`branch_rollout`.
         exploration_type: how the policy acts.

@@ -25,9 +25,9 @@ from typing import Literal
 import numpy as np
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
-from torchrl.data import Composite
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from torchrl_grpo.branching.action_checks import check_policy_actions
 from torchrl_grpo.branching.keys import (
     BRANCH,
     GROUP_ID,
@@ -98,18 +98,40 @@ class StepRows:
         building a tensordict.
         """
         if not self.keys:
-            for key, value in rows[0].items():
-                if any(key[: len(s)] == s for s in self.skip):
-                    continue
-                self.keys.append(key)
-                self.leaves.append(
-                    torch.from_numpy(np.zeros((self.size, *value.shape), value.dtype))
-                )
+            self._allocate_arrays({k: v.shape for k, v in rows[0].items()}, rows[0])
         if not self.views:
             self.views = [leaf.numpy() for leaf in self.leaves]
         for key, view in zip(self.keys, self.views, strict=True):
             for i, row in zip(where, rows, strict=True):
                 view[i] = row[key]
+
+    def write_block(self, start: int, block: Mapping[tuple, np.ndarray]) -> None:
+        """``self[start : start + T] = block``: ``[T, ...]`` numpy arrays by tuple key.
+
+        The first call fixes the keys (those of ``block`` minus ``skip``), shapes and dtypes.
+
+        Example:
+            >>> rows = StepRows(6)
+            >>> rows.write_block(3, {("a",): np.ones((2, 4), np.float32)})
+            >>> rows.tensordict(2, 3)["a"].sum(-1).tolist()
+            [[0.0, 0.0, 0.0], [4.0, 4.0, 0.0]]
+        """
+        if not self.keys:
+            self._allocate_arrays({k: v.shape[1:] for k, v in block.items()}, block)
+        if not self.views:
+            self.views = [leaf.numpy() for leaf in self.leaves]
+        for key, view in zip(self.keys, self.views, strict=True):
+            value = block[key]
+            view[start : start + len(value)] = value
+
+    def _allocate_arrays(
+        self, shapes: Mapping[tuple, tuple], like: Mapping[tuple, np.ndarray]
+    ) -> None:
+        for key, shape in shapes.items():
+            if any(key[: len(s)] == s for s in self.skip):
+                continue
+            self.keys.append(key)
+            self.leaves.append(torch.from_numpy(np.zeros((self.size, *shape), like[key].dtype)))
 
     def tensordict(self, *shape: int) -> TensorDict:
         """The leaves as a tensordict of batch size ``shape`` (``prod(shape) == size``)."""
@@ -248,57 +270,3 @@ def _advance(cur: TensorDictBase, nxt: TensorDictBase, rows: torch.Tensor | None
 def check_actions(td: TensorDictBase, slots: EnvSlots) -> None:
     """Fail in the parent, with a readable message, before a bad action reaches a worker."""
     check_policy_actions(td, slots.action_spec, slots.action_keys, per_worker=not slots.batched)
-
-
-def check_policy_actions(
-    td: TensorDictBase, spec: Composite, keys: Sequence, *, per_worker: bool = False
-) -> None:
-    """Check that ``td`` holds an action for each of ``keys`` that ``spec`` admits.
-
-    Args:
-        td: the policy's output.
-        spec: the env's full action spec.
-        keys: the action keys to check.
-        per_worker: the action carries a leading dimension of 1 that the spec (one
-            worker's) does not.
-
-    Raises:
-        ValueError: an action is missing, has the wrong shape or dtype, or holds
-            values outside the spec; the message names the key and the spec.
-    """
-    for key in keys:
-        leaf = spec[key]
-        expected = (1, *leaf.shape) if per_worker else tuple(leaf.shape)
-        action = td.get(key, None)
-        if action is None:
-            raise ValueError(
-                f"the policy wrote no {key!r} entry (its output has "
-                f"{sorted(map(str, td.keys(True, True)))}); it must write the env's action"
-            )
-        if (
-            not isinstance(action, torch.Tensor)
-            or tuple(action.shape) != expected
-            or (action.dtype != leaf.dtype)
-        ):
-            got = (
-                (tuple(action.shape), action.dtype)
-                if isinstance(action, torch.Tensor)
-                else (type(action).__name__)
-            )
-            raise ValueError(
-                f"the policy's {key!r} does not match the env's action spec: got {got}, "
-                f"expected shape {expected} and dtype {leaf.dtype} ({type(leaf).__name__} "
-                f"spec{_spec_range(leaf)})"
-            )
-        if not leaf.is_in(action[0] if per_worker else action):
-            raise ValueError(
-                f"the policy's {key!r} holds values outside the env's action spec"
-                f"{_spec_range(leaf)}: {action.reshape(-1).tolist()[:8]}"
-            )
-
-
-def _spec_range(spec) -> str:
-    n = getattr(spec, "n", None)
-    if n is not None:
-        return f" with {n} actions, indices 0..{n - 1}"
-    return ""

@@ -8,7 +8,8 @@ answers, so that a worker steps one lane while the parent runs the policy for an
 
 Jobs reach the worker through TorchRL's generic attribute call (the worker calls
 ``env.branch_jobs(*args)`` and answers ``("branch_jobs_done", result)``), which is why
-:class:`BranchWorkerFactory` attaches a :class:`LaneRunner` to each worker env. Results
+:class:`~torchrl_grpo.branching.worker_factory.BranchWorkerFactory` attaches a
+:class:`LaneRunner` to each worker env. Results
 travel as numpy arrays: the pipe pickles them in microseconds, where torch tensors
 would each be moved to shared memory by torch's multiprocessing reductions.
 """
@@ -26,7 +27,7 @@ from torchrl.envs import EnvBase, TransformedEnv
 
 from torchrl_grpo.branching.keys import STATE
 
-__all__ = ["BranchWorkerFactory", "LaneRunner", "from_arrays", "to_arrays"]
+__all__ = ["LaneRunner", "from_arrays", "step_keeping_state", "to_arrays"]
 
 # State modes of a step job: when to send the state after the step back.
 STATE_NEVER, STATE_ALWAYS, STATE_AT_END = 0, 1, 2
@@ -123,55 +124,47 @@ class LaneRunner:
             snap = to_arrays(out.get(STATE)) if job[3] else None
             return {"out": to_arrays(out, reset_keys), "state": snap}
         _, _, action, mode, last = job
-        td = from_arrays([action], batch=False)
-        base = _base(env)
-        returns_state = getattr(base, "return_state", None) is True
-        if returns_state and mode != STATE_ALWAYS:
-            # The state is encoded only when it is sent back (it costs up to a third
-            # of a merge-v0 step); read after the step, it is what the step would write.
-            base.return_state = False
-            try:
-                nxt = env.step(td).get("next")
-            finally:
-                base.return_state = True
-        else:
-            nxt = env.step(td).get("next")
-        out = to_arrays(nxt, step_keys)
-        snap = None
-        if mode == STATE_ALWAYS or (mode == STATE_AT_END and (last or bool(nxt.get("done")))):
-            snap = to_arrays(nxt.get(STATE) if STATE in nxt.keys() else env.get_state())
-        return {"out": out, "state": snap}
+        nxt, snap = step_keeping_state(env, from_arrays([action], batch=False), mode, last)
+        return {
+            "out": to_arrays(nxt, step_keys),
+            "state": None if snap is None else to_arrays(snap),
+        }
 
 
-class BranchWorkerFactory:
-    """Builds a worker env with a :class:`LaneRunner` attached as ``env.branch_jobs``.
+def step_keeping_state(
+    env: EnvBase, td: TensorDictBase, mode: int, last: bool
+) -> tuple[TensorDictBase, TensorDictBase | None]:
+    """Step ``env`` with the action in ``td``; return the step's ``"next"`` and the state.
 
-    Args:
-        make: the worker constructor (what ``ParallelEnv`` would be given).
+    The state after the step is read when ``mode`` asks for it: ``STATE_ALWAYS``, or
+    ``STATE_AT_END`` on the branch's ``last`` step or one that ends it; otherwise
+    ``None`` (and an env built with ``return_state=True`` skips encoding it).
 
     Example:
-        >>> import functools
         >>> from torchrl_grpo.envs import HighwayEnv
-        >>> env = BranchWorkerFactory(functools.partial(HighwayEnv, "merge-v0"))()
-        >>> isinstance(env.branch_jobs, LaneRunner)
-        True
+        >>> env = HighwayEnv("merge-v0", return_state=True)
+        >>> _ = env.reset()
+        >>> nxt, state = step_keeping_state(env, TensorDict(action=torch.tensor(1)),
+        ...                                 STATE_AT_END, last=False)
+        >>> STATE in nxt.keys(), state is None
+        (False, True)
     """
-
-    def __init__(self, make: Callable[..., EnvBase]) -> None:
-        self.make = make
-
-    def __eq__(self, other: object) -> bool:
-        # ParallelEnv tells one constructor for all workers by comparing them.
-        return isinstance(other, BranchWorkerFactory) and other.make == self.make
-
-    def __hash__(self) -> int:
-        return hash(self.make)
-
-    def __call__(self, **kwargs: Any) -> EnvBase:
-        """Build the worker env (``make(**kwargs)``) with its lanes attached."""
-        env = self.make(**kwargs)
-        env.branch_jobs = LaneRunner(env, lambda: self.make(**kwargs))
-        return env
+    base = _base(env)
+    returns_state = getattr(base, "return_state", None) is True
+    if returns_state and mode != STATE_ALWAYS:
+        # The state is encoded only when it is sent back (it costs up to a third
+        # of a merge-v0 step); read after the step, it is what the step would write.
+        base.return_state = False
+        try:
+            nxt = env.step(td).get("next")
+        finally:
+            base.return_state = True
+    else:
+        nxt = env.step(td).get("next")
+    snap = None
+    if mode == STATE_ALWAYS or (mode == STATE_AT_END and (last or bool(nxt.get("done").any()))):
+        snap = nxt.get(STATE) if STATE in nxt.keys() else env.get_state()
+    return nxt, snap
 
 
 def _base(env: EnvBase) -> EnvBase:

@@ -168,8 +168,10 @@ def branch_rollout(
             :class:`~torchrl_grpo.envs.HighwayEnv` (see
             :func:`~torchrl_grpo.branching.make_branch_env`) or a plain one.
         policy: a TensorDict module / callable writing ``"action"``; it reads a
-            ``[W]`` tensordict (``[1]`` on a plain env) holding the observations and
-            ``group_id``, ``branch``, ``root_step``, ``step_count``.
+            ``[W]`` tensordict (``[1]`` on a plain env, and in the workers of a
+            :class:`~torchrl_grpo.branching.BranchParallelEnv`, which run whole
+            branches with copies of a policy that pickles) holding the observations
+            and ``group_id``, ``branch``, ``root_step``, ``step_count``.
         roots: roots ``[R]`` (see :mod:`~torchrl_grpo.branching.roots`), or states.
         group_size: G >= 2, branches per root.
         horizon: H >= 1, the most steps a branch takes.

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterable, Sequence
+from multiprocessing import connection
 from typing import Any
 
 import torch
@@ -19,7 +20,7 @@ from tensordict import NestedKey, TensorDict, TensorDictBase, unravel_key
 from torchrl.envs import EnvBase
 
 from torchrl_grpo.branching.keys import STATE
-from torchrl_grpo.branching.lanes import BranchWorkerFactory
+from torchrl_grpo.branching.worker_factory import BranchWorkerFactory
 from torchrl_grpo.envs import (
     SnapshotParallelEnv,
 )
@@ -68,6 +69,13 @@ class BranchParallelEnv(SnapshotParallelEnv):
         sleep_while_waiting: set to ``False`` to use TorchRL's spinning wait.
         branch_fast_paths: set to ``False`` to make branch rollouts use TorchRL's
             ``reset`` and ``step``.
+        whole_branches: run whole branches in the workers, each with its own copy of
+            the policy (the default, see ``whole``): the parent does nothing per
+            step. ``False``, or a policy that does not pickle for CPU workers, runs
+            the pipelined lanes (or, with ``branch_lanes = 0``, the lock-step engine).
+        branch_queue_depth: whole branches queued per worker (2 by default: a worker
+            starts its next branch without waiting for the parent to read its answer;
+            in a rollout's last branches, 1, so that the workers finish together).
         branch_lanes: envs per worker for pipelined branch rollouts (3 by default: a
             worker steps one lane while the parent runs the policy for the others;
             ``0`` runs the lock-step engine).
@@ -85,6 +93,8 @@ class BranchParallelEnv(SnapshotParallelEnv):
 
     sleep_while_waiting: bool = True
     branch_fast_paths: bool = True
+    whole_branches: bool = True
+    branch_queue_depth: int = 2
     branch_lanes: int = 3
     _MIN_SLEEP = 1e-5
     _MAX_SLEEP = 5e-4
@@ -274,17 +284,32 @@ class BranchParallelEnv(SnapshotParallelEnv):
         return shared.get("next").select(*keys).clone()
 
     # ------------------------------------------------------------ pipelined rollouts
-    def branch_lanes_apply(self) -> bool:
-        """Whether branch rollouts run pipelined on this env's lanes (see ``pipelined``).
+    def branch_workers_apply(self) -> bool:
+        """Whether the workers run branch jobs (pipelined lanes, whole branches).
 
-        They need :attr:`branch_lanes` >= 1, workers built from constructors (which
-        then carry a :class:`~torchrl_grpo.branching.lanes.LaneRunner`) and what
+        They need workers built from constructors (which then carry the runners of
+        :class:`~torchrl_grpo.branching.worker_factory.BranchWorkerFactory`) and what
         :meth:`branch_fast_paths_apply` checks.
         """
-        if self.branch_lanes < 1 or not self.branch_fast_paths_apply():
+        if not self.branch_fast_paths_apply():
             return False
         makers = self.__dict__.get("create_env_fn")
         return isinstance(makers, list) and all(isinstance(f, BranchWorkerFactory) for f in makers)
+
+    def branch_lanes_apply(self) -> bool:
+        """Whether branch rollouts run pipelined on this env's lanes (see ``pipelined``).
+
+        They need :attr:`branch_lanes` >= 1 and :meth:`branch_workers_apply`.
+        """
+        return self.branch_lanes >= 1 and self.branch_workers_apply()
+
+    def whole_branches_apply(self) -> bool:
+        """Whether branch rollouts may run whole branches in the workers (see ``whole``).
+
+        They need :attr:`whole_branches` and :meth:`branch_workers_apply`; a rollout
+        whose policy does not pickle for the workers still runs in the parent.
+        """
+        return self.whole_branches and self.branch_workers_apply()
 
     def branch_send(
         self,
@@ -299,30 +324,61 @@ class BranchParallelEnv(SnapshotParallelEnv):
         """
         self.parent_channels[worker].send(("branch_jobs", ((jobs, reset_keys, step_keys), {})))
 
+    def branch_run_send(self, worker: int, message: tuple) -> None:
+        """Queue ``message`` for ``worker``'s ``BranchRunner`` (see ``branch_runner``).
+
+        Its answer is read, in sending order, with :meth:`branch_answer`.
+        """
+        try:
+            self.parent_channels[worker].send(("branch_runs", ((message,), {})))
+        except OSError as err:  # a broken pipe
+            raise RuntimeError(f"Cannot proceed, worker {worker} dead.") from err
+
+    def branch_ready(self, workers: Sequence[int]) -> list[int]:
+        """Those of ``workers`` with an answer to read (blocks until there is one).
+
+        The parent sleeps in the kernel until an answer arrives: no polling.
+
+        Raises:
+            RuntimeError: one of ``workers`` died, or none answered within
+                ``BATCHED_PIPE_TIMEOUT``.
+        """
+        channels = {self.parent_channels[w]: w for w in workers}
+        deadline = time.monotonic() + self.BATCHED_PIPE_TIMEOUT
+        while True:
+            ready = connection.wait(list(channels), timeout=1.0)
+            if ready:
+                return sorted(channels[c] for c in ready)
+            # The parent keeps the workers' ends of the pipes open, so a dead worker
+            # shows as silence: check every second.
+            dead = [w for w in workers if not self._workers[w].is_alive()]
+            if dead:
+                raise RuntimeError(f"Cannot proceed, worker {dead[0]} dead.")
+            if time.monotonic() > deadline:
+                raise RuntimeError(
+                    f"workers {list(workers)} did not answer within {self.BATCHED_PIPE_TIMEOUT} s"
+                )
+
+    def branch_answer(self, worker: int) -> Any:
+        """The answer of ``worker`` to its oldest message not read yet (blocks until it comes).
+
+        Raises:
+            RuntimeError: the worker died or did not answer in time.
+        """
+        self.branch_ready([worker])
+        try:
+            return self.parent_channels[worker].recv()[1]
+        except (EOFError, OSError) as err:  # the worker's end closed, or reset
+            raise RuntimeError(f"Cannot proceed, worker {worker} dead.") from err
+
     def branch_receive(self, worker: int) -> list[dict[str, Any]]:
         """The answer of ``worker`` to the oldest jobs not read yet (blocks until it comes).
-
-        The parent sleeps in the kernel until the answer arrives: no polling.
 
         Raises:
             RuntimeError: the worker died, did not answer within ``BATCHED_PIPE_TIMEOUT``,
                 or raised (its traceback is in the message).
         """
-        channel = self.parent_channels[worker]
-        deadline = time.monotonic() + self.BATCHED_PIPE_TIMEOUT
-        # The parent keeps the worker's end of the pipe open, so a dead worker shows
-        # as silence: check it every second.
-        while not channel.poll(1.0):
-            if not self._workers[worker].is_alive():
-                raise RuntimeError(f"Cannot proceed, worker {worker} dead.")
-            if time.monotonic() > deadline:
-                raise RuntimeError(
-                    f"worker {worker} did not answer within {self.BATCHED_PIPE_TIMEOUT} s"
-                )
-        try:
-            _, result = channel.recv()
-        except EOFError as err:
-            raise RuntimeError(f"Cannot proceed, worker {worker} dead.") from err
+        result = self.branch_answer(worker)
         if isinstance(result, tuple):
             raise RuntimeError(f"branch worker {worker} failed:\n{result[1]}")
         return result
