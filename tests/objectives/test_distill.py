@@ -8,7 +8,8 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
 
-from torchrl_grpo.objectives import GroupDistillLoss, group_softmax_target
+from torchrl_grpo.objectives import GroupDistillLoss, group_softmax_target, group_spread
+from torchrl_grpo.training.algos.enumerated import distill_targets
 
 
 def _tabular_actor(table: torch.Tensor) -> ProbabilisticActor:
@@ -31,6 +32,45 @@ def test_targets_are_each_groups_softmax_in_any_row_order(temperature):
     assert weight.shape == (n_groups * n_actions, 1)
     restored = torch.empty_like(weight).index_copy_(0, perm, weight).reshape(n_groups, n_actions)
     torch.testing.assert_close(restored, expected)
+
+
+def test_spreads_are_each_groups_best_minus_worst_in_any_row_order():
+    n_groups, n_actions = 6, 5
+    advantage = torch.randn(n_groups, n_actions) * 3
+    advantage[2] = 1.5  # a tie: nothing to teach
+    expected = (advantage.max(-1).values - advantage.min(-1).values).repeat_interleave(n_actions)
+    ids = torch.tensor([7, 0, 42, 5, 300, 2]).repeat_interleave(n_actions)
+    perm = torch.randperm(n_groups * n_actions)
+    spread = group_spread(advantage.reshape(-1, 1)[perm], ids[perm])
+    assert spread.shape == (n_groups * n_actions, 1)
+    torch.testing.assert_close(spread.squeeze(-1), expected[perm])
+    assert bool((spread.squeeze(-1)[ids[perm] == 42] == 0).all())
+    with pytest.raises(ValueError, match="one advantage per row"):
+        group_spread(torch.zeros(4), torch.zeros(3))
+
+
+def test_spread_weighting_counts_each_root_by_its_spread_in_the_loss():
+    """The loss is ``sum_s spread(s) CE(s) / sum_s spread(s)``: hand-made groups."""
+    table = torch.nn.Parameter(torch.randn(3, 5))
+    # Root 0 spread 10 (a crash), root 1 spread 1, root 2 a tie (spread 0).
+    advantage = torch.tensor(
+        [[-8.0, 2.0, 2.0, 2.0, 2.0], [0.0, 1.0, 0.5, 0.5, 0.5], [0.3, 0.3, 0.3, 0.3, 0.3]]
+    )
+    data = TensorDict(
+        state=torch.arange(3).repeat_interleave(5),
+        action=torch.arange(5).repeat(3),
+        advantage=advantage.reshape(-1, 1),
+        group_id=torch.arange(3).repeat_interleave(5) + 10,
+        batch_size=[15],
+    )
+    data = distill_targets(data, 0.0, "spread")
+    loss = GroupDistillLoss(_tabular_actor(table), coeff=1.0)(data)["loss_distill"]
+    logp = torch.log_softmax(table.detach(), -1)
+    ce0 = -logp[0, 1:].mean()  # four best actions share the hard target
+    ce1 = -logp[1, 1]
+    torch.testing.assert_close(loss.detach(), (10 * ce0 + 1 * ce1) / 11)
+    with pytest.raises(ValueError, match="weighting must be 'uniform' or 'spread'"):
+        distill_targets(data, 0.0, "crash")
 
 
 def test_a_zero_temperature_splits_the_weight_over_the_best_actions():

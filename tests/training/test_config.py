@@ -210,6 +210,10 @@ def test_distillation_needs_one_roots_enumerated_actions():
     with pytest.raises(ValueError, match="algo.distill_temperature must be a finite number >= 0"):
         check_config(cfg)
     cfg.algo.distill_temperature = 0.0
+    cfg.algo.distill_loss = "regression"  # logits read as advantages / temperature
+    with pytest.raises(ValueError, match="distill_loss=regression.*temperature > 0"):
+        check_config(cfg)
+    cfg.algo.distill_loss = "cross_entropy"
     cfg.algo.distill_coeff = -1.0
     with pytest.raises(ValueError, match="algo.distill_coeff must be a finite number >= 0"):
         check_config(cfg)

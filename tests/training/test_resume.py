@@ -70,6 +70,15 @@ def test_an_override_applies_on_top_and_is_logged(stopped, caplog):
     assert "group_size" not in caplog.text
 
 
+def test_an_override_to_todays_default_still_applies(stopped, caplog):
+    path, _ = stopped
+    default = compose_config([]).algo.group_size
+    with caplog.at_level(logging.WARNING, logger="torchrl_grpo"):
+        cfg = compose_config([f"resume={path}", f"algo.group_size={default}"])
+    assert cfg.algo.group_size == default != 2
+    assert f"algo.group_size={default} (the checkpoint's run had 2)" in caplog.text
+
+
 def test_another_env_is_refused_at_load_naming_the_env(stopped):
     path, _ = stopped
     with pytest.raises(ValueError, match="env.scenario='highway-fast-v0', not 'merge-v0'"):

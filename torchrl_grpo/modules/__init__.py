@@ -7,6 +7,7 @@ from torchrl_grpo.modules.actors import (
     make_discrete_actor,
     make_value_net,
 )
+from torchrl_grpo.modules.crash_head import CrashHead
 from torchrl_grpo.modules.greedy_tail import EXPLORED, GreedyTail
 from torchrl_grpo.modules.kinematics import (
     DEFAULT_FEATURES,
@@ -15,6 +16,7 @@ from torchrl_grpo.modules.kinematics import (
     VEHICLE_LENGTH,
     KinematicsLayout,
 )
+from torchrl_grpo.modules.neighbours import NeighbourFeatures, NeighbourMLP
 from torchrl_grpo.modules.networks import (
     EgoAttentionNet,
     KinematicsMLP,
@@ -64,6 +66,7 @@ __all__ = [
     "ConservativePolicy",
     "ConstantActionPolicy",
     "ContinuousDistribution",
+    "CrashHead",
     "DeterministicActor",
     "Driver",
     "EgoAttentionNet",
@@ -72,6 +75,8 @@ __all__ = [
     "KinematicsMLP",
     "LaneChangePolicy",
     "MetaAction",
+    "NeighbourFeatures",
+    "NeighbourMLP",
     "NetworkKind",
     "PriorLogits",
     "RandomPolicy",

@@ -1,18 +1,23 @@
 """Critic-free objectives: group-relative advantages, GRPOLoss, KL estimators, reference sync.
 
-Also the distillation of enumerated groups' action comparisons (``GroupDistillLoss``).
+Also the distillation of enumerated groups' action comparisons (``GroupDistillLoss``,
+``AdvantageRegressionLoss``) and the loss of a crash head (``CrashHeadLoss``).
 """
 
 from torchrl_grpo.objectives.advantage import GroupRelativeAdvantage
 from torchrl_grpo.objectives.bootstrap import BootstrapMode, HorizonBootstrap
-from torchrl_grpo.objectives.distill import GroupDistillLoss, group_softmax_target
+from torchrl_grpo.objectives.crash_head import CrashHeadLoss
+from torchrl_grpo.objectives.distill import GroupDistillLoss, group_softmax_target, group_spread
 from torchrl_grpo.objectives.grpo import Aggregation, GRPOLoss
 from torchrl_grpo.objectives.kl import KLEstimator, analytic_kl, kl_estimate
 from torchrl_grpo.objectives.reference import ReferenceSync
+from torchrl_grpo.objectives.regression import AdvantageRegressionLoss
 
 __all__ = [
+    "AdvantageRegressionLoss",
     "Aggregation",
     "BootstrapMode",
+    "CrashHeadLoss",
     "GRPOLoss",
     "GroupDistillLoss",
     "GroupRelativeAdvantage",
@@ -21,5 +26,6 @@ __all__ = [
     "ReferenceSync",
     "analytic_kl",
     "group_softmax_target",
+    "group_spread",
     "kl_estimate",
 ]

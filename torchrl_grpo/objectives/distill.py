@@ -20,7 +20,7 @@ from torchrl.objectives import LossModule
 
 from torchrl_grpo.objectives.checks import check_finite, require
 
-__all__ = ["GroupDistillLoss", "group_softmax_target"]
+__all__ = ["GroupDistillLoss", "group_softmax_target", "group_spread"]
 
 
 def group_softmax_target(
@@ -55,14 +55,7 @@ def group_softmax_target(
     """
     if not (temperature >= 0 and temperature < float("inf")):
         raise ValueError(f"temperature must be a finite number >= 0, got {temperature}")
-    flat = advantage.reshape(-1)
-    gid = group_id.reshape(-1).long()
-    if flat.shape != gid.shape:
-        raise ValueError(
-            f"one advantage per row: advantage has {flat.numel()} values, group_id {gid.numel()}"
-        )
-    _, inverse = torch.unique(gid, return_inverse=True)
-    n_groups = int(inverse.max()) + 1 if inverse.numel() else 0
+    flat, inverse, n_groups = _rows_by_group(advantage, group_id)
     best = flat.new_full((n_groups,), -float("inf")).scatter_reduce(0, inverse, flat, reduce="amax")
     gap = flat - best[inverse]
     if temperature == 0:
@@ -72,6 +65,50 @@ def group_softmax_target(
         score = (gap / temperature).exp()
     total = flat.new_zeros(n_groups).index_add(0, inverse, score)
     return (score / total[inverse]).reshape(advantage.shape)
+
+
+def group_spread(advantage: torch.Tensor, group_id: torch.Tensor) -> torch.Tensor:
+    """Each row's group spread: its group's best advantage minus its worst.
+
+    A root whose actions all score alike (spread 0) has nothing to teach; one where an
+    action crashes and another does not has a spread of the crash's cost. Used as a
+    root's weight in the distillation (``algo.distill_weighting=spread``).
+
+    Args:
+        advantage: one advantage per row, ``[N]`` or ``[N, 1]``.
+        group_id: the integer id of each row's root, ``[N]``.
+
+    Returns:
+        The spreads, shaped like ``advantage`` (equal within a group, ``>= 0``).
+
+    Raises:
+        ValueError: shapes that disagree.
+
+    Example:
+        >>> import torch
+        >>> adv = torch.tensor([0.0, 1.0, -3.0, 2.0, 2.0])
+        >>> group_spread(adv, torch.tensor([0, 0, 0, 1, 1]))
+        tensor([4., 4., 4., 0., 0.])
+    """
+    flat, inverse, n_groups = _rows_by_group(advantage, group_id)
+    best = flat.new_full((n_groups,), -float("inf")).scatter_reduce(0, inverse, flat, reduce="amax")
+    worst = flat.new_full((n_groups,), float("inf")).scatter_reduce(0, inverse, flat, reduce="amin")
+    return (best - worst)[inverse].reshape(advantage.shape)
+
+
+def _rows_by_group(
+    advantage: torch.Tensor, group_id: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """The flat advantages, each row's dense group index, and the number of groups."""
+    flat = advantage.reshape(-1)
+    gid = group_id.reshape(-1).long()
+    if flat.shape != gid.shape:
+        raise ValueError(
+            f"one advantage per row: advantage has {flat.numel()} values, group_id {gid.numel()}"
+        )
+    _, inverse = torch.unique(gid, return_inverse=True)
+    n_groups = int(inverse.max()) + 1 if inverse.numel() else 0
+    return flat, inverse, n_groups
 
 
 class GroupDistillLoss(LossModule):

@@ -66,18 +66,32 @@ def user_keys(
 ) -> dict[str, Any]:
     """The config keys that ``overrides`` set away from the defaults, with their values.
 
-    Group choices (``algo=ppo``, ``experiment=smoke``) count through the keys they change.
-    ``resume`` and Hydra's own keys are left out.
+    Group choices (``algo=ppo``, ``experiment=smoke``) count through the keys they change;
+    a key named on its own counts even where it asks for the default value (a resume
+    must apply ``algo.distill_coeff=0.0`` over a checkpoint's 2.0). ``resume`` and
+    Hydra's own keys are left out.
 
     Example:
-        >>> user_keys(["algo.epochs=3", "seed=1", "resume=last.pt"])
-        {'algo.epochs': 3, 'seed': 1}
+        >>> user_keys(["algo.epochs=3", "seed=1", "resume=last.pt", "algo.gamma=1.0"])
+        {'algo.epochs': 3, 'seed': 1, 'algo.gamma': 1.0}
     """
     kept = [o for o in overrides if o.lstrip("+~").split("=")[0] not in ("resume", "hydra")]
     kept = [o for o in kept if not o.lstrip("+~").startswith("hydra.")]
     default = to_container(_compose([], config_name, conf_dir))
     chosen = to_container(_compose(kept, config_name, conf_dir))
-    return {key: new for key, (_, new) in _leaf_changes(default, chosen).items()}
+    keys = {key: new for key, (_, new) in _leaf_changes(default, chosen).items()}
+    for override in kept:
+        name = override.lstrip("+~").split("=")[0]
+        node: Any = chosen
+        for part in name.split("."):
+            node = node.get(part, _ABSENT) if isinstance(node, dict) else _ABSENT
+        if node is not _ABSENT and not isinstance(node, dict):
+            keys.setdefault(name, node)
+    return keys
+
+
+# A key an override names that the composed config does not hold (``~key``, deleted).
+_ABSENT = object()
 
 
 def _leaf_changes(old: Any, new: Any, prefix: str = "") -> dict[str, tuple[Any, Any]]:

@@ -158,6 +158,8 @@ class ModelConfig:
     decoder_cells: list[int] = field(default_factory=lambda: [64, 64])
     prior: PriorName | None = None
     prior_weight: float = 2.0
+    crash_head: bool = False
+    crash_aversion: float = 0.0
 
 
 @dataclass
@@ -224,6 +226,7 @@ class OptimConfig:
     eps: float = 1e-8
     max_grad_norm: float = 1.0
     anneal_lr: bool = False
+    ema_decay: float | None = None
 
 
 @dataclass

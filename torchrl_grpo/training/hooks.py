@@ -55,6 +55,7 @@ class TrainerView(Protocol):
     cfg: DictConfig
     run_dir: Path
     policy: Any
+    eval_policy: Any
     eval_env: EnvBase
     seed: int
     logger: Logger | None
@@ -232,7 +233,7 @@ class EvaluationHook(Hook):
             self._render = make_env(cfg.env, render_mode="rgb_array")
         res, video = evaluate(
             trainer.eval_env,
-            trainer.policy,
+            trainer.eval_policy,
             episodes=episodes,
             seed=seed,
             max_steps=int(cfg.env.max_episode_steps),
@@ -241,7 +242,7 @@ class EvaluationHook(Hook):
         )
         summary = res.summary()
         if bool(cfg.experiment.get("transfer_gap", True)) and tensor_covers(cfg.env):
-            tensor = evaluate_on_tensor(cfg.env, trainer.policy, episodes=episodes, seed=seed)
+            tensor = evaluate_on_tensor(cfg.env, trainer.eval_policy, episodes=episodes, seed=seed)
             summary |= {f"transfer_{k}": v for k, v in paired_gap(res, tensor).items()}
         progress = trainer.progress
         row = {"iteration": progress.iteration, "frames": progress.frames}

@@ -10,6 +10,8 @@ from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, ValueOperator
 
 from torchrl_grpo.modules import (
+    CrashHead,
+    NeighbourMLP,
     NetworkKind,
     PriorLogits,
     SceneMLP,
@@ -33,7 +35,7 @@ __all__ = [
 
 #: The network of ``model.kind``: one of :func:`~torchrl_grpo.modules.make_network`'s
 #: kinds, or ``"scene"`` (:class:`~torchrl_grpo.modules.SceneMLP`).
-ModelArchitecture = Literal[NetworkKind, "scene"]
+ModelArchitecture = Literal[NetworkKind, "scene", "neighbours"]
 #: The scripted policies that drive deterministically (names of
 #: :data:`~torchrl_grpo.modules.SCRIPTED_POLICIES`): a prior's, or a greedy tail's base.
 BasePolicyName = Literal["idle", "slower", "rule", "conservative", "cautious"]
@@ -62,22 +64,23 @@ def make_net(model_cfg: DictConfig, env: EnvBase, out_features: int) -> nn.Modul
     """
     n_vehicles, n_features = _table_shape(env)
     kind = str(model_cfg.kind)
-    if kind == "scene":
+    if kind in ("scene", "neighbours"):
         layout = make_layout(env)
         if layout is None:
             raise ValueError(
-                "model.kind=scene reads highway-env's Kinematics observation; this env "
+                f"model.kind={kind} reads highway-env's Kinematics observation; this env "
                 "observes something else"
             )
         try:
             # The speed feature is centred on the env's own target speeds.
             action = (getattr(env, "config", None) or {}).get("action", {})
             speeds = action.get("target_speeds") or DEFAULT_TARGET_SPEEDS
-            return SceneMLP(
+            net_class = SceneMLP if kind == "scene" else NeighbourMLP
+            return net_class(
                 layout, out_features, num_cells=list(model_cfg.num_cells), target_speeds=speeds
             )
         except ValueError as err:
-            raise ValueError(f"model.kind=scene: {err}") from err
+            raise ValueError(f"model.kind={kind}: {err}") from err
     if kind == "mlp":
         kwargs = {"num_cells": list(model_cfg.num_cells)}
     else:
@@ -95,7 +98,10 @@ def make_net(model_cfg: DictConfig, env: EnvBase, out_features: int) -> nn.Modul
 def make_policy(model_cfg: DictConfig, env: EnvBase) -> ProbabilisticActor:
     """The categorical policy: writes ``logits``, ``action`` and ``action_log_prob``.
 
-    With ``model.prior`` set, the logits are the network's plus ``model.prior_weight``
+    With ``model.crash_head``, the network has a second output per action, the logit of
+    its crash probability (:class:`~torchrl_grpo.modules.CrashHead`), which
+    ``model.crash_aversion`` weighs into the logits. With ``model.prior`` set, the logits
+    are the network's plus ``model.prior_weight``
     on that scripted policy's action (:class:`~torchrl_grpo.modules.PriorLogits`).
 
     Example:
@@ -111,7 +117,11 @@ def make_policy(model_cfg: DictConfig, env: EnvBase) -> ProbabilisticActor:
     if not hasattr(spec, "n"):
         raise ValueError(f"the policies here are discrete; the env's action spec is {spec}")
     n_actions = int(spec.n)
-    net = make_net(model_cfg, env, n_actions)
+    if model_cfg.get("crash_head", False):
+        net = make_net(model_cfg, env, 2 * n_actions)
+        net = CrashHead(net, n_actions, float(model_cfg.crash_aversion))
+    else:
+        net = make_net(model_cfg, env, n_actions)
     prior = model_cfg.get("prior")
     if prior is not None:
         base = make_base_policy(str(prior), env, "model.prior")

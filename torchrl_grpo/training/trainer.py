@@ -25,9 +25,11 @@ from typing import Any
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
+from torch import nn
 from torchrl.collectors import BaseCollector
 
 from torchrl_grpo.training.algos import algorithm_for
+from torchrl_grpo.training.averaging import PolicyAverage
 from torchrl_grpo.training.checkpoint import (
     Progress,
     check_resumable,
@@ -143,6 +145,8 @@ class Trainer:
         self.eval_env = make_env(cfg.env, seed=self.seed)
         self.policy = make_policy(cfg.model, self.eval_env)
         self.algo = algorithm_for(cfg.algo)(cfg, self.policy, self.eval_env)
+        decay = cfg.optim.get("ema_decay")
+        self.average = None if decay is None else PolicyAverage(self.policy, float(decay))
         self.hooks: list[Hook] = [*default_hooks(), *hooks]
         self.progress = Progress()
         self.collector: BaseCollector | None = None
@@ -165,6 +169,11 @@ class Trainer:
         return self.progress.iteration
 
     @property
+    def eval_policy(self) -> nn.Module:
+        """The policy evaluated and saved: the average (``optim.ema_decay``), or the live one."""
+        return self.policy if self.average is None else self.average.module
+
+    @property
     def frames(self) -> int:
         """Env frames simulated."""
         return self.progress.frames
@@ -172,13 +181,17 @@ class Trainer:
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self, collector: BaseCollector | None = None) -> dict[str, Any]:
         """Everything needed to continue exactly (see :mod:`.checkpoint`)."""
-        return checkpoint_dict(
+        ckpt = checkpoint_dict(
             self.config,
             self.progress,
-            self.policy.state_dict(),
+            self.eval_policy.state_dict(),
             self.algo.state_dict(),
             collector_state(collector or self.collector),
         )
+        if self.average is not None:
+            # "policy" is the average, what evaluate.py drives; the live weights go beside.
+            ckpt["policy_average"] = self.average.state_dict()
+        return ckpt
 
     def save(self, collector: BaseCollector | None = None, name: str = "last.pt") -> Path:
         """Write a checkpoint into the run folder."""
@@ -189,7 +202,13 @@ class Trainer:
         saved = to_container(typed_config(ckpt["config"]))
         check_resumable(path, saved, self.config)
         self.algo.load_state_dict(ckpt, source=path)
-        self.policy.load_state_dict(ckpt["policy"])
+        average = ckpt.get("policy_average")
+        if self.average is not None:
+            self.average.load_state_dict(ckpt["policy"], average)
+        else:
+            # Averaging switched off: train on from the live weights, not the average.
+            live = ckpt["policy"] if average is None else average["train_policy"]
+            self.policy.load_state_dict(live)
         self.progress = Progress.from_checkpoint(ckpt)
         self._collector_state = ckpt["collector"]
         # Applied once the collector is built: building TorchRL's Collector runs the
@@ -229,6 +248,8 @@ class Trainer:
                 metrics = self.algo.batch_metrics(batch)
                 metrics.update(self.algo.update(batch, timer))
                 self.algo.after_batch(self.iteration)
+                if self.average is not None:
+                    self.average.update()
                 anneal_lr(self.algo.optimizer, self.cfg.optim, self.frames, total)
                 for hook in self.hooks:
                     if hook.due(self, batch):

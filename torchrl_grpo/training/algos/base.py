@@ -76,7 +76,8 @@ class Algorithm:
     ``config_class``, its schema (a subclass of :class:`AlgoConfig`); ``config_name``,
     the schema's name in Hydra's ConfigStore, which the defaults of
     ``conf/algo/<name>.yaml`` start from; ``supports_ray``, whether it collects with
-    ``rollout.backend=ray``.
+    ``rollout.backend=ray``; ``trains_crash_head``, whether it trains a
+    ``model.crash_head``.
 
     Args:
         cfg: the composed config.
@@ -94,6 +95,7 @@ class Algorithm:
     config_class: ClassVar[type[AlgoConfig]] = AlgoConfig
     config_name: ClassVar[str] = ""
     supports_ray: ClassVar[bool] = False
+    trains_crash_head: ClassVar[bool] = False
 
     def __init__(self, cfg: DictConfig, policy: ProbabilisticActor, env: EnvBase) -> None:
         self.cfg = cfg
@@ -141,6 +143,12 @@ class Algorithm:
         if not cls.supports_ray and rollout is not None and str(rollout.backend) == "ray":
             raise ValueError(
                 f"rollout.backend=ray collects GRPO groups; algo={cfg.algo.name} is not GRPO"
+            )
+        model = cfg.get("model")
+        if model is not None and model.get("crash_head", False) and not cls.trains_crash_head:
+            raise ValueError(
+                f"model.crash_head is trained on the crashes of enumerated branch groups; "
+                f"algo={cfg.algo.name} has none (use algo=grpo_branch)"
             )
 
     def make_collector(self, seed: int) -> BaseCollector:

@@ -10,18 +10,39 @@ each action's term can be weighed by the probability the policy gives it
 
 from __future__ import annotations
 
+from typing import Literal
+
+import torch
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
+from torch import nn
 from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.objectives import LossModule
 
 from torchrl_grpo.branching import GROUP_ID
-from torchrl_grpo.objectives import group_softmax_target
+from torchrl_grpo.objectives import (
+    AdvantageRegressionLoss,
+    GroupDistillLoss,
+    group_softmax_target,
+    group_spread,
+)
+from torchrl_grpo.training.choices import choice_enum
 
 __all__ = [
+    "BRANCH_CRASHED",
+    "DISTILL_TARGET",
     "DISTILL_WEIGHT",
+    "ActionWeights",
+    "ActionWeightsName",
+    "DistillLoss",
+    "DistillLossName",
+    "DistillWeighting",
+    "DistillWeightingName",
+    "branch_crashed",
     "check_distill",
     "check_replay_targets",
     "distill_targets",
+    "make_distill_loss",
     "make_replay",
     "policy_weighted",
     "replay_rows",
@@ -29,6 +50,41 @@ __all__ = [
 
 #: Each trained step's weight in its root's distillation target (``algo.distill_coeff``).
 DISTILL_WEIGHT = "distill_weight"
+#: Whether each trained step's branch ended in a crash (the env terminated it): the label
+#: of a crash head (``model.crash_head``).
+BRANCH_CRASHED = "branch_crashed"
+#: Each trained step's advantage as its group gave it, the target of
+#: ``algo.distill_loss=regression`` (the surrogate's advantage may be reweighted).
+DISTILL_TARGET = "distill_target"
+
+#: Weight of each enumerated first action in the objective (``algo.action_weights``):
+#: once each, or ``n * pi(a|s)`` (the expected clipped surrogate over all actions).
+ActionWeights = Literal["uniform", "policy"]
+#: Weight of each root in the distillation (``algo.distill_weighting``): the same for
+#: all, or its group's spread (best minus worst advantage: ties teach nothing).
+DistillWeighting = Literal["uniform", "spread"]
+#: What the distillation fits (``algo.distill_loss``): each root's softmax target by
+#: cross-entropy, or its advantages by the policy's centred logits (squared error).
+DistillLoss = Literal["cross_entropy", "regression"]
+
+ActionWeightsName = choice_enum(
+    "ActionWeightsName",
+    ActionWeights,
+    "Weight of an enumerated first action in the objective.",
+    module=__name__,
+)
+DistillWeightingName = choice_enum(
+    "DistillWeightingName",
+    DistillWeighting,
+    "Weight of a root in the distillation.",
+    module=__name__,
+)
+DistillLossName = choice_enum(
+    "DistillLossName",
+    DistillLoss,
+    "What the distillation fits.",
+    module=__name__,
+)
 
 
 def make_replay(algo: DictConfig) -> ReplayBuffer | None:
@@ -80,6 +136,23 @@ def policy_weighted(data: TensorDictBase, n_actions: int) -> TensorDictBase:
     return data.clone(recurse=False).set("advantage", weighted)
 
 
+def branch_crashed(batch: TensorDictBase, mask_key: str = "mask") -> torch.Tensor:
+    """``[R, G, T]``: on every step of a branch, whether the env terminated the branch.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> batch = TensorDict({"mask": torch.tensor([[[True, True], [True, False]]]),
+        ...                     ("next", "terminated"): torch.tensor([[[[False], [True]],
+        ...                                                            [[False], [True]]]])},
+        ...                    batch_size=[1, 2, 2])
+        >>> branch_crashed(batch).tolist()  # the second's terminated flag is past its end
+        [[[True, True], [False, False]]]
+    """
+    mask = batch.get(mask_key)
+    terminated = batch.get(("next", "terminated")).reshape(mask.shape) & mask
+    return terminated.any(-1, keepdim=True).expand(mask.shape)
+
+
 def check_distill(algo: DictConfig) -> None:
     """Refuse ``algo.distill_*`` settings whose target would not be one root's actions.
 
@@ -101,6 +174,11 @@ def check_distill(algo: DictConfig) -> None:
         raise ValueError(f"algo.distill_coeff must be a finite number >= 0, got {coeff}")
     if not 0 <= tau < float("inf"):
         raise ValueError(f"algo.distill_temperature must be a finite number >= 0, got {tau}")
+    if str(algo.get("distill_loss", "cross_entropy")) == "regression" and tau == 0:
+        raise ValueError(
+            "algo.distill_loss=regression reads the logits as advantages / "
+            "algo.distill_temperature: set a temperature > 0 (e.g. 0.1)"
+        )
     if coeff > 0 and (str(algo.first_action) != "enumerate" or algo.explore_steps != 1):
         raise ValueError(
             f"algo.distill_coeff={coeff} distils each root's enumerated actions: set "
@@ -108,21 +186,48 @@ def check_distill(algo: DictConfig) -> None:
         )
 
 
-def distill_targets(data: TensorDictBase, temperature: float) -> TensorDictBase:
-    """``data`` (a batch's trained steps) with :data:`DISTILL_WEIGHT`, its groups' targets.
+def distill_targets(
+    data: TensorDictBase,
+    temperature: float,
+    weighting: DistillWeighting = "uniform",
+    loss: DistillLoss = "cross_entropy",
+) -> TensorDictBase:
+    """``data`` (a batch's trained steps) with its groups' distillation targets.
 
-    The weight is computed when the steps are collected, so replayed steps keep the
-    target of their own group (group ids are reused across batches).
+    The targets are computed when the steps are collected, so replayed steps keep the
+    target of their own group (group ids are reused across batches). With
+    ``loss="cross_entropy"``, :data:`DISTILL_WEIGHT` is each row's weight in its root's
+    softmax target; with ``loss="regression"`` it is 1 and :data:`DISTILL_TARGET` holds
+    the row's advantage. With ``weighting="spread"`` each group's weights are scaled by
+    its spread (:func:`~torchrl_grpo.objectives.group_spread`): the loss's weighted mean
+    then counts a root by how much its best action beats its worst, so the rare states
+    where one action crashes and another does not outweigh the many where all score alike.
 
     Example:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> data = TensorDict(advantage=torch.tensor([[0.0], [1.0]]),
-        ...                   group_id=torch.tensor([3, 3]), batch_size=[2])
+        >>> data = TensorDict(advantage=torch.tensor([[0.0], [1.0], [2.0], [2.0]]),
+        ...                   group_id=torch.tensor([3, 3, 4, 4]), batch_size=[4])
         >>> distill_targets(data, 0.0)["distill_weight"].squeeze(-1)
-        tensor([0., 1.])
+        tensor([0.0000, 1.0000, 0.5000, 0.5000])
+        >>> distill_targets(data, 0.0, "spread")["distill_weight"].squeeze(-1)
+        tensor([0., 1., 0., 0.])
+        >>> out = distill_targets(data, 0.1, "spread", "regression")
+        >>> out["distill_weight"].squeeze(-1), out["distill_target"].squeeze(-1)
+        (tensor([1., 1., 0., 0.]), tensor([0., 1., 2., 2.]))
     """
-    weight = group_softmax_target(data.get("advantage"), data.get(GROUP_ID), temperature)
+    advantage, group_id = data.get("advantage"), data.get(GROUP_ID)
+    if loss == "cross_entropy":
+        weight = group_softmax_target(advantage, group_id, temperature)
+    elif loss == "regression":
+        weight = torch.ones_like(advantage)
+        data.set(DISTILL_TARGET, advantage.clone())
+    else:
+        raise ValueError(f"loss must be 'cross_entropy' or 'regression', got {loss!r}")
+    if weighting == "spread":
+        weight = weight * group_spread(advantage, group_id)
+    elif weighting != "uniform":
+        raise ValueError(f"weighting must be 'uniform' or 'spread', got {weighting!r}")
     return data.set(DISTILL_WEIGHT, weight)
 
 
@@ -156,3 +261,32 @@ def check_replay_targets(saved: DictConfig, algo: DictConfig, source: str = "") 
             f"config has algo.distill_coeff={coeff}: resume with the run's algo.distill_coeff "
             "(0 or > 0)"
         )
+    saved_loss = str(saved.get("distill_loss", "cross_entropy"))
+    loss = str(algo.get("distill_loss", "cross_entropy"))
+    if saved_on and saved_loss != loss:
+        raise ValueError(
+            f"resume={source} replays steps stored with algo.distill_loss={saved_loss} targets "
+            f"and this config has algo.distill_loss={loss}: resume with the run's algo.distill_loss"
+        )
+
+
+def make_distill_loss(algo: DictConfig, policy: nn.Module) -> LossModule | None:
+    """The loss of ``algo.distill_*`` beside the surrogate, or ``None`` (``distill_coeff=0``).
+
+    Example:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_grpo.modules import KinematicsMLP, make_discrete_actor
+        >>> actor = make_discrete_actor(KinematicsMLP(5, 5, out_features=5), 5)
+        >>> algo = OmegaConf.create({"distill_coeff": 1.0, "distill_temperature": 0.1,
+        ...                          "distill_loss": "regression"})
+        >>> type(make_distill_loss(algo, actor)).__name__
+        'AdvantageRegressionLoss'
+    """
+    coeff = float(algo.distill_coeff)
+    if coeff == 0:
+        return None
+    if str(algo.distill_loss) == "regression":
+        return AdvantageRegressionLoss(
+            policy, coeff=coeff, temperature=float(algo.distill_temperature)
+        )
+    return GroupDistillLoss(policy, coeff=coeff)

@@ -21,9 +21,9 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import LossModule
 
 from torchrl_grpo.branching import GROUP_ID, MASK
-from torchrl_grpo.modules import EXPLORED
+from torchrl_grpo.modules import EXPLORED, CrashHead
 from torchrl_grpo.objectives import (
-    GroupDistillLoss,
+    CrashHeadLoss,
     GroupRelativeAdvantage,
     GRPOLoss,
     HorizonBootstrap,
@@ -31,13 +31,19 @@ from torchrl_grpo.objectives import (
 )
 from torchrl_grpo.training.algos.base import AlgoConfig, Algorithm, register_algorithm
 from torchrl_grpo.training.algos.enumerated import (
-    check_distill,
+    BRANCH_CRASHED,
+    ActionWeightsName,
+    DistillLossName,
+    DistillWeightingName,
+    branch_crashed,
     check_replay_targets,
     distill_targets,
+    make_distill_loss,
     make_replay,
     policy_weighted,
     replay_rows,
 )
+from torchrl_grpo.training.algos.grpo_checks import check_grpo_config
 from torchrl_grpo.training.choices import (
     AggregationName,
     BaselineName,
@@ -64,9 +70,6 @@ GRPOVariant = Literal["grpo_branch", "grpo_episode"]
 TailPolicy = Literal["learner", BasePolicyName]
 #: How the policy acts on the trunks decision points are taken from (``algo.trunk``).
 TrunkPolicy = Literal["sample", "greedy"]
-#: Weight of each enumerated first action in the objective (``algo.action_weights``):
-#: once each, or ``n * pi(a|s)`` (the expected clipped surrogate over all actions).
-ActionWeights = Literal["uniform", "policy"]
 
 #: The reward GRPO advantages are computed from: the env's reward plus, on the last step
 #: of a branch cut by the horizon, the bootstrap of the episode steps left.
@@ -82,9 +85,6 @@ def _choices(name: str, choices: Any, doc: str) -> Any:
 
 GRPOName = _choices("GRPOName", GRPOVariant, "The GRPO variant.")
 TrunkPolicyName = _choices("TrunkPolicyName", TrunkPolicy, "How the policy acts on trunks.")
-ActionWeightsName = _choices(
-    "ActionWeightsName", ActionWeights, "Weight of an enumerated first action in the objective."
-)
 TailPolicyName = _choices("TailPolicyName", TailPolicy, "Who acts on greedy-tail branches.")
 
 
@@ -129,6 +129,9 @@ class GRPOConfig(AlgoConfig):
     trunk: TrunkPolicyName = TrunkPolicyName["sample"]
     distill_coeff: float = 0.0
     distill_temperature: float = 0.1
+    distill_weighting: DistillWeightingName = DistillWeightingName["uniform"]
+    distill_loss: DistillLossName = DistillLossName["cross_entropy"]
+    crash_head_coeff: float = 1.0
 
 
 @register_algorithm
@@ -153,6 +156,7 @@ class GRPO(Algorithm):
     config_class = GRPOConfig
     config_name = "base_grpo"
     supports_ray = True
+    trains_crash_head = True
 
     def __init__(self, cfg: DictConfig, policy: ProbabilisticActor, env: EnvBase) -> None:
         super().__init__(cfg, policy, env)
@@ -166,8 +170,11 @@ class GRPO(Algorithm):
         self.ref_sync = self.make_reference_sync(algo, self.loss)
         self.tail_policy = _tail_policy(algo, policy, env)
         self.replay = make_replay(algo)
-        coeff = float(algo.distill_coeff)
-        self.distill = GroupDistillLoss(policy, coeff=coeff) if coeff > 0 else None
+        self.distill = make_distill_loss(algo, policy)
+        head = next((m for m in policy.modules() if isinstance(m, CrashHead)), None)
+        self.crash_head = (
+            None if head is None else CrashHeadLoss(head, coeff=float(algo.crash_head_coeff))
+        )
 
     @classmethod
     def make_loss(
@@ -217,58 +224,8 @@ class GRPO(Algorithm):
     @classmethod
     def check_config(cls, cfg: DictConfig) -> None:
         """Greedy tails, replay and Ray: the relations between keys types cannot express."""
-        algo = cfg.algo
-        if algo.group_size < 2:
-            raise ValueError(f"algo.group_size must be >= 2, got {algo.group_size}")
-        explore = algo.explore_steps
-        tail_sync = algo.tail_sync_batches
-        if tail_sync is not None and (tail_sync < 1 or explore is None):
-            raise ValueError(
-                f"algo.tail_sync_batches={tail_sync}: must be >= 1, and applies to "
-                "greedy-tail branches only (set algo.explore_steps too)"
-            )
-        tail_policy = str(algo.tail_policy)
-        if tail_policy != "learner" and (explore is None or tail_sync is not None):
-            raise ValueError(
-                f"algo.tail_policy={tail_policy} is the base policy of greedy-tail "
-                "branches: set algo.explore_steps too (e.g. 1), and leave "
-                "algo.tail_sync_batches null (it refreshes a learner's copy)"
-            )
-        rollout = cfg.get("rollout")
-        on_ray = rollout is not None and str(rollout.backend) == "ray"
-        replay = algo.replay_groups
-        if replay is not None:
-            if replay < 1:
-                raise ValueError(f"algo.replay_groups must be >= 1, got {replay}")
-            if on_ray:
-                raise ValueError(
-                    f"algo.replay_groups={replay} is not supported with rollout.backend=ray: "
-                    "replay needs a scripted algo.tail_policy, which the Ray actors do not run "
-                    "yet; set algo.replay_groups=null or use the parallel, serial or single backend"
-                )
-            if str(algo.first_action) != "enumerate" or tail_policy == "learner":
-                raise ValueError(
-                    f"algo.replay_groups={replay} replays old groups, which is sound only when "
-                    "their advantages do not depend on the policy that collected them: set "
-                    "algo.first_action=enumerate and a scripted algo.tail_policy (e.g. rule)"
-                )
-        check_distill(algo)
-        first_action = str(algo.first_action)
-        if str(algo.action_weights) != "uniform" and first_action != "enumerate":
-            raise ValueError(
-                f"algo.action_weights={algo.action_weights} weighs enumerated first actions: set "
-                "algo.first_action=enumerate (sampled actions are already drawn from the policy)"
-            )
-        if first_action != "sample" and explore is None:
-            raise ValueError(
-                f"algo.first_action={first_action} chooses the first action of "
-                "greedy-tail branches: set algo.explore_steps too (e.g. 1)"
-            )
-        if on_ray and tail_policy != "learner":
-            raise ValueError(
-                f"algo.tail_policy={tail_policy} is not supported with rollout.backend=ray "
-                "yet; use the parallel, serial or single backend"
-            )
+        super().check_config(cfg)
+        check_grpo_config(cfg)
 
     def make_collector(self, seed: int) -> BaseCollector:
         """A ``GroupCollector`` (``RayGroupCollector`` with ``rollout.backend=ray``)."""
@@ -290,14 +247,23 @@ class GRPO(Algorithm):
         with timer("advantage"):
             self.bootstrap(batch)
             self.advantage(batch)
-            data = batch.select(*_TRAINED_KEYS, EXPLORED, strict=False).reshape(-1)
+            if self.crash_head is not None:
+                batch.set(BRANCH_CRASHED, branch_crashed(batch, MASK))
+            data = batch.select(*_TRAINED_KEYS, EXPLORED, BRANCH_CRASHED, strict=False)
+            data = data.reshape(-1)
             train = data.get(MASK)
             if EXPLORED in data.keys():
                 # Greedy-tail steps score the sampled ones; their actions were not sampled.
                 train = train & data.get(EXPLORED)
             data = data[train]
             if self.distill is not None:
-                data = distill_targets(data, float(self.cfg.algo.distill_temperature))
+                algo = self.cfg.algo
+                data = distill_targets(
+                    data,
+                    float(algo.distill_temperature),
+                    str(algo.distill_weighting),
+                    str(algo.distill_loss),
+                )
         adv = data.get("advantage")
         shape = batch.get(MASK).shape
         stats = {
@@ -335,10 +301,12 @@ class GRPO(Algorithm):
         return data
 
     def loss_terms(self, minibatch: TensorDictBase) -> TensorDictBase:
-        """The GRPO loss's terms, and ``loss_distill`` with ``algo.distill_coeff > 0``."""
+        """The GRPO loss's terms, with ``loss_distill`` and ``loss_crash_head`` when on."""
         out = self.loss(minibatch)
         if self.distill is not None:
             out.update(self.distill(minibatch))
+        if self.crash_head is not None:
+            out.update(self.crash_head(minibatch))
         return out
 
     def on_optimizer_step(self) -> None:  # noqa: D102

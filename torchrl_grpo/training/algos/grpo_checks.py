@@ -1,0 +1,89 @@
+"""The relations between ``algo`` keys of GRPO that their types cannot express."""
+
+from __future__ import annotations
+
+from omegaconf import DictConfig
+
+from torchrl_grpo.training.algos.enumerated import check_distill
+
+__all__ = ["check_grpo_config"]
+
+
+def check_grpo_config(cfg: DictConfig) -> None:
+    """Refuse GRPO settings that contradict each other: greedy tails, replay, Ray.
+
+    Raises:
+        ValueError: the message names the keys and what to set instead.
+
+    Example:
+        >>> from torchrl_grpo.training import compose_config
+        >>> cfg = compose_config(["algo.replay_groups=8", "algo.tail_policy=learner"])
+        >>> check_grpo_config(cfg)
+        Traceback (most recent call last):
+        ...
+        ValueError: algo.replay_groups=8 replays old groups, which is sound only when their advantages do not depend on the policy that collected them: set algo.first_action=enumerate and a scripted algo.tail_policy (e.g. rule)
+    """  # noqa: E501 - a doctest's expected output is one line
+    algo = cfg.algo
+    if algo.group_size < 2:
+        raise ValueError(f"algo.group_size must be >= 2, got {algo.group_size}")
+    explore = algo.explore_steps
+    tail_sync = algo.tail_sync_batches
+    if tail_sync is not None and (tail_sync < 1 or explore is None):
+        raise ValueError(
+            f"algo.tail_sync_batches={tail_sync}: must be >= 1, and applies to "
+            "greedy-tail branches only (set algo.explore_steps too)"
+        )
+    tail_policy = str(algo.tail_policy)
+    if tail_policy != "learner" and (explore is None or tail_sync is not None):
+        raise ValueError(
+            f"algo.tail_policy={tail_policy} is the base policy of greedy-tail "
+            "branches: set algo.explore_steps too (e.g. 1), and leave "
+            "algo.tail_sync_batches null (it refreshes a learner's copy)"
+        )
+    rollout = cfg.get("rollout")
+    on_ray = rollout is not None and str(rollout.backend) == "ray"
+    replay = algo.replay_groups
+    if replay is not None:
+        if replay < 1:
+            raise ValueError(f"algo.replay_groups must be >= 1, got {replay}")
+        if on_ray:
+            raise ValueError(
+                f"algo.replay_groups={replay} is not supported with rollout.backend=ray: "
+                "replay needs a scripted algo.tail_policy, which the Ray actors do not run "
+                "yet; set algo.replay_groups=null or use the parallel, serial or single backend"
+            )
+        if str(algo.first_action) != "enumerate" or tail_policy == "learner":
+            raise ValueError(
+                f"algo.replay_groups={replay} replays old groups, which is sound only when "
+                "their advantages do not depend on the policy that collected them: set "
+                "algo.first_action=enumerate and a scripted algo.tail_policy (e.g. rule)"
+            )
+    check_distill(algo)
+    first_action = str(algo.first_action)
+    if str(algo.action_weights) != "uniform" and first_action != "enumerate":
+        raise ValueError(
+            f"algo.action_weights={algo.action_weights} weighs enumerated first actions: set "
+            "algo.first_action=enumerate (sampled actions are already drawn from the policy)"
+        )
+    if first_action != "sample" and explore is None:
+        raise ValueError(
+            f"algo.first_action={first_action} chooses the first action of "
+            "greedy-tail branches: set algo.explore_steps too (e.g. 1)"
+        )
+    if on_ray and tail_policy != "learner":
+        raise ValueError(
+            f"algo.tail_policy={tail_policy} is not supported with rollout.backend=ray "
+            "yet; use the parallel, serial or single backend"
+        )
+    model = cfg.get("model")
+    if model is not None and model.get("crash_head", False):
+        if not (algo.crash_head_coeff > 0 and algo.crash_head_coeff < float("inf")):
+            raise ValueError(
+                f"algo.crash_head_coeff must be a finite number > 0 to train model.crash_head, "
+                f"got {algo.crash_head_coeff}"
+            )
+        if first_action != "enumerate" or explore != 1:
+            raise ValueError(
+                "model.crash_head learns whether each action, then the tail, crashes: set "
+                "algo.first_action=enumerate and algo.explore_steps=1 (algo=grpo_branch)"
+            )
