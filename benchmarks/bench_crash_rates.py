@@ -32,7 +32,7 @@ from omegaconf import OmegaConf
 
 from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.envs import TensorHighwayEnv
-from torchrl_grpo.modules import make_scripted_policy
+from torchrl_grpo.modules import CrashHead, make_scripted_policy
 from torchrl_grpo.training import (
     evaluate_on_tensor,
     load_checkpoint,
@@ -57,6 +57,17 @@ def trained(path: str):
     policy = make_policy(run_cfg.model, make_env(run_cfg.env))
     policy.load_state_dict(ckpt["policy"])
     return run_cfg.env, policy
+
+
+def with_aversion(path: str, aversion: float):
+    """A checkpoint's policy whose crash head acts with ``aversion`` instead of its own."""
+    _, policy = trained(path)
+    heads = [m for m in policy.modules() if isinstance(m, CrashHead)]
+    if not heads:
+        raise SystemExit(f"--aversions: {path} has no crash head (model.crash_head=false)")
+    for head in heads:
+        head.aversion = aversion
+    return policy
 
 
 def anatomy(env_cfg, policy, planner, episodes: int, seed: int, last: int = 5) -> None:
@@ -96,6 +107,13 @@ def main() -> None:
     p.add_argument("--no-planner", action="store_true", help="skip the planner (minutes)")
     p.add_argument("--anatomy", action="store_true", help="score the decisions before crashes")
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument(
+        "--aversions",
+        type=float,
+        nargs="+",
+        default=[],
+        help="also evaluate each crash-head checkpoint with these crash aversions",
+    )
     args = p.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -104,6 +122,10 @@ def main() -> None:
     for path in args.checkpoint:
         env_cfg, policy = trained(path)
         policies.append((path, policy, False))
+        for aversion in args.aversions:
+            policies.append(
+                (f"{path} (aversion {aversion:g})", with_aversion(path, aversion), False)
+            )
     env_cfg.max_episode_steps = env_cfg.get("max_episode_steps", 40)
     layout = make_layout(make_env(env_cfg))
     rule = make_scripted_policy("rule", layout)
