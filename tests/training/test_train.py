@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import os
@@ -17,6 +16,7 @@ from conftest import ROOT, TINY, compose_config
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
+from train_helpers import REPLAY, csv_scalars, train_run
 
 from torchrl_grpo.modules import EXPLORED, SLOWER
 from torchrl_grpo.objectives import GRPOLoss
@@ -25,24 +25,13 @@ from torchrl_grpo.training.algos.grpo import policy_weighted
 from torchrl_grpo.training.checkpoint import changed_keys
 
 
-def _csv_scalars(run_dir) -> dict[str, list[float]]:
-    [exp] = list((run_dir / "csv").iterdir())
-    out = {}
-    for path in (exp / "scalars").rglob("*.csv"):
-        with open(path) as f:
-            out[str(path.relative_to(exp / "scalars").with_suffix(""))] = [
-                float(row[1]) for row in csv.reader(f)
-            ]
-    return out
-
-
 def test_smoke_run_writes_finite_metrics_and_checkpoint(smoke_run):
     proc, run_dir, elapsed = smoke_run
     assert proc.returncode == 0, proc.stderr[-3000:]
     # The script ends by telling where everything is.
     for label in ("run folder:", "checkpoint:", "logs:", "results:", "curve:"):
         assert label in proc.stdout, proc.stdout
-    scalars = _csv_scalars(run_dir)
+    scalars = csv_scalars(run_dir)
     for name in (
         "collect/crash_rate",
         "collect/group_return_mean",
@@ -80,25 +69,6 @@ def test_smoke_run_writes_finite_metrics_and_checkpoint(smoke_run):
     assert walls[-1] < elapsed
 
 
-def _train(tmp_path, name: str, overrides: list[str]) -> Trainer:
-    cfg = compose_config([*TINY, *overrides])
-    trainer = Trainer(cfg, run_dir=tmp_path / name)
-    trainer.train()
-    return trainer
-
-
-# Enumerated groups scored by a scripted tail, replayed for 50 groups.
-_REPLAY = [
-    "algo.group_size=5",
-    "rollout.horizon=2",
-    "rollout.decision_interval=2",
-    "algo.explore_steps=1",
-    "algo.first_action=enumerate",
-    "algo.tail_policy=slower",
-    "algo.replay_groups=50",
-]
-
-
 def _params(trainer: Trainer) -> dict[str, torch.Tensor]:
     return {k: v.clone() for k, v in trainer.algo.loss.state_dict().items()}
 
@@ -114,16 +84,16 @@ def _params(trainer: Trainer) -> dict[str, torch.Tensor]:
             marks=pytest.mark.slow,  # grpo_branch_replay resumes the same loop and more
         ),
         ("ppo", ["rollout.frames_per_batch=32"], 32, 96),
-        ("grpo_branch", [*_REPLAY], 60, 160),
+        ("grpo_branch", [*REPLAY], 60, 160),
     ],
     ids=["grpo_branch", "ppo", "grpo_branch_replay"],
 )
 def test_resume_continues_exactly(tmp_path, algo, extra, first, total):
     common = [f"algo={algo}", "experiment.checkpoint_every=1", *extra]
-    straight = _train(tmp_path, "straight", [*common, f"experiment.total_frames={total}"])
-    stopped = _train(tmp_path, "stopped", [*common, f"experiment.total_frames={first}"])
+    straight = train_run(tmp_path, "straight", [*common, f"experiment.total_frames={total}"])
+    stopped = train_run(tmp_path, "stopped", [*common, f"experiment.total_frames={first}"])
     assert 0 < stopped.frames < straight.frames
-    resumed = _train(
+    resumed = train_run(
         tmp_path,
         "resumed",
         [*common, f"experiment.total_frames={total}", f"resume={tmp_path / 'stopped' / 'last.pt'}"],
@@ -149,7 +119,7 @@ def test_resume_restores_the_lagging_tail_policy(tmp_path):
         "algo.tail_policy=learner",
         "algo.replay_groups=null",
     ]
-    stopped = _train(tmp_path, "stopped", [*common, "experiment.total_frames=70"])
+    stopped = train_run(tmp_path, "stopped", [*common, "experiment.total_frames=70"])
     assert stopped.iteration == 3
     tail, policy = stopped.algo.tail_policy.state_dict(), stopped.policy.state_dict()
     assert any(not torch.equal(tail[k], policy[k]) for k in tail)  # it lags one batch
@@ -175,7 +145,7 @@ def test_a_scripted_tail_scores_every_first_action_from_the_learners_trunks(tmp_
         "algo.trunk=greedy",
         "algo.tail_policy=slower",
     ]
-    trainer = _train(tmp_path, "base_tail", [*overrides, "experiment.total_frames=40"])
+    trainer = train_run(tmp_path, "base_tail", [*overrides, "experiment.total_frames=40"])
     assert trainer.iteration >= 1
     cfg = trainer.cfg
     env = make_rollout_env(cfg.env, cfg.rollout, snapshots=True)
@@ -195,7 +165,7 @@ def test_a_scripted_tail_scores_every_first_action_from_the_learners_trunks(tmp_
 
 
 def test_replayed_groups_accumulate_and_get_the_current_policys_log_probs(tmp_path):
-    trainer = _train(tmp_path, "replay", [*_REPLAY, "experiment.total_frames=60"])
+    trainer = train_run(tmp_path, "replay", [*REPLAY, "experiment.total_frames=60"])
     rows = len(trainer.algo.replay)
     assert trainer.iteration >= 2 and rows > 5  # more than one batch's rows
     old = trainer.algo.replay[:]
@@ -210,14 +180,14 @@ def test_replayed_groups_accumulate_and_get_the_current_policys_log_probs(tmp_pa
     trainer.algo.replay.extend(torch.cat([old] * (300 // rows + 1)))
     assert len(trainer.algo.replay) == 250
     # A resume with another replay size is refused when it loads, not mid-run.
-    bigger = [*_REPLAY, "algo.replay_groups=60", f"resume={tmp_path / 'replay' / 'last.pt'}"]
+    bigger = [*REPLAY, "algo.replay_groups=60", f"resume={tmp_path / 'replay' / 'last.pt'}"]
     with pytest.raises(ValueError, match="algo.replay_groups"):
         Trainer(compose_config([*TINY, *bigger]), run_dir=tmp_path / "bigger")
 
 
 def test_policy_weights_scale_advantages_by_n_pi_and_leave_the_replay_alone(tmp_path):
-    overrides = [*_REPLAY, "algo.action_weights=policy", "experiment.total_frames=60"]
-    trainer = _train(tmp_path, "weighted", overrides)
+    overrides = [*REPLAY, "algo.action_weights=policy", "experiment.total_frames=60"]
+    trainer = train_run(tmp_path, "weighted", overrides)
     stored = trainer.algo.replay[:].clone()
     data = policy_weighted(trainer.algo.replayed(stored[:1].clone()), 5)
     plain = torch.cat([stored["advantage"], stored["advantage"][:1]])
@@ -225,103 +195,6 @@ def test_policy_weights_scale_advantages_by_n_pi_and_leave_the_replay_alone(tmp_
     prob = torch.softmax(logits, -1).gather(-1, data["action"].unsqueeze(-1))
     torch.testing.assert_close(data["advantage"], plain * 5 * prob)
     assert torch.equal(trainer.algo.replay[:]["advantage"], plain)  # stored unweighted
-
-
-def test_distillation_stores_each_groups_target_and_trains_on_it(tmp_path):
-    overrides = [*_REPLAY, "algo.distill_coeff=2.0", "algo.distill_temperature=0.0", "logger=csv"]
-    trainer = _train(tmp_path, "distill", [*overrides, "experiment.total_frames=60"])
-    stored = trainer.algo.replay[:]
-    weight, advantage = stored["distill_weight"].squeeze(-1), stored["advantage"].squeeze(-1)
-    # A group's 5 rows are stored together; hard targets split its weight over its best.
-    assert (stored["group_id"].reshape(-1, 5) == stored["group_id"].reshape(-1, 5)[:, :1]).all()
-    advantage, weight = advantage.reshape(-1, 5), weight.reshape(-1, 5)
-    best = (advantage == advantage.max(-1, keepdim=True).values).float()
-    torch.testing.assert_close(weight, best / best.sum(-1, keepdim=True))
-    assert weight.shape[0] >= 3 and bool((best.sum(-1) < 5).any())  # some groups disagree
-    scalars = _csv_scalars(tmp_path / "distill")
-    assert len(scalars["train/loss_distill"]) == trainer.iteration
-    ratio = [
-        d / c
-        for d, c in zip(
-            scalars["train/loss_distill"], scalars["train/distill_cross_entropy"], strict=True
-        )
-    ]
-    assert ratio == pytest.approx([2.0] * trainer.iteration)
-    spread = _train(
-        tmp_path,
-        "spread",
-        [*overrides, "algo.distill_weighting=spread", "experiment.total_frames=60"],
-    )
-    stored = spread.algo.replay[:]
-    advantage = stored["advantage"].reshape(-1, 5)
-    best = (advantage == advantage.max(-1, keepdim=True).values).float()
-    gap = advantage.max(-1, keepdim=True).values - advantage.min(-1, keepdim=True).values
-    torch.testing.assert_close(
-        stored["distill_weight"].reshape(-1, 5), gap * best / best.sum(-1, keepdim=True)
-    )
-    # Its replay holds targets: a resume without distillation is refused when it loads.
-    resume = f"resume={tmp_path / 'distill' / 'last.pt'}"
-    plain = compose_config([*TINY, *_REPLAY, resume, "algo.distill_coeff=0.0"])
-    with pytest.raises(ValueError, match="stored with distillation targets.*distill_coeff=0.0"):
-        Trainer(plain, run_dir=tmp_path / "plain")
-
-
-def test_regression_stores_each_rows_advantage_and_trains_on_it(tmp_path):
-    overrides = [
-        *_REPLAY,
-        "algo.distill_coeff=0.5",
-        "algo.distill_loss=regression",
-        "algo.distill_temperature=1.0",
-        "algo.action_weights=policy",
-        "logger=csv",
-    ]
-    trainer = _train(tmp_path, "regression", [*overrides, "experiment.total_frames=60"])
-    stored = trainer.algo.replay[:]
-    # The target is the group's advantage, not the surrogate's policy-weighted one.
-    torch.testing.assert_close(stored["distill_target"], stored["advantage"])
-    assert bool((stored["distill_weight"] == 1).all())
-    assert bool((stored["advantage"].reshape(-1, 5).sum(-1).abs() < 1e-4).all())  # centred
-    scalars = _csv_scalars(tmp_path / "regression")
-    ratio = [
-        d / e
-        for d, e in zip(
-            scalars["train/loss_distill"], scalars["train/distill_squared_error"], strict=True
-        )
-    ]
-    assert ratio == pytest.approx([0.5] * trainer.iteration)
-    # Its replay holds regression targets: a resume with the cross-entropy is refused.
-    resume = f"resume={tmp_path / 'regression' / 'last.pt'}"
-    other = compose_config(
-        [*TINY, *_REPLAY, resume, "algo.distill_coeff=0.5", "algo.distill_loss=cross_entropy"]
-    )
-    with pytest.raises(ValueError, match="distill_loss=regression targets.*cross_entropy"):
-        Trainer(other, run_dir=tmp_path / "other")
-
-
-def test_a_crash_head_learns_from_each_branchs_crash(tmp_path):
-    overrides = [*_REPLAY, "model.crash_head=true", "algo.crash_head_coeff=0.5", "logger=csv"]
-    overrides += ["algo.tail_policy=idle", "rollout.horizon=4", "experiment.total_frames=120"]
-    trainer = _train(tmp_path, "crash_head", overrides)
-    stored = trainer.algo.replay[:]
-    # One label per enumerated action; with the idle tail some actions crash, some do not.
-    crashed = stored["branch_crashed"].reshape(-1, 5)
-    assert stored["branch_crashed"].dtype == torch.bool
-    assert bool(crashed.any()) and not bool(crashed.all())
-    scalars = _csv_scalars(tmp_path / "crash_head")
-    ratio = [
-        loss / bce
-        for loss, bce in zip(
-            scalars["train/loss_crash_head"], scalars["train/crash_head_bce"], strict=True
-        )
-    ]
-    assert ratio == pytest.approx([0.5] * trainer.iteration)
-    for refused, match in (
-        (["algo=ppo"], "model.crash_head is trained.*algo=ppo"),
-        (["algo.explore_steps=2"], "model.crash_head learns.*explore_steps=1"),
-    ):
-        cfg = compose_config([*TINY, "model.crash_head=true", *refused])
-        with pytest.raises(ValueError, match=match):
-            Trainer(cfg, run_dir=tmp_path / "refused")
 
 
 def test_policy_weights_give_the_expected_surrogates_gradient():
@@ -359,7 +232,7 @@ def test_policy_weights_give_the_expected_surrogates_gradient():
 
 
 def test_resume_refuses_another_algorithm_or_model(tmp_path):
-    _train(tmp_path, "grpo", ["experiment.total_frames=20"])
+    train_run(tmp_path, "grpo", ["experiment.total_frames=20"])
     resume = f"resume={tmp_path / 'grpo' / 'last.pt'}"
     with pytest.raises(ValueError, match="algo=grpo_branch"):
         compose_config([*TINY, "algo=ppo", resume])

@@ -1,0 +1,107 @@
+"""End-to-end runs whose groups carry per-action targets: distillation, regression, a crash head."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from conftest import TINY, compose_config
+from train_helpers import REPLAY, csv_scalars, train_run
+
+from torchrl_grpo.training import Trainer
+
+
+def test_distillation_stores_each_groups_target_and_trains_on_it(tmp_path):
+    overrides = [*REPLAY, "algo.distill_coeff=2.0", "algo.distill_temperature=0.0", "logger=csv"]
+    trainer = train_run(tmp_path, "distill", [*overrides, "experiment.total_frames=60"])
+    stored = trainer.algo.replay[:]
+    weight, advantage = stored["distill_weight"].squeeze(-1), stored["advantage"].squeeze(-1)
+    # A group's 5 rows are stored together; hard targets split its weight over its best.
+    assert (stored["group_id"].reshape(-1, 5) == stored["group_id"].reshape(-1, 5)[:, :1]).all()
+    advantage, weight = advantage.reshape(-1, 5), weight.reshape(-1, 5)
+    best = (advantage == advantage.max(-1, keepdim=True).values).float()
+    torch.testing.assert_close(weight, best / best.sum(-1, keepdim=True))
+    assert weight.shape[0] >= 3 and bool((best.sum(-1) < 5).any())  # some groups disagree
+    scalars = csv_scalars(tmp_path / "distill")
+    assert len(scalars["train/loss_distill"]) == trainer.iteration
+    ratio = [
+        d / c
+        for d, c in zip(
+            scalars["train/loss_distill"], scalars["train/distill_cross_entropy"], strict=True
+        )
+    ]
+    assert ratio == pytest.approx([2.0] * trainer.iteration)
+    spread = train_run(
+        tmp_path,
+        "spread",
+        [*overrides, "algo.distill_weighting=spread", "experiment.total_frames=60"],
+    )
+    stored = spread.algo.replay[:]
+    advantage = stored["advantage"].reshape(-1, 5)
+    best = (advantage == advantage.max(-1, keepdim=True).values).float()
+    gap = advantage.max(-1, keepdim=True).values - advantage.min(-1, keepdim=True).values
+    torch.testing.assert_close(
+        stored["distill_weight"].reshape(-1, 5), gap * best / best.sum(-1, keepdim=True)
+    )
+    # Its replay holds targets: a resume without distillation is refused when it loads.
+    resume = f"resume={tmp_path / 'distill' / 'last.pt'}"
+    plain = compose_config([*TINY, *REPLAY, resume, "algo.distill_coeff=0.0"])
+    with pytest.raises(ValueError, match="stored with distillation targets.*distill_coeff=0.0"):
+        Trainer(plain, run_dir=tmp_path / "plain")
+
+
+def test_regression_stores_each_rows_advantage_and_trains_on_it(tmp_path):
+    overrides = [
+        *REPLAY,
+        "algo.distill_coeff=0.5",
+        "algo.distill_loss=regression",
+        "algo.distill_temperature=1.0",
+        "algo.action_weights=policy",
+        "logger=csv",
+    ]
+    trainer = train_run(tmp_path, "regression", [*overrides, "experiment.total_frames=60"])
+    stored = trainer.algo.replay[:]
+    # The target is the group's advantage, not the surrogate's policy-weighted one.
+    torch.testing.assert_close(stored["distill_target"], stored["advantage"])
+    assert bool((stored["distill_weight"] == 1).all())
+    assert bool((stored["advantage"].reshape(-1, 5).sum(-1).abs() < 1e-4).all())  # centred
+    scalars = csv_scalars(tmp_path / "regression")
+    ratio = [
+        d / e
+        for d, e in zip(
+            scalars["train/loss_distill"], scalars["train/distill_squared_error"], strict=True
+        )
+    ]
+    assert ratio == pytest.approx([0.5] * trainer.iteration)
+    # Its replay holds regression targets: a resume with the cross-entropy is refused.
+    resume = f"resume={tmp_path / 'regression' / 'last.pt'}"
+    other = compose_config(
+        [*TINY, *REPLAY, resume, "algo.distill_coeff=0.5", "algo.distill_loss=cross_entropy"]
+    )
+    with pytest.raises(ValueError, match="distill_loss=regression targets.*cross_entropy"):
+        Trainer(other, run_dir=tmp_path / "other")
+
+
+def test_a_crash_head_learns_from_each_branchs_crash(tmp_path):
+    overrides = [*REPLAY, "model.crash_head=true", "algo.crash_head_coeff=0.5", "logger=csv"]
+    overrides += ["algo.tail_policy=idle", "rollout.horizon=4", "experiment.total_frames=120"]
+    trainer = train_run(tmp_path, "crash_head", overrides)
+    stored = trainer.algo.replay[:]
+    # One label per enumerated action; with the idle tail some actions crash, some do not.
+    crashed = stored["branch_crashed"].reshape(-1, 5)
+    assert stored["branch_crashed"].dtype == torch.bool
+    assert bool(crashed.any()) and not bool(crashed.all())
+    scalars = csv_scalars(tmp_path / "crash_head")
+    ratio = [
+        loss / bce
+        for loss, bce in zip(
+            scalars["train/loss_crash_head"], scalars["train/crash_head_bce"], strict=True
+        )
+    ]
+    assert ratio == pytest.approx([0.5] * trainer.iteration)
+    for refused, match in (
+        (["algo=ppo"], "model.crash_head is trained.*algo=ppo"),
+        (["algo.explore_steps=2"], "model.crash_head learns.*explore_steps=1"),
+    ):
+        cfg = compose_config([*TINY, "model.crash_head=true", *refused])
+        with pytest.raises(ValueError, match=match):
+            Trainer(cfg, run_dir=tmp_path / "refused")
