@@ -11,7 +11,10 @@ the median CPU ms per step of each:
 - ``runner-scripted``: ``BranchRunner`` with a scripted policy (restores, policy input,
   action check, rows: everything but a real policy);
 - ``runner-mlp``: ``BranchRunner`` with the MLP actor of ``bench_ceiling.py``, whose
-  sampled action is then replaced by the scripted one (same scenes, the actor's cost).
+  sampled action is then replaced by the scripted one (same scenes, the actor's cost);
+- ``actor-modules`` and ``actor-direct``: ``BranchRunner`` with that actor acting,
+  through its TensorDict modules, and through its direct path (``direct_actor``: the
+  default). Both draw the same samples, so they drive the same scenes.
 
 Then it times the parts of ``runner-mlp`` (wall ms per step, one pass): the policy, the
 action check, the restores, TorchRL's step, and the rest (the policy's input, rows).
@@ -88,6 +91,8 @@ def main() -> None:
             return run
 
         scripted, mlp = runner(Scripted(table)), runner(Scripted(table, make_policy(plain)))
+        actor_direct, actor_modules = runner(make_policy(plain)), runner(make_policy(plain))
+        actor_modules.policy.call = actor_modules.policy.policy  # the direct path off
         states = [to_arrays(roots[b]) for b in range(n)]
 
         def direct(torchrl: bool, env=env, roots=roots, table=table) -> tuple[float, int]:
@@ -120,6 +125,8 @@ def main() -> None:
             "torchrl": lambda: direct(True),
             "runner-scripted": lambda run=scripted: branches(run),
             "runner-mlp": lambda run=mlp: branches(run),
+            "actor-modules": lambda run=actor_modules: branches(run),
+            "actor-direct": lambda run=actor_direct: branches(run),
         }
         times: dict[str, list[float]] = {k: [] for k in ways}
         for _ in range(args.repeats):
@@ -154,8 +161,8 @@ def time_parts(run: BranchRunner, env: HighwayEnv, go) -> dict[str, float]:
         return wrapper
 
     module = runner_module
-    saved = (run.policy.policy, module.check_policy_actions, module.step_keeping_state)
-    run.policy.policy = timed("policy", run.policy.policy)
+    saved = (run.policy.call, module.check_policy_actions, module.step_keeping_state)
+    run.policy.call = timed("policy", run.policy.call)
     runner_module.check_policy_actions = timed("check", saved[1])
     runner_module.step_keeping_state = timed("step", saved[2])
     env.reset = timed("restore", env.reset)
@@ -164,7 +171,7 @@ def time_parts(run: BranchRunner, env: HighwayEnv, go) -> dict[str, float]:
         _, steps = go()
         total = time.perf_counter() - start
     finally:
-        run.policy.policy = saved[0]
+        run.policy.call = saved[0]
         runner_module.check_policy_actions, runner_module.step_keeping_state = saved[1:]
         del env.reset
     out = {k: 1e3 * v / steps for k, v in spent.items()}

@@ -1,0 +1,181 @@
+"""A categorical actor run in a branch worker without its TensorDict machinery.
+
+A branch worker calls its copy of the policy once per step, on a batch of one row,
+right after a simulator step. For the usual actor, TorchRL's
+``ProbabilisticActor(TensorDictModule(net, [obs], ["logits"]), Categorical)``, the
+network itself costs about 0.15 ms there, and the modules around it (key lookups,
+interaction-type dispatch, the distribution's construction through TensorDict calls)
+about 0.55 ms more: a twentieth of a merge-v0 step
+(``benchmarks/bench_worker_step.py``). :class:`DirectActor` calls the network and
+``torch.distributions.Categorical`` directly, and writes the same entries.
+
+It only takes over where it is exact: :func:`direct_actor` recognises the actor's
+structure (anything else is left to the actor), and the first call of each copy runs
+the actor and the direct path on the same input from the same generator state and
+keeps the direct path only if every entry and the generator's state after the call
+are bitwise the same.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.envs.utils import ExplorationType, exploration_type
+from torchrl.modules import ProbabilisticActor, SafeProbabilisticModule
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["DirectActor", "ProbedPolicy", "direct_actor"]
+
+
+class DirectActor:
+    """Samples a categorical actor's action from its network's logits, without TensorDict calls.
+
+    Args:
+        net: the logits network (a plain ``nn.Module``).
+        in_key: the observation entry it reads.
+        action_key: the entry of the sampled action.
+        log_prob_key: the entry of its log-probability, or ``None`` when the actor
+            writes none.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> from torchrl_grpo.modules import make_discrete_actor
+        >>> actor = make_discrete_actor(nn.Linear(3, 5), 5)
+        >>> direct = direct_actor(actor)
+        >>> td = TensorDict(observation=torch.zeros(1, 3), batch_size=[1])
+        >>> _ = torch.manual_seed(0)
+        >>> a = actor(td.clone())
+        >>> _ = torch.manual_seed(0)
+        >>> b = direct(td.clone())
+        >>> bool((a["action"] == b["action"]).all()), sorted(b.keys()) == sorted(a.keys())
+        (True, True)
+    """
+
+    def __init__(
+        self, net: nn.Module, in_key: str, action_key: str, log_prob_key: str | None
+    ) -> None:
+        self.net = net
+        self.in_key, self.action_key, self.log_prob_key = in_key, action_key, log_prob_key
+
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        """Write ``logits``, the sampled action and its log-probability into ``td``."""
+        logits = self.net(td.get(self.in_key))
+        dist = torch.distributions.Categorical(logits=logits)
+        action = dist.sample()
+        td.set("logits", logits)
+        td.set(self.action_key, action)
+        if self.log_prob_key is not None:
+            td.set(self.log_prob_key, dist.log_prob(action))
+        return td
+
+
+def direct_actor(policy: object) -> DirectActor | None:
+    """The direct path of ``policy`` if it is a plain categorical actor, else ``None``.
+
+    A plain categorical actor is a ``ProbabilisticActor`` of two modules: a
+    ``TensorDictModule`` whose module is a plain network from one observation entry
+    to ``"logits"``, and a ``SafeProbabilisticModule`` that samples a
+    ``torch.distributions.Categorical`` from them (no distribution arguments, no
+    generator of its own, no samples count, no spec projection), writing the action
+    and, optionally, its log-probability.
+    """
+    if type(policy) is not ProbabilisticActor or len(policy.module) != 2:
+        return None
+    logits_module, dist_module = policy.module
+    if type(logits_module) is not TensorDictModule or type(dist_module) is not (
+        SafeProbabilisticModule
+    ):
+        return None
+    net = logits_module.module
+    in_keys, out_keys = list(logits_module.in_keys), list(logits_module.out_keys)
+    plain = (
+        isinstance(net, nn.Module)
+        and len(in_keys) == 1
+        and isinstance(in_keys[0], str)
+        and out_keys == ["logits"]
+    )
+    sampler = (
+        dist_module.distribution_class is torch.distributions.Categorical
+        and not dist_module.distribution_kwargs
+        and list(dist_module.in_keys) == ["logits"]
+        and getattr(dist_module, "_generator", None) is None
+        and dist_module.num_samples is None
+        and not dist_module.safe
+    )
+    if not (plain and sampler):
+        return None
+    outs = list(dist_module.out_keys)
+    if not outs or not isinstance(outs[0], str):
+        return None
+    log_prob = dist_module.log_prob_key if dist_module.return_log_prob else None
+    if outs != [outs[0], *([log_prob] if log_prob is not None else [])]:
+        return None
+    return DirectActor(net, in_keys[0], outs[0], log_prob)
+
+
+class ProbedPolicy:
+    """A policy called through its :class:`DirectActor` once that is shown exact here.
+
+    The first call with random sampling runs both on copies of the input from the
+    same state of torch's generator; the direct path is kept only if every entry and
+    the generator's state after the call are bitwise equal (any other exploration
+    type, or a mismatch, runs the policy itself).
+
+    Args:
+        policy: the policy.
+    """
+
+    def __init__(self, policy: object) -> None:
+        self.policy = policy
+        self.direct = direct_actor(policy)
+        self.probed = self.direct is None
+
+    def __call__(self, td: TensorDictBase) -> TensorDictBase | None:
+        """Run the policy (or its exact direct path) on ``td``."""
+        random = exploration_type() in (ExplorationType.RANDOM, None)
+        if self.direct is None or not random:
+            return self.policy(td)
+        if not self.probed:
+            self.probed = True
+            self.direct = self._probe(td)
+            if self.direct is None:
+                return self.policy(td)
+        return self.direct(td)
+
+    def _probe(self, td: TensorDictBase) -> DirectActor | None:
+        """The direct path if it writes what the policy writes and draws what it draws."""
+        start = torch.default_generator.get_state()
+        reference = self.policy(td.clone())
+        after_policy = torch.default_generator.get_state()
+        torch.default_generator.set_state(start)
+        try:
+            candidate = self.direct(td.clone())
+        except Exception:  # noqa: BLE001 - the policy itself then runs
+            candidate = None
+        after_direct = torch.default_generator.get_state()
+        # The real call then draws from where both started.
+        torch.default_generator.set_state(start)
+        if (
+            candidate is None
+            or not _same(reference, candidate)
+            or not torch.equal(after_policy, after_direct)
+        ):
+            logger.debug("the direct path differs from the policy; the policy runs")
+            return None
+        return self.direct
+
+
+def _same(a: TensorDictBase, b: TensorDictBase) -> bool:
+    keys = set(a.keys(True, True))
+    if keys != set(b.keys(True, True)):
+        return False
+    for key in keys:
+        x, y = a.get(key), b.get(key)
+        if x.dtype != y.dtype or x.shape != y.shape or not torch.equal(x, y):
+            return False
+    return True
