@@ -250,7 +250,7 @@ def test_the_choices_are_the_librarys_literals():
     ]:
         assert [member.value for member in enum] == list(get_args(literal)), enum.__name__
     assert [m.value for m in config.Backend] == [*get_args(branching.Backend), "ray"]
-    assert [m.value for m in config.ModelKind] == [*get_args(NetworkKind), "scene"]
+    assert [m.value for m in config.ModelKind] == [*get_args(NetworkKind), "scene", "neighbours"]
     # The scripted base policies a prior or a greedy tail may name exist.
     assert {m.value for m in config.PriorName} < set(SCRIPTED_POLICIES)
     assert {m.value for m in config.TailPolicyName} == {"learner"} | {
