@@ -56,7 +56,11 @@ def test_an_old_config_validates_against_todays_schemas(run):
     cfg = typed_config(ckpt["config"])
     schema = "PPOConfig" if run == "ppo" else "GRPOConfig"
     assert OmegaConf.get_type(cfg.algo).__name__ == schema
-    assert OmegaConf.to_container(cfg.model) == ckpt["config"]["model"]
+    model, old = OmegaConf.to_container(cfg.model), ckpt["config"]["model"]
+    assert {key: model[key] for key in old} == old
+    # Keys added since take defaults that keep the old behaviour: no crash head.
+    added = {key: model[key] for key in model.keys() - old.keys()}
+    assert added == {"crash_head": False, "crash_aversion": 0.0}
     if run == "grpo_continuation":
         assert ckpt["config"]["algo"]["roots"] == "continuation"
         assert str(cfg.algo.roots) == "continue"
