@@ -75,9 +75,12 @@ def test_a_mismatch_or_another_exploration_type_runs_the_actor_itself():
     drifting = make_discrete_actor(_Drifting(), 5)
     probed = ProbedPolicy(drifting)
     assert probed.direct is not None  # the structure is plain ...
+    td = _obs(1)
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
-        probed(_obs(1))
+        first = probed(td.clone())
     assert probed.direct is None  # ... but the probe saw other logits: the actor runs
+    # The probed call was the actor's own first call (the logits of call 1).
+    torch.testing.assert_close(first["logits"], td["observation"].flatten(1)[:, :5] + 1)
     actor = _actor()
     probed = ProbedPolicy(actor)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):

@@ -121,10 +121,11 @@ def direct_actor(policy: object) -> DirectActor | None:
 class ProbedPolicy:
     """A policy called through its :class:`DirectActor` once that is shown exact here.
 
-    The first call with random sampling runs both on copies of the input from the
-    same state of torch's generator; the direct path is kept only if every entry and
-    the generator's state after the call are bitwise equal (any other exploration
-    type, or a mismatch, runs the policy itself).
+    The first call with random sampling is the policy's own; the direct path then
+    runs on a copy of that call's input from the same state of torch's generator, and
+    is kept for the next calls only if every entry it writes and the generator's
+    state after it are bitwise the policy's. Calls of another exploration type run
+    the policy itself.
 
     Args:
         policy: the policy.
@@ -137,37 +138,31 @@ class ProbedPolicy:
 
     def __call__(self, td: TensorDictBase) -> TensorDictBase | None:
         """Run the policy (or its exact direct path) on ``td``."""
-        random = exploration_type() in (ExplorationType.RANDOM, None)
-        if self.direct is None or not random:
+        if self.direct is None or exploration_type() is not ExplorationType.RANDOM:
             return self.policy(td)
         if not self.probed:
             self.probed = True
-            self.direct = self._probe(td)
-            if self.direct is None:
-                return self.policy(td)
+            return self._probe(td)
         return self.direct(td)
 
-    def _probe(self, td: TensorDictBase) -> DirectActor | None:
-        """The direct path if it writes what the policy writes and draws what it draws."""
+    def _probe(self, td: TensorDictBase) -> TensorDictBase | None:
+        """The policy's call on ``td``; drops the direct path if it does not repeat it."""
         start = torch.default_generator.get_state()
-        reference = self.policy(td.clone())
-        after_policy = torch.default_generator.get_state()
+        copy = td.clone()
+        result = self.policy(td)
+        after = torch.default_generator.get_state()
         torch.default_generator.set_state(start)
         try:
-            candidate = self.direct(td.clone())
+            candidate = self.direct(copy)
         except Exception:  # noqa: BLE001 - the policy itself then runs
             candidate = None
-        after_direct = torch.default_generator.get_state()
-        # The real call then draws from where both started.
-        torch.default_generator.set_state(start)
-        if (
-            candidate is None
-            or not _same(reference, candidate)
-            or not torch.equal(after_policy, after_direct)
-        ):
+        same_draws = torch.equal(torch.default_generator.get_state(), after)
+        torch.default_generator.set_state(after)
+        out = td if result is None else result
+        if candidate is None or not same_draws or not _same(out, candidate):
             logger.debug("the direct path differs from the policy; the policy runs")
-            return None
-        return self.direct
+            self.direct = None
+        return result
 
 
 def _same(a: TensorDictBase, b: TensorDictBase) -> bool:
