@@ -37,9 +37,8 @@ import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
-from torchrl_grpo.branching import branch_rollout
+from torchrl_grpo.branching import ActionThenBase, branch_rollout
 from torchrl_grpo.branching.keys import MASK
-from torchrl_grpo.branching.lookahead import _ActionThenBase
 from torchrl_grpo.envs import TensorHighwayEnv, tensor_params
 from torchrl_grpo.modules import make_scripted_policy
 from torchrl_grpo.sim.observation import observe
@@ -70,7 +69,7 @@ def collect(args) -> None:
     env = TensorHighwayEnv(SCENARIO, num_envs=args.episodes, seed=args.seed, return_state=True)
     plan_env = TensorHighwayEnv(SCENARIO, num_envs=N_ACTIONS * args.episodes, seed=1)
     layout = make_layout(make_env(OmegaConf.create({"scenario": SCENARIO, "config": {}})))
-    tail = _ActionThenBase(make_scripted_policy("rule", layout))
+    tail = ActionThenBase(make_scripted_policy("rule", layout))
     behaviour = None
     if args.checkpoint:
         from bench_crash_rates import trained

@@ -31,7 +31,7 @@ from torchrl_grpo.branching.keys import (
     STEP_COUNT,
     TRAJ_IDS,
 )
-from torchrl_grpo.branching.lookahead import LookaheadPolicy
+from torchrl_grpo.branching.lookahead import ActionThenBase, LookaheadPolicy
 from torchrl_grpo.branching.plots import GroupFigure, plot_group
 from torchrl_grpo.branching.rollout import RngMode, branch_rollout, final_states
 from torchrl_grpo.branching.root_builders import (
@@ -55,6 +55,7 @@ __all__ = [
     "STATE",
     "STEP_COUNT",
     "TRAJ_IDS",
+    "ActionThenBase",
     "Backend",
     "BranchParallelEnv",
     "ContinuationRoots",

@@ -21,7 +21,7 @@ from torchrl_grpo.branching.root_builders import as_roots
 from torchrl_grpo.branching.slots import has_batched_worlds
 from torchrl_grpo.envs import to_bits
 
-__all__ = ["LookaheadPolicy"]
+__all__ = ["ActionThenBase", "LookaheadPolicy"]
 
 
 class LookaheadPolicy(TensorDictModuleBase):
@@ -75,7 +75,7 @@ class LookaheadPolicy(TensorDictModuleBase):
         self.horizon = horizon
         self.n_actions = int(n_actions)
         self.frames = 0
-        self._branch_policy = _ActionThenBase(base)
+        self._branch_policy = ActionThenBase(base)
         self.in_keys = [STATE, *base.in_keys]
         self.out_keys = ["action"]
 
@@ -121,8 +121,27 @@ class LookaheadPolicy(TensorDictModuleBase):
         return self.returns(tensordict).argmax().to(torch.int64)
 
 
-class _ActionThenBase(TensorDictModuleBase):
-    """Branch ``b`` takes action ``b`` at its first step, then ``base`` acts."""
+class ActionThenBase(TensorDictModuleBase):
+    """Branch ``b`` takes action ``b`` at its first step, then ``base`` acts.
+
+    The policy of the planner's branches (and of any group that scores every action
+    of a root under a fixed base policy): a row whose ``step_count`` is its
+    ``root_step`` plays its ``branch`` index, every later row ``base``'s action.
+
+    Args:
+        base: the policy after the first step (it writes ``"action"``).
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> from tensordict.nn import TensorDictModule
+        >>> base = TensorDictModule(lambda obs: torch.zeros(obs.shape[0], dtype=torch.int64),
+        ...                         ["observation"], ["action"])
+        >>> td = TensorDict(observation=torch.zeros(3, 2), branch=torch.tensor([2, 3, 4]),
+        ...                 root_step=torch.tensor([5, 5, 5]),
+        ...                 step_count=torch.tensor([[5], [6], [5]]), batch_size=[3])
+        >>> ActionThenBase(base)(td)["action"].tolist()
+        [2, 0, 4]
+    """
 
     def __init__(self, base: TensorDictModuleBase) -> None:
         super().__init__()
@@ -131,6 +150,7 @@ class _ActionThenBase(TensorDictModuleBase):
         self.out_keys = ["action"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Write each row's action: its branch index at the first step, else ``base``'s."""
         shape = tensordict.batch_size
         step = tensordict.get(STEP_COUNT).reshape(shape)
         first = step == tensordict.get(ROOT_STEP).reshape(shape)
