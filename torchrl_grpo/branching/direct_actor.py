@@ -3,17 +3,18 @@
 A branch worker calls its copy of the policy once per step, on a batch of one row,
 right after a simulator step. For the usual actor, TorchRL's
 ``ProbabilisticActor(TensorDictModule(net, [obs], ["logits"]), Categorical)``, the
-network itself costs about 0.15 ms there, and the modules around it (key lookups,
-interaction-type dispatch, the distribution's construction through TensorDict calls)
-about 0.55 ms more: a twentieth of a merge-v0 step
-(``benchmarks/bench_worker_step.py``). :class:`DirectActor` calls the network and
-``torch.distributions.Categorical`` directly, and writes the same entries.
+modules around the network (key lookups, interaction-type dispatch, the
+distribution's construction through TensorDict calls) cost more there than the
+network: :class:`DirectActor` calls the network and ``torch.distributions.Categorical``
+directly, writes the same entries, and takes 0.27 ms off a merge-v0 branch step of
+11.5 ms (``benchmarks/bench_worker_step.py``, ``actor-modules`` against
+``actor-direct``).
 
 It only takes over where it is exact: :func:`direct_actor` recognises the actor's
-structure (anything else is left to the actor), and the first call of each copy runs
-the actor and the direct path on the same input from the same generator state and
-keeps the direct path only if every entry and the generator's state after the call
-are bitwise the same.
+structure (anything else is left to the actor), and the first sampled call of each
+copy is the actor's own, repeated by the direct path on a copy of its input from the
+same generator state: the direct path is kept only if every entry and the generator's
+state after the call are bitwise the same.
 """
 
 from __future__ import annotations
