@@ -141,6 +141,56 @@ class StepRows:
         return out
 
 
+class RolloutRows:
+    """What a rollout of N branches of at most H steps fills in, and its :class:`BranchRun`.
+
+    The ``[N * H]`` rows of the policy's input and output (``root_rows``, minus what a
+    step adds) and of each step's ``"next"`` (``next_rows``), with ``keep="all"`` the
+    states before and after each step (``state_rows``); the ``[N * H]`` mask of the
+    steps taken, each branch's length and whether it ended, and with ``keep != "none"``
+    each branch's final state (its start state until it is written). Every engine
+    (lock-step, pipelined, whole branches) writes these and returns :meth:`result`.
+
+    Args:
+        states: ``[N]`` start states of the branches.
+        horizon: H.
+        keep: which states the rollout keeps.
+    """
+
+    def __init__(self, states: TensorDictBase, horizon: int, keep: KeepStates) -> None:
+        self.n_branches, self.horizon = states.shape[0], horizon
+        size = self.n_branches * horizon
+        self.lengths = torch.zeros(self.n_branches, dtype=torch.long)
+        self.ended = torch.zeros(self.n_branches, dtype=torch.bool)
+        self.mask = torch.zeros(size, dtype=torch.bool)
+        self.final = states.clone() if keep != "none" else None
+        self.root_rows = StepRows(size, skip=(STATE, "next", "_step"))
+        self.next_rows = StepRows(size, skip=(STATE,))
+        self.state_rows = (StepRows(size), StepRows(size)) if keep == "all" else None
+
+    def final_state_views(self, keys: Iterable[NestedKey]) -> list[tuple[NestedKey, np.ndarray]]:
+        """Numpy views of the final states' leaves ``keys`` (none when no state is kept)."""
+        if self.final is None:
+            return []
+        return [(key, self.final.get(key).numpy()) for key in keys]
+
+    def result(self) -> BranchRun:
+        """The rollout's :class:`BranchRun`: the rows as ``[N, H]`` leaves."""
+        n, h = self.n_branches, self.horizon
+        data = self.root_rows.tensordict(n, h)
+        data.set("next", self.next_rows.tensordict(n, h))
+        if self.state_rows is not None:
+            data.set(STATE, self.state_rows[0].tensordict(n, h))
+            data.set(("next", STATE), self.state_rows[1].tensordict(n, h))
+        return BranchRun(
+            data=data,
+            mask=self.mask.view(n, h),
+            lengths=self.lengths,
+            ended=self.ended,
+            final_states=self.final,
+        )
+
+
 def run_branches(
     slots: EnvSlots,
     policy: Policy,
@@ -161,18 +211,12 @@ def run_branches(
     """
     n_branches = states.shape[0]
     width = slots.num_slots
-    size = n_branches * horizon
     slot_branch = torch.full((width,), -1, dtype=torch.long)
     slot_t = torch.zeros(width, dtype=torch.long)
-    lengths = torch.zeros(n_branches, dtype=torch.long)
-    ended = torch.zeros(n_branches, dtype=torch.bool)
-    mask = torch.zeros(size, dtype=torch.bool)
-    final = states.clone() if keep != "none" else None
+    run = RolloutRows(states, horizon, keep)
+    lengths, ended, mask, final = run.lengths, run.ended, run.mask, run.final
+    root_rows, next_rows, state_rows = run.root_rows, run.next_rows, run.state_rows
     want_states = keep != "none"
-    # The policy's input and output (minus what a step adds), and the step's "next".
-    root_rows = StepRows(size, skip=(STATE, "next", "_step"))
-    next_rows = StepRows(size, skip=(STATE,))
-    state_rows = (StepRows(size), StepRows(size)) if keep == "all" else None
     slot_state: TensorDictBase | None = None
     cur: TensorDictBase | None = None
     next_branch = 0
@@ -243,18 +287,7 @@ def run_branches(
             if any_finished:
                 stepped = active.nonzero().squeeze(-1) if rows_idx is None else rows_idx
                 slot_branch[stepped[finished]] = -1
-    data = root_rows.tensordict(n_branches, horizon)
-    data.set("next", next_rows.tensordict(n_branches, horizon))
-    if state_rows is not None:
-        data.set(STATE, state_rows[0].tensordict(n_branches, horizon))
-        data.set(("next", STATE), state_rows[1].tensordict(n_branches, horizon))
-    return BranchRun(
-        data=data,
-        mask=mask.view(n_branches, horizon),
-        lengths=lengths,
-        ended=ended,
-        final_states=final,
-    )
+    return run.result()
 
 
 def _advance(cur: TensorDictBase, nxt: TensorDictBase, rows: torch.Tensor | None) -> None:

@@ -28,8 +28,14 @@ import torch
 from tensordict import NestedKey, TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_grpo.branching.engine import BranchRun, KeepStates, Policy, StepRows, check_actions
-from torchrl_grpo.branching.keys import BRANCH, GROUP_ID, ROOT_STEP, STATE, STEP_COUNT
+from torchrl_grpo.branching.engine import (
+    BranchRun,
+    KeepStates,
+    Policy,
+    RolloutRows,
+    check_actions,
+)
+from torchrl_grpo.branching.keys import BRANCH, GROUP_ID, ROOT_STEP, STEP_COUNT
 from torchrl_grpo.branching.lanes import (
     STATE_ALWAYS,
     STATE_AT_END,
@@ -107,7 +113,7 @@ def leave_to_others(queued: list[int], worker: int, horizon: int) -> bool:
     return queued[worker] > 0 and 2 * queued[worker] > 2 * min(queued) + horizon
 
 
-class _Pipeline:
+class _Pipeline(RolloutRows):
     """The bookkeeping of one pipelined rollout: slots ``[L, W]``, rows, pending answers.
 
     The parent's every millisecond per step is taken from the workers (W workers on
@@ -125,11 +131,11 @@ class _Pipeline:
         keep: KeepStates,
         ids: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
     ) -> None:
-        self.slots, self.env, self.horizon, self.keep = slots, slots.env, horizon, keep
+        super().__init__(states, horizon, keep)
+        self.slots, self.env, self.keep = slots, slots.env, keep
         self.ids = ids
-        self.n_branches, self.width = states.shape[0], slots.num_slots
+        self.width = slots.num_slots
         self.lanes = self.env.branch_lanes
-        size = self.n_branches * horizon
         self.keys = ([*slots.obs_keys, *slots.done_keys], slots.next_keys)
         # Each restore sends one row of these: a numpy index per leaf, no tensordict.
         self.state_arrays = to_arrays(states)
@@ -137,18 +143,7 @@ class _Pipeline:
         self.slot_t = [[0] * self.width for _ in range(self.lanes)]
         self.phase = [[_FREE] * self.width for _ in range(self.lanes)]
         self.pending = [0] * self.width
-        self.lengths = torch.zeros(self.n_branches, dtype=torch.long)
-        self.ended = torch.zeros(self.n_branches, dtype=torch.bool)
-        self.mask = torch.zeros(size, dtype=torch.bool)
-        self.final = states.clone() if keep != "none" else None
-        self.final_views = (
-            [(k, self.final.get(k).numpy()) for k in self.state_arrays]
-            if self.final is not None
-            else []
-        )
-        self.root_rows = StepRows(size, skip=(STATE, "next", "_step"))
-        self.next_rows = StepRows(size, skip=(STATE,))
-        self.state_rows = (StepRows(size), StepRows(size)) if keep == "all" else None
+        self.final_views = self.final_state_views(self.state_arrays)
         self.step_mode = {"none": STATE_NEVER, "final": STATE_AT_END, "all": STATE_ALWAYS}[keep]
         # Each lane's [W] rows for the policy, and numpy views of their leaves.
         self.cur: list[TensorDictBase | None] = [None] * self.lanes
@@ -292,21 +287,6 @@ class _Pipeline:
             last = slot_t[w] + 1 >= self.horizon
             action = {key: value[w, ...] for key, value in actions}
             self.send(w, ("step", lane, action, self.step_mode, last))
-
-    def result(self) -> BranchRun:
-        n, h = self.n_branches, self.horizon
-        data = self.root_rows.tensordict(n, h)
-        data.set("next", self.next_rows.tensordict(n, h))
-        if self.state_rows is not None:
-            data.set(STATE, self.state_rows[0].tensordict(n, h))
-            data.set(("next", STATE), self.state_rows[1].tensordict(n, h))
-        return BranchRun(
-            data=data,
-            mask=self.mask.view(n, h),
-            lengths=self.lengths,
-            ended=self.ended,
-            final_states=self.final,
-        )
 
 
 def _as_tuple(key: NestedKey) -> tuple[str, ...]:

@@ -32,8 +32,7 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType
 
 from torchrl_grpo.branching.branch_runner import RolloutSetup
-from torchrl_grpo.branching.engine import BranchRun, KeepStates, Policy, StepRows
-from torchrl_grpo.branching.keys import STATE
+from torchrl_grpo.branching.engine import BranchRun, KeepStates, Policy, RolloutRows
 from torchrl_grpo.branching.lanes import STATE_ALWAYS, STATE_AT_END, STATE_NEVER, to_arrays
 from torchrl_grpo.branching.policy_transport import pack_policy
 from torchrl_grpo.branching.slots import EnvSlots
@@ -94,7 +93,7 @@ def run_whole_branches(
     return run.result()
 
 
-class _Dispatch:
+class _Dispatch(RolloutRows):
     """The bookkeeping of one rollout: branches in flight per worker, rows, results."""
 
     def __init__(
@@ -105,27 +104,15 @@ class _Dispatch:
         keep: KeepStates,
         ids: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
     ) -> None:
-        self.env, self.horizon = slots.env, horizon
-        self.n_branches, self.width = states.shape[0], slots.num_slots
+        super().__init__(states, horizon, keep)
+        self.env, self.width = slots.env, slots.num_slots
         self.depth = max(1, int(self.env.branch_queue_depth))
         self.ids = [t.tolist() for t in ids]
         # Each branch job sends one row of these: a numpy index per leaf.
         self.state_arrays = to_arrays(states)
         self.in_flight: list[deque[int]] = [deque() for _ in range(self.width)]
         self.next_branch = 0
-        size = self.n_branches * horizon
-        self.lengths = torch.zeros(self.n_branches, dtype=torch.long)
-        self.ended = torch.zeros(self.n_branches, dtype=torch.bool)
-        self.mask = torch.zeros(size, dtype=torch.bool)
-        self.final = states.clone() if keep != "none" else None
-        self.final_views = (
-            [(k, self.final.get(k).numpy()) for k in self.state_arrays]
-            if self.final is not None
-            else []
-        )
-        self.root_rows = StepRows(size)
-        self.next_rows = StepRows(size)
-        self.state_rows = (StepRows(size), StepRows(size)) if keep == "all" else None
+        self.final_views = self.final_state_views(self.state_arrays)
         self.setup_due = [False] * self.width
 
     # ------------------------------------------------------------------ messages
@@ -224,18 +211,3 @@ class _Dispatch:
         if self.final is not None:
             for key, view in self.final_views:
                 view[b] = rows["final"][key]
-
-    def result(self) -> BranchRun:
-        n, h = self.n_branches, self.horizon
-        data = self.root_rows.tensordict(n, h)
-        data.set("next", self.next_rows.tensordict(n, h))
-        if self.state_rows is not None:
-            data.set(STATE, self.state_rows[0].tensordict(n, h))
-            data.set(("next", STATE), self.state_rows[1].tensordict(n, h))
-        return BranchRun(
-            data=data,
-            mask=self.mask.view(n, h),
-            lengths=self.lengths,
-            ended=self.ended,
-            final_states=self.final,
-        )
