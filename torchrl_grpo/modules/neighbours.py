@@ -12,15 +12,11 @@ two lengths behind is in the table only with the observation's ``see_behind=True
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import torch
-from torch import nn
-from torchrl.modules import MLP
 
-from torchrl_grpo.modules.kinematics import VEHICLE_LENGTH, KinematicsLayout
-from torchrl_grpo.modules.scene import DEFAULT_TARGET_SPEEDS
-from torchrl_grpo.modules.scripted.scene import Driver, Scene
+from torchrl_grpo.modules.kinematics import VEHICLE_LENGTH
+from torchrl_grpo.modules.scene import FeatureMLP, SceneFeatures
+from torchrl_grpo.modules.scripted.scene import Scene
 
 __all__ = ["NeighbourFeatures", "NeighbourMLP"]
 
@@ -57,7 +53,7 @@ def _inverse_ttc(gap: torch.Tensor, closing: torch.Tensor) -> torch.Tensor:
     return inverse.clamp(max=_MAX_INVERSE_TTC)
 
 
-class NeighbourFeatures(Driver):
+class NeighbourFeatures(SceneFeatures):
     """Every nearby lane's neighbours: ``[*batch, V, F] -> [*batch, 30]``.
 
     In order: the ego speed (centred and scaled as in
@@ -69,11 +65,15 @@ class NeighbourFeatures(Driver):
     and the inverse time to collision with the nearest ahead and the nearest behind
     (1/s, at most 5).
 
+    It reads the scene as :class:`~torchrl_grpo.modules.SceneFeatures` does, and
+    scales the speed as it does; the other features are its own.
+
     Args:
         layout: how the observation is laid out (needs presence, x, y and vx).
         target_speeds: the env's ``DiscreteMetaAction`` target speeds (m/s).
 
     Example:
+        >>> from torchrl_grpo.modules import KinematicsLayout
         >>> layout = KinematicsLayout()  # highway-env's default observation, 3 lanes
         >>> cols = {f: torch.zeros(5) for f in layout.features}
         >>> cols["presence"][:3] = 1.0
@@ -88,14 +88,6 @@ class NeighbourFeatures(Driver):
     """
 
     n_features = 30
-
-    def __init__(
-        self, layout: KinematicsLayout, target_speeds: Sequence[float] = DEFAULT_TARGET_SPEEDS
-    ) -> None:
-        super().__init__(layout)
-        low, high = float(min(target_speeds)), float(max(target_speeds))
-        self.speed_centre = (low + high) / 2
-        self.speed_scale = (high - low) / 2 if high > low else 5.0
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         """Maps ``[*batch, V, F]`` to ``[*batch, 30]``."""
@@ -125,7 +117,7 @@ class NeighbourFeatures(Driver):
         return torch.stack(features, -1)
 
 
-class NeighbourMLP(nn.Module):
+class NeighbourMLP(FeatureMLP):
     """An MLP over :class:`NeighbourFeatures`.
 
     Args:
@@ -136,28 +128,10 @@ class NeighbourMLP(nn.Module):
         target_speeds: the env's target speeds (see :class:`NeighbourFeatures`).
 
     Example:
+        >>> from torchrl_grpo.modules import KinematicsLayout
         >>> net = NeighbourMLP(KinematicsLayout(), out_features=5, num_cells=(32,))
         >>> net(torch.zeros(4, 2, 5, 5)).shape
         torch.Size([4, 2, 5])
     """
 
-    def __init__(
-        self,
-        layout: KinematicsLayout,
-        out_features: int,
-        num_cells: Sequence[int] = (256, 256),
-        activation_class: type[nn.Module] = nn.Tanh,
-        target_speeds: Sequence[float] = DEFAULT_TARGET_SPEEDS,
-    ) -> None:
-        super().__init__()
-        self.features = NeighbourFeatures(layout, target_speeds)
-        self.mlp = MLP(
-            in_features=NeighbourFeatures.n_features,
-            out_features=out_features,
-            num_cells=list(num_cells),
-            activation_class=activation_class,
-        )
-
-    def forward(self, observation: torch.Tensor) -> torch.Tensor:
-        """Maps ``[*batch, V, F]`` to ``[*batch, out_features]``."""
-        return self.mlp(self.features(observation))
+    features_class = NeighbourFeatures

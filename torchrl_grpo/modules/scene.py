@@ -23,7 +23,7 @@ from torchrl.modules import MLP
 from torchrl_grpo.modules.kinematics import KinematicsLayout
 from torchrl_grpo.modules.scripted.scene import Driver, time_to_collision
 
-__all__ = ["SceneFeatures", "SceneMLP"]
+__all__ = ["FeatureMLP", "SceneFeatures", "SceneMLP"]
 
 #: highway-env's default target speeds (DiscreteMetaAction), m/s.
 DEFAULT_TARGET_SPEEDS = (20.0, 25.0, 30.0)
@@ -101,7 +101,38 @@ class SceneFeatures(Driver):
         return torch.stack(features, -1)
 
 
-class SceneMLP(nn.Module):
+class FeatureMLP(nn.Module):
+    """An MLP over driving features: :class:`SceneFeatures` or a subclass of it.
+
+    Subclasses name the features in ``features_class`` (built from the layout and the
+    target speeds; its class attribute ``n_features`` is the MLP's input size).
+    """
+
+    features_class: type[SceneFeatures]
+
+    def __init__(
+        self,
+        layout: KinematicsLayout,
+        out_features: int,
+        num_cells: Sequence[int] = (256, 256),
+        activation_class: type[nn.Module] = nn.Tanh,
+        target_speeds: Sequence[float] = DEFAULT_TARGET_SPEEDS,
+    ) -> None:
+        super().__init__()
+        self.features = self.features_class(layout, target_speeds)
+        self.mlp = MLP(
+            in_features=self.features_class.n_features,
+            out_features=out_features,
+            num_cells=list(num_cells),
+            activation_class=activation_class,
+        )
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        """Maps ``[*batch, V, F]`` to ``[*batch, out_features]``."""
+        return self.mlp(self.features(observation))
+
+
+class SceneMLP(FeatureMLP):
     """An MLP over :class:`SceneFeatures`.
 
     Args:
@@ -117,23 +148,4 @@ class SceneMLP(nn.Module):
         torch.Size([4, 2, 5])
     """
 
-    def __init__(
-        self,
-        layout: KinematicsLayout,
-        out_features: int,
-        num_cells: Sequence[int] = (256, 256),
-        activation_class: type[nn.Module] = nn.Tanh,
-        target_speeds: Sequence[float] = DEFAULT_TARGET_SPEEDS,
-    ) -> None:
-        super().__init__()
-        self.features = SceneFeatures(layout, target_speeds)
-        self.mlp = MLP(
-            in_features=SceneFeatures.n_features,
-            out_features=out_features,
-            num_cells=list(num_cells),
-            activation_class=activation_class,
-        )
-
-    def forward(self, observation: torch.Tensor) -> torch.Tensor:
-        """Maps ``[*batch, V, F]`` to ``[*batch, out_features]``."""
-        return self.mlp(self.features(observation))
+    features_class = SceneFeatures
