@@ -118,6 +118,46 @@ def observations(data: dict, obs_config: dict | None) -> torch.Tensor:
     return observe(vehicles, params).float()
 
 
+def split(n: int, max_states: int | None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Held-out (the same tenth of the states for every fit) and training state indices."""
+    perm = torch.randperm(n, generator=torch.Generator().manual_seed(0))
+    return perm[: n // 10], perm[n // 10 :][:max_states]
+
+
+def crashing_picks(crash: torch.Tensor, greedy: torch.Tensor) -> float:
+    """The share of danger states (some action crashes, not all) where ``greedy`` crashes."""
+    danger = crash.any(-1) & ~crash.all(-1)
+    picked = crash.gather(-1, greedy[:, None]).squeeze(-1)
+    return float(picked[danger].float().mean())
+
+
+def fit_logits(logits_of, params, centred: torch.Tensor, train: torch.Tensor, args) -> None:
+    """``args.updates`` Adam steps of the ``args.loss`` fit of ``logits_of(rows)`` to ``centred``.
+
+    ``ce``: cross-entropy to ``softmax(Q / tau)``; ``reg``: ``tau`` times the centred
+    logits regress the centred ``Q``.
+    """
+    params = list(params)
+    opt = torch.optim.Adam(params, lr=args.lr)
+    t0 = time.perf_counter()
+    for step in range(args.updates):
+        idx = train[torch.randint(len(train), (args.batch,))]
+        logits = logits_of(idx)
+        if args.loss == "ce":
+            target = torch.softmax(centred[idx] / args.tau, -1)
+            loss = -(target * torch.log_softmax(logits, -1)).sum(-1).mean()
+        else:
+            estimate = args.tau * (logits - logits.mean(-1, keepdim=True))
+            loss = (estimate - centred[idx]).pow(2).sum(-1).mean()
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(params, 1.0)
+        opt.step()
+        if step % 2000 == 0:
+            spent = time.perf_counter() - t0
+            log.info("update %d: loss %.4f (%.0f s)", step, float(loss.detach()), spent)
+
+
 def fit(args) -> None:
     torch.set_num_threads(args.threads)
     data = torch.load(args.data)
@@ -143,43 +183,20 @@ def fit(args) -> None:
     crash = data["crash"]
     # The training reward's crash penalty: a crashing branch pays it on top of what it forfeits.
     q = data["q"] - args.crash_penalty * crash.float()
-    n = q.shape[0]
-    perm = torch.randperm(n, generator=torch.Generator().manual_seed(0))
-    held = perm[: n // 10]
-    train = perm[n // 10 :][: args.max_states]
+    held, train = split(q.shape[0], args.max_states)
     torch.manual_seed(args.seed)
     policy = make_policy(
         OmegaConf.structured(ModelConfig(kind=args.model, num_cells=args.cells)), make_env(env_cfg)
     )
-    opt = torch.optim.Adam(policy.parameters(), lr=args.lr)
-    centred = q - q.mean(-1, keepdim=True)
-    t0 = time.perf_counter()
-    for step in range(args.updates):
-        idx = train[torch.randint(len(train), (args.batch,))]
-        logits = policy(TensorDict(observation=obs[idx], batch_size=[args.batch]))["logits"]
-        if args.loss == "ce":
-            target = torch.softmax(centred[idx] / args.tau, -1)
-            loss = -(target * torch.log_softmax(logits, -1)).sum(-1).mean()
-        else:
-            estimate = args.tau * (logits - logits.mean(-1, keepdim=True))
-            loss = (estimate - centred[idx]).pow(2).sum(-1).mean()
-        opt.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(policy.parameters(), 1.0)
-        opt.step()
-        if step % 2000 == 0:
-            log.info(
-                "update %d: loss %.4f (%.0f s)",
-                step,
-                float(loss.detach()),
-                time.perf_counter() - t0,
-            )
+
+    def logits_of(rows: torch.Tensor) -> torch.Tensor:
+        return policy(TensorDict(observation=obs[rows], batch_size=[len(rows)]))["logits"]
+
+    fit_logits(logits_of, policy.parameters(), q - q.mean(-1, keepdim=True), train, args)
     for name, rows in (("held-out", held), ("training", train[: len(held)])):
         with torch.no_grad():
-            logits = policy(TensorDict(observation=obs[rows], batch_size=[len(rows)]))["logits"]
-        greedy = logits.argmax(-1)
+            greedy = logits_of(rows).argmax(-1)
         danger = crash[rows].any(-1) & ~crash[rows].all(-1)
-        picked_crash = crash[rows].gather(-1, greedy[:, None]).squeeze(-1)
         q_plain = data["q"][rows]
         regret = q_plain.max(-1).values - q_plain.gather(-1, greedy[:, None]).squeeze(-1)
         log.info(
@@ -188,7 +205,7 @@ def fit(args) -> None:
             name,
             len(rows),
             100 * float(danger.float().mean()),
-            100 * float(picked_crash[danger].float().mean()),
+            100 * crashing_picks(crash[rows], greedy),
             float(regret.mean()),
         )
     res = evaluate_on_tensor(env_cfg, policy, episodes=args.episodes, seed=30_000, name="fit")
@@ -211,10 +228,7 @@ def fit_privileged(args, data: dict) -> None:
     x = privileged_features(data["vehicles"])
     crash = data["crash"]
     q = data["q"] - args.crash_penalty * crash.float()
-    centred = q - q.mean(-1, keepdim=True)
-    n = q.shape[0]
-    perm = torch.randperm(n, generator=torch.Generator().manual_seed(0))
-    held, train = perm[: n // 10], perm[n // 10 :][: args.max_states]
+    held, train = split(q.shape[0], args.max_states)
     torch.manual_seed(args.seed)
     net = MLP(
         in_features=x.shape[-1],
@@ -222,31 +236,15 @@ def fit_privileged(args, data: dict) -> None:
         num_cells=args.cells,
         activation_class=torch.nn.Tanh,
     )
-    opt = torch.optim.Adam(net.parameters(), lr=args.lr)
-    for step in range(args.updates):
-        idx = train[torch.randint(len(train), (args.batch,))]
-        logits = net(x[idx])
-        if args.loss == "ce":
-            target = torch.softmax(centred[idx] / args.tau, -1)
-            loss = -(target * torch.log_softmax(logits, -1)).sum(-1).mean()
-        else:
-            estimate = args.tau * (logits - logits.mean(-1, keepdim=True))
-            loss = (estimate - centred[idx]).pow(2).sum(-1).mean()
-        opt.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
-        opt.step()
-        if step % 2000 == 0:
-            log.info("update %d: loss %.4f", step, float(loss.detach()))
+    centred = q - q.mean(-1, keepdim=True)
+    fit_logits(lambda rows: net(x[rows]), net.parameters(), centred, train, args)
     for name, rows in (("held-out", held), ("training", train[: len(held)])):
         with torch.no_grad():
             greedy = net(x[rows]).argmax(-1)
-        danger = crash[rows].any(-1) & ~crash[rows].all(-1)
-        picked = crash[rows].gather(-1, greedy[:, None]).squeeze(-1)
         log.info(
             "%s: greedy picks a crashing action in %.2f%% of the danger states",
             name,
-            100 * float(picked[danger].float().mean()),
+            100 * crashing_picks(crash[rows], greedy),
         )
     env_cfg = OmegaConf.create({"scenario": SCENARIO, "config": {}, "max_episode_steps": 40})
     res = evaluate_on_tensor(
@@ -291,9 +289,7 @@ def fit_shield(args, data: dict) -> None:
     crash = data["crash"]
     q = data["q"]
     centred = q - q.mean(-1, keepdim=True)
-    n = q.shape[0]
-    perm = torch.randperm(n, generator=torch.Generator().manual_seed(0))
-    held, train = perm[: n // 10], perm[n // 10 :][: args.max_states]
+    held, train = split(q.shape[0], args.max_states)
     torch.manual_seed(args.seed)
     net = SceneMLP(KinematicsLayout(), 2 * N_ACTIONS, num_cells=args.cells)
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
@@ -322,15 +318,13 @@ def fit_shield(args, data: dict) -> None:
         policy = ShieldPolicy(net, threshold, aversion)
         with torch.no_grad():
             greedy = policy(TensorDict(observation=obs[held], batch_size=[len(held)]))["action"]
-        danger = crash[held].any(-1) & ~crash[held].all(-1)
-        picked = crash[held].gather(-1, greedy[:, None]).squeeze(-1)
         res = evaluate_on_tensor(env_cfg, policy, episodes=args.episodes, seed=30_000)
         rate = sum(res.crashed) / len(res.crashed)
         ret = torch.tensor(res.returns, dtype=torch.float64)
         print(
             f"shield threshold={threshold} aversion={aversion} coeff={args.shield_coeff}: "
             "held-out crash picks "
-            f"{100 * float(picked[danger].float().mean()):.2f}% of danger states; return "
+            f"{100 * crashing_picks(crash[held], greedy):.2f}% of danger states; return "
             f"{ret.mean():.2f}, crash rate {100 * rate:.1f}% ({len(ret)} episodes)"
         )
 
