@@ -13,9 +13,11 @@ from collections.abc import Iterator
 
 import torch
 from tensordict import TensorDictBase
+from torchrl.modules import ProbabilisticActor
 
 from torchrl_grpo.branching import make_branch_env
 from torchrl_grpo.envs import HighwayEnv
+from torchrl_grpo.modules import KinematicsMLP, make_discrete_actor
 
 # highway-env flags its older scenario versions as out of date on every gym.make.
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -38,6 +40,24 @@ def actions(scenario: str, *rows: list[str]) -> torch.Tensor:
     """A ``[G, T]`` action table from action names; lane changes become IDLE where absent."""
     names = _LONGITUDINAL if N_ACTIONS[scenario] == 3 else _META
     return torch.tensor([[names.get(a, 1) for a in row] for row in rows])
+
+
+def mixed_actions(scenario: str) -> torch.Tensor:
+    """A ``[5, 6]`` table of five branches that speed up, weave, idle, turn and brake."""
+    return actions(
+        scenario,
+        ["FASTER"] * 6,
+        ["LANE_LEFT", "SLOWER"] * 3,
+        ["IDLE"] * 6,
+        ["LANE_RIGHT", "FASTER"] * 3,
+        ["SLOWER"] * 6,
+    )
+
+
+def mlp_actor(scenario: str) -> ProbabilisticActor:
+    """A categorical MLP actor over ``scenario``'s observation, five actions."""
+    obs = plain_env(scenario).observation_spec["observation"].shape
+    return make_discrete_actor(KinematicsMLP(obs[-2], obs[-1], out_features=5), 5)
 
 
 def plain_env(scenario: str, **kwargs) -> HighwayEnv:

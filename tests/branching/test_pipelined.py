@@ -5,7 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from branching_helpers import SHORT, ScheduledPolicy, actions, bitwise_equal, branch_env, plain_env
+from branching_helpers import (
+    SHORT,
+    ScheduledPolicy,
+    bitwise_equal,
+    branch_env,
+    mixed_actions,
+    mlp_actor,
+    plain_env,
+)
 from tensordict import TensorDict
 
 from torchrl_grpo.branching import branch_rollout, make_branch_env, reset_roots, shutdown_env
@@ -13,10 +21,13 @@ from torchrl_grpo.branching.batched import run_on
 from torchrl_grpo.branching.pipelined import leave_to_others
 from torchrl_grpo.branching.slots import EnvSlots
 from torchrl_grpo.envs import states_equal
-from torchrl_grpo.modules import KinematicsMLP, make_discrete_actor
 
 SCENARIO = "highway-fast-v0"
 CONFIG = SHORT[SCENARIO]
+
+
+def _table():
+    return mixed_actions(SCENARIO)
 
 
 @pytest.fixture(scope="module")
@@ -31,17 +42,6 @@ def short_parallel():
 @pytest.fixture(scope="module")
 def roots():
     return reset_roots(plain_env(SCENARIO, config=CONFIG), 2, seed=0)
-
-
-def _table():
-    return actions(
-        SCENARIO,
-        ["FASTER"] * 6,
-        ["LANE_LEFT", "SLOWER"] * 3,
-        ["IDLE"] * 6,
-        ["LANE_RIGHT", "FASTER"] * 3,
-        ["SLOWER"] * 6,
-    )
 
 
 def test_parallel_envs_run_pipelined_unless_told_otherwise(short_parallel):
@@ -104,8 +104,7 @@ def test_final_states_are_those_of_the_lock_step_engine(short_parallel, roots):
 
 
 def test_a_sampling_policy_draws_the_same_samples_every_run(short_parallel, roots):
-    obs = plain_env(SCENARIO).observation_spec["observation"].shape
-    policy = make_discrete_actor(KinematicsMLP(obs[-2], obs[-1], out_features=5), 5)
+    policy = mlp_actor(SCENARIO)
     runs = []
     for _ in range(2):
         torch.manual_seed(3)

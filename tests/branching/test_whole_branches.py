@@ -7,7 +7,15 @@ import os
 import numpy as np
 import pytest
 import torch
-from branching_helpers import SHORT, ScheduledPolicy, actions, bitwise_equal, engine, plain_env
+from branching_helpers import (
+    SHORT,
+    ScheduledPolicy,
+    bitwise_equal,
+    engine,
+    mixed_actions,
+    mlp_actor,
+    plain_env,
+)
 from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType
 
@@ -15,10 +23,14 @@ from torchrl_grpo.branching import branch_rollout, make_branch_env, reset_roots,
 from torchrl_grpo.branching.batched import run_on
 from torchrl_grpo.branching.policy_transport import pack_policy
 from torchrl_grpo.branching.slots import EnvSlots
-from torchrl_grpo.modules import KinematicsMLP, RandomPolicy, make_discrete_actor
+from torchrl_grpo.modules import RandomPolicy
 
 SCENARIO = "highway-fast-v0"
 CONFIG = SHORT[SCENARIO]
+
+
+def _table():
+    return mixed_actions(SCENARIO)
 
 
 @pytest.fixture(scope="module")
@@ -38,22 +50,6 @@ def short_serial():
 @pytest.fixture(scope="module")
 def roots():
     return reset_roots(plain_env(SCENARIO, config=CONFIG), 2, seed=0)
-
-
-def _table():
-    return actions(
-        SCENARIO,
-        ["FASTER"] * 6,
-        ["LANE_LEFT", "SLOWER"] * 3,
-        ["IDLE"] * 6,
-        ["LANE_RIGHT", "FASTER"] * 3,
-        ["SLOWER"] * 6,
-    )
-
-
-def _actor():
-    obs = plain_env(SCENARIO).observation_spec["observation"].shape
-    return make_discrete_actor(KinematicsMLP(obs[-2], obs[-1], out_features=5), 5)
 
 
 class OutOfRange:
@@ -162,7 +158,7 @@ def test_every_keep_mode_matches_the_serial_engine(short_parallel, short_serial,
 def test_a_deterministic_actor_gives_the_single_env_data(short_parallel, roots):
     # The workers call the policy on one row, as a plain env's rollout does: its
     # logits are bitwise the same (a batch of W rows may round differently).
-    actor = _actor()
+    actor = mlp_actor(SCENARIO)
     kwargs = {"return_states": True, "exploration_type": ExplorationType.DETERMINISTIC}
     single = branch_rollout(plain_env(SCENARIO, config=CONFIG), actor, roots, 3, 6, **kwargs)
     data = branch_rollout(short_parallel, actor, roots, 3, 6, **kwargs)
@@ -170,7 +166,7 @@ def test_a_deterministic_actor_gives_the_single_env_data(short_parallel, roots):
     assert bitwise_equal(single, data) == []
 
 
-@pytest.mark.parametrize("make_policy", [_actor, lambda: RandomPolicy(seed=5)])
+@pytest.mark.parametrize("make_policy", [lambda: mlp_actor(SCENARIO), lambda: RandomPolicy(seed=5)])
 def test_sampling_does_not_depend_on_workers_or_queues(short_parallel, roots, make_policy):
     runs = []
     for depth in (1, 2):
