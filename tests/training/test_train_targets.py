@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 from conftest import TINY, compose_config
-from train_helpers import REPLAY, csv_scalars, train_run
+from train_helpers import REPLAY, csv_scalars, logged_ratios, train_run
 
 from torchrl_grpo.training import Trainer
 
@@ -23,13 +23,8 @@ def test_distillation_stores_each_groups_target_and_trains_on_it(tmp_path):
     assert weight.shape[0] >= 3 and bool((best.sum(-1) < 5).any())  # some groups disagree
     scalars = csv_scalars(tmp_path / "distill")
     assert len(scalars["train/loss_distill"]) == trainer.iteration
-    ratio = [
-        d / c
-        for d, c in zip(
-            scalars["train/loss_distill"], scalars["train/distill_cross_entropy"], strict=True
-        )
-    ]
-    assert ratio == pytest.approx([2.0] * trainer.iteration)
+    ratios = logged_ratios(scalars, "train/loss_distill", "train/distill_cross_entropy")
+    assert ratios == pytest.approx([2.0] * trainer.iteration)
     spread = train_run(
         tmp_path,
         "spread",
@@ -65,13 +60,8 @@ def test_regression_stores_each_rows_advantage_and_trains_on_it(tmp_path):
     assert bool((stored["distill_weight"] == 1).all())
     assert bool((stored["advantage"].reshape(-1, 5).sum(-1).abs() < 1e-4).all())  # centred
     scalars = csv_scalars(tmp_path / "regression")
-    ratio = [
-        d / e
-        for d, e in zip(
-            scalars["train/loss_distill"], scalars["train/distill_squared_error"], strict=True
-        )
-    ]
-    assert ratio == pytest.approx([0.5] * trainer.iteration)
+    ratios = logged_ratios(scalars, "train/loss_distill", "train/distill_squared_error")
+    assert ratios == pytest.approx([0.5] * trainer.iteration)
     # Its replay holds regression targets: a resume with the cross-entropy is refused.
     resume = f"resume={tmp_path / 'regression' / 'last.pt'}"
     other = compose_config(
@@ -91,13 +81,8 @@ def test_a_crash_head_learns_from_each_branchs_crash(tmp_path):
     assert stored["branch_crashed"].dtype == torch.bool
     assert bool(crashed.any()) and not bool(crashed.all())
     scalars = csv_scalars(tmp_path / "crash_head")
-    ratio = [
-        loss / bce
-        for loss, bce in zip(
-            scalars["train/loss_crash_head"], scalars["train/crash_head_bce"], strict=True
-        )
-    ]
-    assert ratio == pytest.approx([0.5] * trainer.iteration)
+    ratios = logged_ratios(scalars, "train/loss_crash_head", "train/crash_head_bce")
+    assert ratios == pytest.approx([0.5] * trainer.iteration)
     for refused, match in (
         (["algo=ppo"], "model.crash_head is trained.*algo=ppo"),
         (["algo.explore_steps=2"], "model.crash_head learns.*explore_steps=1"),

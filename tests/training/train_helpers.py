@@ -24,6 +24,11 @@ def csv_scalars(run_dir) -> dict[str, list[float]]:
     return out
 
 
+def logged_ratios(scalars: dict[str, list[float]], weighted: str, raw: str) -> list[float]:
+    """``weighted / raw`` at every logged iteration: a loss term over its unweighted value."""
+    return [w / r for w, r in zip(scalars[weighted], scalars[raw], strict=True)]
+
+
 def train_run(tmp_path, name: str, overrides: list[str]) -> Trainer:
     """Train a tiny run (``TINY`` plus ``overrides``) in ``tmp_path / name``."""
     cfg = compose_config([*TINY, *overrides])
