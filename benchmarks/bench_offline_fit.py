@@ -40,7 +40,7 @@ from tensordict import TensorDict
 from torchrl_grpo.branching import ActionThenBase, branch_rollout
 from torchrl_grpo.branching.keys import MASK
 from torchrl_grpo.envs import TensorHighwayEnv, tensor_params
-from torchrl_grpo.modules import make_scripted_policy
+from torchrl_grpo.modules import CrashHead, make_scripted_policy
 from torchrl_grpo.sim.observation import observe
 from torchrl_grpo.sim.state import Vehicles
 from torchrl_grpo.training import evaluate_on_tensor, make_env, make_layout
@@ -269,11 +269,13 @@ class ShieldPolicy(torch.nn.Module):
         self.net, self.threshold, self.aversion = net, threshold, aversion
 
     def forward(self, td: TensorDict) -> TensorDict:
-        out = self.net(td.get("observation"))
-        q, risk = out[..., :N_ACTIONS], torch.sigmoid(out[..., N_ACTIONS:])
+        observation = td.get("observation")
         if self.aversion > 0:
-            survive = torch.nn.functional.logsigmoid(-out[..., N_ACTIONS:])
-            return td.set("action", (q + self.aversion * survive).argmax(-1))
+            # As model.crash_aversion acts in training: Q + aversion * log(1 - p_crash).
+            logits = CrashHead(self.net, N_ACTIONS, self.aversion)(observation)
+            return td.set("action", logits.argmax(-1))
+        out = self.net(observation)
+        q, risk = out[..., :N_ACTIONS], torch.sigmoid(out[..., N_ACTIONS:])
         safe = risk < self.threshold
         # Where every action looks unsafe, the least risky one.
         masked = torch.where(safe, q, torch.full_like(q, -float("inf")))
