@@ -22,6 +22,7 @@ the planner's best action earns at least 0.5 more over its branch.
 from __future__ import annotations
 
 import argparse
+import copy
 import logging
 import math
 import time
@@ -59,9 +60,9 @@ def trained(path: str):
     return run_cfg.env, policy
 
 
-def with_aversion(path: str, aversion: float):
-    """A checkpoint's policy whose crash head acts with ``aversion`` instead of its own."""
-    _, policy = trained(path)
+def with_aversion(policy, path: str, aversion: float):
+    """A copy of ``path``'s ``policy`` whose crash head acts with ``aversion``."""
+    policy = copy.deepcopy(policy)
     heads = [m for m in policy.modules() if isinstance(m, CrashHead)]
     if not heads:
         raise SystemExit(f"--aversions: {path} has no crash head (model.crash_head=false)")
@@ -124,7 +125,7 @@ def main() -> None:
         policies.append((path, policy, False))
         for aversion in args.aversions:
             policies.append(
-                (f"{path} (aversion {aversion:g})", with_aversion(path, aversion), False)
+                (f"{path} (aversion {aversion:g})", with_aversion(policy, path, aversion), False)
             )
     env_cfg.max_episode_steps = env_cfg.get("max_episode_steps", 40)
     layout = make_layout(make_env(env_cfg))
