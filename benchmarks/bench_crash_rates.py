@@ -9,14 +9,17 @@ return and 0 in crash rate, so these are highway-env's figures). Policies: alway
 the rule policy, the lookahead planner over the rule policy (every action tried from
 every state, then ``--horizon`` steps of the rule policy: what the groups of
 ``algo=grpo_branch`` score; the planner's branches are rows of one batched rollout) and
-the greedy policy of each ``--checkpoint``. Each row prints its crash rate beside the
-planner's and always-SLOWER's. With ``--anatomy``, the last five decisions before
+the greedy policy of each ``--checkpoint`` (with ``--ensemble``, also the mean logits of
+all of them, a :class:`~torchrl_grpo.modules.PolicyEnsemble`). Each row prints its crash
+rate beside the planner's and always-SLOWER's. With ``--anatomy``, the last five decisions before
 each crash of a checkpoint's policy are scored by the planner: a choice is costly when
 the planner's best action earns at least 0.5 more over its branch.
 
     python benchmarks/bench_crash_rates.py --checkpoint outputs/.../last.pt --episodes 1000
     python benchmarks/bench_crash_rates.py --checkpoint outputs/.../last.pt --episodes 400 \
         --no-planner --anatomy
+    python benchmarks/bench_crash_rates.py --checkpoint a/last.pt --checkpoint b/last.pt \
+        --no-planner --ensemble
 """
 
 from __future__ import annotations
@@ -30,10 +33,16 @@ from collections import Counter
 
 import torch
 from omegaconf import OmegaConf
+from torchrl.modules import ProbabilisticActor
 
 from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.envs import TensorHighwayEnv
-from torchrl_grpo.modules import CrashHead, make_scripted_policy
+from torchrl_grpo.modules import (
+    CrashHead,
+    PolicyEnsemble,
+    make_discrete_actor,
+    make_scripted_policy,
+)
 from torchrl_grpo.training import (
     evaluate_on_tensor,
     load_checkpoint,
@@ -69,6 +78,12 @@ def with_aversion(policy, path: str, aversion: float):
     for head in heads:
         head.aversion = aversion
     return policy
+
+
+def ensemble_of(policies: list, env_cfg) -> ProbabilisticActor:
+    """One greedy-ready actor acting with the mean logits of ``policies``' networks."""
+    nets = [policy.module[0].module for policy in policies]
+    return make_discrete_actor(PolicyEnsemble(nets), make_env(env_cfg).action_spec)
 
 
 def anatomy(env_cfg, policy, planner, episodes: int, seed: int, last: int = 5) -> None:
@@ -115,6 +130,11 @@ def main() -> None:
         default=[],
         help="also evaluate each crash-head checkpoint with these crash aversions",
     )
+    p.add_argument(
+        "--ensemble",
+        action="store_true",
+        help="also evaluate the mean logits of all the checkpoints' networks (one policy)",
+    )
     args = p.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -128,6 +148,12 @@ def main() -> None:
                 (f"{path} (aversion {aversion:g})", with_aversion(policy, path, aversion), False)
             )
     env_cfg.max_episode_steps = env_cfg.get("max_episode_steps", 40)
+    if args.ensemble:
+        if len(args.checkpoint) < 2:
+            raise SystemExit("--ensemble needs at least 2 --checkpoint")
+        members = [policy for _, policy, _ in policies[:: 1 + len(args.aversions)]]
+        name = f"mean logits of the {len(members)} checkpoints"
+        policies.append((name, ensemble_of(members, env_cfg), False))
     layout = make_layout(make_env(env_cfg))
     rule = make_scripted_policy("rule", layout)
     baselines = [("always-SLOWER", make_scripted_policy("slower", layout), False)]

@@ -58,9 +58,9 @@ def test_an_old_config_validates_against_todays_schemas(run):
     assert OmegaConf.get_type(cfg.algo).__name__ == schema
     model, old = OmegaConf.to_container(cfg.model), ckpt["config"]["model"]
     assert {key: model[key] for key in old} == old
-    # Keys added since take defaults that keep the old behaviour: no crash head.
+    # Keys added since take defaults that keep the old behaviour: no crash head, one network.
     added = {key: model[key] for key in model.keys() - old.keys()}
-    assert added == {"crash_head": False, "crash_aversion": 0.0}
+    assert added == {"crash_head": False, "crash_aversion": 0.0, "ensemble": 1}
     if run == "grpo_continuation":
         assert ckpt["config"]["algo"]["roots"] == "continuation"
         assert str(cfg.algo.roots) == "continue"

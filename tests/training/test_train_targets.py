@@ -7,6 +7,7 @@ import torch
 from conftest import TINY, compose_config
 from train_helpers import REPLAY, csv_scalars, logged_ratios, train_run
 
+from torchrl_grpo.modules import PolicyEnsemble
 from torchrl_grpo.training import Trainer
 
 
@@ -90,3 +91,45 @@ def test_a_crash_head_learns_from_each_branchs_crash(tmp_path):
         cfg = compose_config([*TINY, "model.crash_head=true", *refused])
         with pytest.raises(ValueError, match=match):
             Trainer(cfg, run_dir=tmp_path / "refused")
+
+
+def test_each_member_of_an_ensemble_learns_from_its_own_outputs(tmp_path):
+    overrides = [*REPLAY, "model.crash_head=true", "model.ensemble=2", "algo.distill_coeff=1"]
+    overrides += ["algo.distill_loss=regression", "algo.distill_temperature=1"]
+    trainer = train_run(tmp_path, "ensemble", [*overrides, "experiment.total_frames=60"])
+    algo = trainer.algo
+    [ensemble] = [m for m in algo.policy.modules() if isinstance(m, PolicyEnsemble)]
+    first, second = ensemble.members
+    batch = algo.current_log_probs(algo.replay[:])
+    # Each member's ratio is taken around its own log-probs.
+    for member in range(2):
+        with ensemble.acting(member):
+            own = algo.policy.get_dist(batch.select("observation")).log_prob(batch["action"])
+        torch.testing.assert_close(batch["member_action_log_prob"][:, member], own)
+
+    def first_grads(terms) -> list[torch.Tensor]:
+        algo.optimizer.zero_grad(set_to_none=False)
+        out = terms(batch)
+        assert {"loss_objective", "loss_distill", "loss_crash_head"} <= set(out.keys())
+        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        return [p.grad.clone() for p in first.parameters()]
+
+    shared = first_grads(algo.member_terms)
+    with ensemble.acting(0):
+        alone = first_grads(algo.loss_terms)
+    # The ensemble's loss is the mean of the members' own losses: half of member 0's.
+    for mixed, own in zip(shared, alone, strict=True):
+        torch.testing.assert_close(mixed, own / 2)
+    assert any(bool(g.abs().sum() > 0) for g in shared)
+    # Member 0's gradient does not depend on member 1 (a fit of the mean logits would).
+    with torch.no_grad():
+        for p in second.parameters():
+            p.add_(torch.randn_like(p))
+    for before, after in zip(shared, first_grads(algo.member_terms), strict=True):
+        torch.testing.assert_close(before, after)
+    # The members started apart and both trained; the policy acts with their mean.
+    assert not torch.equal(next(first.parameters()), next(second.parameters()))
+    obs = batch["observation"][:3]
+    torch.testing.assert_close(ensemble(obs), (first(obs) + second(obs)) / 2)
+    with pytest.raises(ValueError, match="model.ensemble must be >= 1"):
+        Trainer(compose_config([*TINY, "model.ensemble=0"]), run_dir=tmp_path / "refused")

@@ -8,6 +8,7 @@ from torchrl_grpo.modules.actors import (
     make_value_net,
 )
 from torchrl_grpo.modules.crash_head import CrashHead
+from torchrl_grpo.modules.ensemble import PolicyEnsemble
 from torchrl_grpo.modules.greedy_tail import EXPLORED, GreedyTail
 from torchrl_grpo.modules.kinematics import (
     DEFAULT_FEATURES,
@@ -78,6 +79,7 @@ __all__ = [
     "NeighbourFeatures",
     "NeighbourMLP",
     "NetworkKind",
+    "PolicyEnsemble",
     "PriorLogits",
     "RandomPolicy",
     "RulePolicy",

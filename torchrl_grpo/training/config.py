@@ -160,6 +160,7 @@ class ModelConfig:
     prior_weight: float = 2.0
     crash_head: bool = False
     crash_aversion: float = 0.0
+    ensemble: int = 1
 
 
 @dataclass

@@ -13,6 +13,7 @@ from torchrl_grpo.modules import (
     CrashHead,
     NeighbourMLP,
     NetworkKind,
+    PolicyEnsemble,
     PriorLogits,
     SceneMLP,
     ScriptedPolicy,
@@ -100,7 +101,9 @@ def make_policy(model_cfg: DictConfig, env: EnvBase) -> ProbabilisticActor:
 
     With ``model.crash_head``, the network has a second output per action, the logit of
     its crash probability (:class:`~torchrl_grpo.modules.CrashHead`), which
-    ``model.crash_aversion`` weighs into the logits. With ``model.prior`` set, the logits
+    ``model.crash_aversion`` weighs into the logits. With ``model.ensemble=K > 1``, the
+    policy is ``K`` such networks (:class:`~torchrl_grpo.modules.PolicyEnsemble`) that
+    act with their mean logits. With ``model.prior`` set, the logits
     are the network's plus ``model.prior_weight``
     on that scripted policy's action (:class:`~torchrl_grpo.modules.PriorLogits`).
 
@@ -117,16 +120,24 @@ def make_policy(model_cfg: DictConfig, env: EnvBase) -> ProbabilisticActor:
     if not hasattr(spec, "n"):
         raise ValueError(f"the policies here are discrete; the env's action spec is {spec}")
     n_actions = int(spec.n)
-    if model_cfg.get("crash_head", False):
-        net = make_net(model_cfg, env, 2 * n_actions)
-        net = CrashHead(net, n_actions, float(model_cfg.crash_aversion))
-    else:
-        net = make_net(model_cfg, env, n_actions)
+    size = int(model_cfg.get("ensemble", 1))
+    if size < 1:
+        raise ValueError(f"model.ensemble must be >= 1 (networks in the policy), got {size}")
+    members = [_member(model_cfg, env, n_actions) for _ in range(size)]
+    net = members[0] if size == 1 else PolicyEnsemble(members)
     prior = model_cfg.get("prior")
     if prior is not None:
         base = make_base_policy(str(prior), env, "model.prior")
         net = PriorLogits(net, base, n_actions, model_cfg.prior_weight)
     return make_discrete_actor(net, spec)
+
+
+def _member(model_cfg: DictConfig, env: EnvBase, n_actions: int) -> nn.Module:
+    """One logits network of the policy, with its crash head when ``model.crash_head``."""
+    if model_cfg.get("crash_head", False):
+        net = make_net(model_cfg, env, 2 * n_actions)
+        return CrashHead(net, n_actions, float(model_cfg.crash_aversion))
+    return make_net(model_cfg, env, n_actions)
 
 
 def make_base_policy(name: str, env: EnvBase, key: str) -> ScriptedPolicy:

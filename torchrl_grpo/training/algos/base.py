@@ -25,6 +25,7 @@ from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import LossModule
 
+from torchrl_grpo.modules import PolicyEnsemble
 from torchrl_grpo.training.collect import make_collector
 from torchrl_grpo.training.env_builder import make_rollout_env
 from torchrl_grpo.training.metrics import PhaseTimer, metric_name
@@ -182,6 +183,26 @@ class Algorithm:
         """The loss's output on ``minibatch``: every ``loss_*`` entry is summed and minimised."""
         return self.loss(minibatch)
 
+    def member_terms(self, minibatch: TensorDictBase) -> TensorDictBase:
+        """:meth:`loss_terms`, or with ``model.ensemble=K`` the mean of each member's own.
+
+        Each member of a :class:`~torchrl_grpo.modules.PolicyEnsemble` gets the whole
+        loss of its own outputs (its ratios, targets and crash predictions), so the
+        members are fitted to the same data independently; the ensemble acts with
+        their mean.
+        """
+        ensemble = next((m for m in self.policy.modules() if isinstance(m, PolicyEnsemble)), None)
+        if ensemble is None:
+            return self.loss_terms(minibatch)
+        terms = []
+        for member in range(len(ensemble)):
+            with ensemble.acting(member):
+                terms.append(self.loss_terms(minibatch))
+        mean = terms[0].empty()
+        for key in terms[0].keys(include_nested=True, leaves_only=True):
+            mean.set(key, torch.stack([t.get(key).float() for t in terms]).mean(0))
+        return mean
+
     def optimise(
         self, data: TensorDictBase, refresh: Callable[[], TensorDictBase] | None = None
     ) -> dict[str, float]:
@@ -208,7 +229,7 @@ class Algorithm:
                 data = refresh()
             perm = torch.randperm(n)
             for start in range(0, n - mb + 1, mb):
-                out = self.loss_terms(data[perm[start : start + mb]])
+                out = self.member_terms(data[perm[start : start + mb]])
                 loss = sum(v for k, v in out.items() if k.startswith("loss_"))
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()

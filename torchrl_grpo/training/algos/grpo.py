@@ -21,7 +21,7 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import LossModule
 
 from torchrl_grpo.branching import GROUP_ID, MASK
-from torchrl_grpo.modules import EXPLORED, CrashHead
+from torchrl_grpo.modules import EXPLORED, CrashHead, PolicyEnsemble
 from torchrl_grpo.objectives import (
     CrashHeadLoss,
     GroupRelativeAdvantage,
@@ -74,6 +74,9 @@ TrunkPolicy = Literal["sample", "greedy"]
 #: The reward GRPO advantages are computed from: the env's reward plus, on the last step
 #: of a branch cut by the horizon, the bootstrap of the episode steps left.
 TRAIN_REWARD = ("next", "train_reward")
+#: Each ensemble member's log-prob of a replayed step's action, ``[N, K]``
+#: (``model.ensemble=K``): the "old" log-probs of that member's ratio.
+MEMBER_LOG_PROB = "member_action_log_prob"
 
 # Keys the updates read: everything else of a batch (states, positions) is dropped early.
 _TRAINED_KEYS = ("observation", "action", "action_log_prob", "advantage", MASK, GROUP_ID, "branch")
@@ -171,7 +174,11 @@ class GRPO(Algorithm):
         self.tail_policy = _tail_policy(algo, policy, env)
         self.replay = make_replay(algo)
         self.distill = make_distill_loss(algo, policy)
+        self.ensemble = next((m for m in policy.modules() if isinstance(m, PolicyEnsemble)), None)
         head = next((m for m in policy.modules() if isinstance(m, CrashHead)), None)
+        if head is not None and self.ensemble is not None:
+            # The ensemble answers for its active member (Algorithm.member_terms).
+            head = self.ensemble
         self.crash_head = (
             None if head is None else CrashHeadLoss(head, coeff=float(algo.crash_head_coeff))
         )
@@ -294,14 +301,33 @@ class GRPO(Algorithm):
         update is a trust region around the policy it starts from.
         """
         self.replay.extend(data.exclude("action_log_prob"))
-        data = self.replay[:]
+        return self.current_log_probs(self.replay[:])
+
+    def current_log_probs(self, data: TensorDictBase) -> TensorDictBase:
+        """``data`` with the current policy's ``action_log_prob`` of each step's action.
+
+        With ``model.ensemble=K``, each member's own log-probs too
+        (:data:`MEMBER_LOG_PROB`, ``[N, K]``): a member's ratio is then taken around
+        itself, as it would be alone, not around the ensemble.
+        """
+        inputs = data.select(*self.policy.in_keys).clone()
+        action = data.get("action")
         with torch.no_grad():
-            dist = self.policy.get_dist(data.select(*self.policy.in_keys).clone())
-            data.set("action_log_prob", dist.log_prob(data.get("action")))
+            data.set("action_log_prob", self.policy.get_dist(inputs).log_prob(action))
+            if self.ensemble is not None:
+                members = []
+                for member in range(len(self.ensemble)):
+                    with self.ensemble.acting(member):
+                        members.append(self.policy.get_dist(inputs).log_prob(action))
+                data.set(MEMBER_LOG_PROB, torch.stack(members, -1))
         return data
 
     def loss_terms(self, minibatch: TensorDictBase) -> TensorDictBase:
         """The GRPO loss's terms, with ``loss_distill`` and ``loss_crash_head`` when on."""
+        if self.ensemble is not None and self.ensemble.active is not None:
+            if MEMBER_LOG_PROB in minibatch.keys():
+                own = minibatch.get(MEMBER_LOG_PROB)[..., self.ensemble.active]
+                minibatch = minibatch.clone(False).set("action_log_prob", own)
         out = self.loss(minibatch)
         if self.distill is not None:
             out.update(self.distill(minibatch))

@@ -1,0 +1,86 @@
+"""K policy networks that act together and learn one by one.
+
+A network fitted to rare states (the few roots where one action crashes and another
+does not) fits them differently from one initialisation to the next: measured on the
+training issue's recipe, five seeds crash in 2.4 to 5.7% of 1,000 episodes, and the
+mean of their five logits in 2.1%. :class:`PolicyEnsemble` holds ``K`` networks of the
+same architecture with their own initial weights. It acts with the mean of their
+outputs; inside :meth:`PolicyEnsemble.acting` it is one member alone, which is how a
+training loop gives each member the whole loss of its own outputs (the members are
+fitted to the same data independently, rather than their mean fitted once, which would
+be one wider network).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+import torch
+from torch import nn
+
+__all__ = ["PolicyEnsemble"]
+
+
+class PolicyEnsemble(nn.Module):
+    """The mean output of ``K`` networks, or one member's output inside :meth:`acting`.
+
+    Args:
+        members: the networks (at least 2), each mapping the same input to outputs of
+            the same shape: logits, or a :class:`~torchrl_grpo.modules.CrashHead`'s.
+
+    Example:
+        >>> torch.manual_seed(0)
+        <torch._C.Generator object at ...>
+        >>> ensemble = PolicyEnsemble([nn.Linear(3, 2) for _ in range(3)])
+        >>> x = torch.ones(4, 3)
+        >>> mean = torch.stack([m(x) for m in ensemble.members]).mean(0)
+        >>> torch.allclose(ensemble(x), mean)
+        True
+        >>> with ensemble.acting(1):
+        ...     torch.equal(ensemble(x), ensemble.members[1](x))
+        True
+    """
+
+    def __init__(self, members: list[nn.Module]) -> None:
+        super().__init__()
+        if len(members) < 2:
+            raise ValueError(f"an ensemble needs at least 2 members, got {len(members)}")
+        self.members = nn.ModuleList(members)
+        self.active: int | None = None
+
+    def __len__(self) -> int:
+        return len(self.members)
+
+    @contextmanager
+    def acting(self, member: int) -> Iterator[None]:
+        """Within the block, the ensemble's outputs are ``members[member]``'s alone."""
+        if not 0 <= member < len(self.members):
+            raise IndexError(f"member {member} of an ensemble of {len(self.members)}")
+        previous, self.active = self.active, member
+        try:
+            yield
+        finally:
+            self.active = previous
+
+    def _combine(self, call: Callable[[nn.Module], torch.Tensor]) -> torch.Tensor:
+        if self.active is not None:
+            return call(self.members[self.active])
+        return torch.stack([call(member) for member in self.members]).mean(0)
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        """The members' mean output (the active member's inside :meth:`acting`)."""
+        return self._combine(lambda member: member(observation))
+
+    def crash_logits(self, observation: torch.Tensor) -> torch.Tensor:
+        """The members' mean crash logits, when the members are crash heads.
+
+        Raises:
+            TypeError: the members have no ``crash_logits``.
+        """
+        if not callable(getattr(self.members[0], "crash_logits", None)):
+            raise TypeError(
+                f"the ensemble's members ({type(self.members[0]).__name__}) have no "
+                "crash_logits(observation): build them with model.crash_head=true"
+            )
+        return self._combine(lambda member: member.crash_logits(observation))
