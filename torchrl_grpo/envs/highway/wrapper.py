@@ -15,6 +15,7 @@ from torchrl_grpo.envs.core.bits import flag_tensor, float32_tensor
 from torchrl_grpo.envs.core.snapshot_env import SnapshotEnv
 from torchrl_grpo.envs.highway import schema
 from torchrl_grpo.envs.highway.codec import HIGHWAY_SCENARIOS, HighwayStateCodec
+from torchrl_grpo.envs.highway.fast_observation import use_fast_kinematics
 
 
 class HighwayEnv(SnapshotEnv):
@@ -37,6 +38,9 @@ class HighwayEnv(SnapshotEnv):
         max_objects: state padding for ``road.objects`` (default: count + 4).
         categorical_action_encoding: discrete actions as integer indices.
         device: the device of the output tensors.
+        fast_observation: compute a plain Kinematics observation without pandas
+            (:class:`~torchrl_grpo.envs.highway.fast_observation.FastKinematicObservation`:
+            the same bits, 3 ms less per step); ``False`` keeps highway-env's own.
 
     Bit-exactness holds on one machine and numeric setup: restore + the same actions
     gives the same bits, as highway-env itself would; on another CPU (another BLAS
@@ -72,6 +76,7 @@ class HighwayEnv(SnapshotEnv):
         max_objects: int | None = None,
         categorical_action_encoding: bool = True,
         device: torch.device | str = "cpu",
+        fast_observation: bool = True,
     ) -> None:
         if scenario not in HIGHWAY_SCENARIOS:
             close = difflib.get_close_matches(scenario, HIGHWAY_SCENARIOS, n=3)
@@ -81,6 +86,7 @@ class HighwayEnv(SnapshotEnv):
                 f"Known scenarios: {list(HIGHWAY_SCENARIOS)}"
             )
         self.scenario = scenario
+        self.fast_observation = bool(fast_observation)
         config = dict(config or {})
         _check_config_keys(scenario, config)
         self._param_keys = list(schema.CLASS_PARAMETERS)
@@ -201,6 +207,9 @@ class HighwayEnv(SnapshotEnv):
 
     def _step(self, tensordict: TensorDictBase):
         self._apply_class_params()
+        if self.fast_observation:
+            # Every reset rebuilds highway-env's observation object: swap it again.
+            use_fast_kinematics(self._env.unwrapped)
         return super()._step(tensordict)
 
     def get_state(self):
