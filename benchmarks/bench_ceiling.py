@@ -17,7 +17,13 @@ alike), this script times ``branch_rollout`` on a ``BranchParallelEnv`` of W wor
 - ``lockstep``: the lock-step engine (``branch_lanes = 0``): every step, the policy,
   then all workers step, then the parent waits for the slowest.
 
-Each round times the ceiling, then the engines back to back (in an order that turns
+The workers' HighwayEnv computes highway-env's Kinematics observation without pandas
+(``FastKinematicObservation``: the same bits, about 3 ms less per step), so a worker
+steps faster than a raw process. A second ceiling, raw processes given that same
+observation, isolates what the branching machinery itself costs; both ratios are
+printed.
+
+Each round times the ceilings, then the engines back to back (in an order that turns
 round by round), and takes the ratios of that round; the script prints the median
 ratio (and range) to the ceiling for every scenario, W and engine, with the load
 average. Start-up (forks, env construction, the first restores of each lane) is
@@ -51,6 +57,7 @@ from torchrl_grpo.branching import (
     shutdown_env,
 )
 from torchrl_grpo.envs import HighwayEnv
+from torchrl_grpo.envs.highway.fast_observation import use_fast_kinematics
 from torchrl_grpo.modules import KinematicsMLP, make_discrete_actor
 
 warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -86,16 +93,21 @@ def make_raw_env(scenario: str, seed: int):
     return env
 
 
-def step_segments(env, steps: int, horizon: int, clock=time.perf_counter) -> float:
+def step_segments(
+    env, steps: int, horizon: int, clock=time.perf_counter, fast: bool = False
+) -> float:
     """Take ``steps`` random steps in segments of ``horizon``; the time stepping took.
 
     Segments of H steps from episode starts, as branches from reset roots are; only
-    the steps are timed by ``clock`` (resets cost more than restores).
+    the steps are timed by ``clock`` (resets cost more than restores). With ``fast``,
+    the Kinematics observation is the workers' (``FastKinematicObservation``).
     """
     stepping = 0.0
     for i in range(steps):
         if i % horizon == 0:
             env.reset()
+        if fast:
+            use_fast_kinematics(env.unwrapped)  # every reset rebuilds the observation
         start = clock()
         _, _, terminated, truncated, _ = env.step(env.action_space.sample())
         stepping += clock() - start
@@ -104,18 +116,27 @@ def step_segments(env, steps: int, horizon: int, clock=time.perf_counter) -> flo
     return stepping
 
 
-def _raw_worker(scenario: str, steps: int, horizon: int, seed: int, barrier, out) -> None:
+def _raw_worker(
+    scenario: str, steps: int, horizon: int, seed: int, fast: bool, barrier, out
+) -> None:
     env = make_raw_env(scenario, seed)
     barrier.wait()
-    out.put(steps / step_segments(env, steps, horizon))
+    out.put(steps / step_segments(env, steps, horizon, fast=fast))
 
 
-def ceiling_rate(scenario: str, workers: int, steps: int, horizon: int) -> float:
-    """Steps/s of ``workers`` raw highway-env processes run together (``steps`` each)."""
+def ceiling_rate(
+    scenario: str, workers: int, steps: int, horizon: int, fast: bool = False
+) -> float:
+    """Steps/s of ``workers`` raw highway-env processes run together (``steps`` each).
+
+    With ``fast``, their Kinematics observation is the workers' (the ceiling of the
+    branching machinery alone, without the faster observation's gain).
+    """
     ctx = multiprocessing.get_context("fork")
     barrier, out = ctx.Barrier(workers), ctx.Queue()
+    args = (scenario, steps, horizon)
     procs = [
-        ctx.Process(target=_raw_worker, args=(scenario, steps, horizon, seed, barrier, out))
+        ctx.Process(target=_raw_worker, args=(*args, seed, fast, barrier, out))
         for seed in range(workers)
     ]
     for p in procs:
@@ -166,7 +187,10 @@ def main() -> None:
     steps_per_branch_run = args.roots * args.group_size * args.horizon
     engines = [e for e in ENGINES if e in args.engines]
     ratios = {k: {e: [] for e in engines} for k in setups}
+    # The same rates over raw processes that observe as the workers do (no pandas).
+    overhead = {k: {e: [] for e in engines} for k in setups}
     ceilings: dict[tuple, list[float]] = {k: [] for k in setups}
+    fast_ceilings: dict[tuple, list[float]] = {k: [] for k in setups}
     load = [os.getloadavg()[0]]
     try:
         for round_ in range(args.repeats):
@@ -174,11 +198,14 @@ def main() -> None:
                 # Raw processes take as many steps each as one worker takes in a rollout.
                 ceiling = ceiling_rate(scenario, w, steps_per_branch_run, args.horizon)
                 ceilings[scenario, w].append(ceiling)
+                fast = ceiling_rate(scenario, w, steps_per_branch_run, args.horizon, fast=True)
+                fast_ceilings[scenario, w].append(fast)
                 turn = round_ % len(engines)
                 for name in engines[turn:] + engines[:turn]:
                     with use_engine(env, name):
                         rate = branch_rate(env, policy, roots, args.group_size, args.horizon)
                     ratios[scenario, w][name].append(rate / ceiling)
+                    overhead[scenario, w][name].append(rate / fast)
             load.append(os.getloadavg()[0])
     finally:
         for env, _, _ in setups.values():
@@ -188,14 +215,31 @@ def main() -> None:
         f"rounds, medians (ranges) of branch steps/s over the ceiling; {os.cpu_count()} cores, "
         f"load average {min(load):.1f}-{max(load):.1f} (1-minute, sampled between rounds)"
     )
-    print(f"  {'scenario':<16} {'W':>2} {'ceiling/s':>9}" + "".join(f" {e:>16}" for e in engines))
-    for (scenario, w), r in ratios.items():
-        cells = [f"{statistics.median(v):.2f} ({min(v):.2f}-{max(v):.2f})" for v in r.values()]
-        print(
-            f"  {scenario:<16} {w:>2} {statistics.median(ceilings[scenario, w]):9.1f}"
-            + "".join(f" {c:>16}" for c in cells)
-        )
+    for title, table, ceils in (
+        ("raw highway-env processes (the ceiling)", ratios, ceilings),
+        (
+            "raw processes with the workers' observation (the branching overhead alone)",
+            overhead,
+            fast_ceilings,
+        ),
+    ):
+        print(f"  over {title}:")
+        header = f"  {'scenario':<16} {'W':>2} {'ceiling/s':>9}"
+        print(header + "".join(f" {e:>16}" for e in engines))
+        for (scenario, w), r in table.items():
+            cells = [f"{statistics.median(v):.2f} ({min(v):.2f}-{max(v):.2f})" for v in r.values()]
+            print(
+                f"  {scenario:<16} {w:>2} {statistics.median(ceils[scenario, w]):9.1f}"
+                + "".join(f" {c:>16}" for c in cells)
+            )
     note = f"load {min(load):.1f}-{max(load):.1f} on {os.cpu_count()} cores"
+    for (scenario, w), r in overhead.items():
+        claim(
+            f"{scenario}: branch steps/s on {w} worker(s) / {w} raw processes observing "
+            "without pandas",
+            statistics.median(r[engines[0]]),
+            note=note,
+        )
     for (scenario, w), r in ratios.items():
         for name, values in r.items():
             default = name == next(iter(ENGINES))

@@ -118,7 +118,7 @@ for _ in range(args.repeats):
     rates["local"].append(rate)
     rates["ray"].append(ray_rate())
     start = time.perf_counter()
-    trainer._update(batch.clone(), PhaseTimer())
+    trainer.algo.update(batch.clone(), PhaseTimer())
     rates["update"].append(time.perf_counter() - start)
 
 local = statistics.median(rates["local"])

@@ -6,7 +6,8 @@ action and steps TorchRL's env. This script takes the same branches (roots from
 ``reset_roots``, scripted actions) four ways, interleaved round by round, and prints
 the median CPU ms per step of each:
 
-- ``gym``: the gymnasium env inside the worker env, stepped directly (restores untimed);
+- ``gym``: the gymnasium env inside the worker env, stepped directly (restores untimed),
+  with the worker env's Kinematics observation (``FastKinematicObservation``);
 - ``torchrl``: the worker env's TorchRL ``step`` (restores untimed);
 - ``runner-scripted``: ``BranchRunner`` with a scripted policy (restores, policy input,
   action check, rows: everything but a real policy);
@@ -40,6 +41,7 @@ from torchrl_grpo.branching.branch_runner import BranchRunner, RolloutSetup
 from torchrl_grpo.branching.lanes import STATE_NEVER, to_arrays
 from torchrl_grpo.branching.policy_transport import pack_policy
 from torchrl_grpo.envs import HighwayEnv
+from torchrl_grpo.envs.highway.fast_observation import use_fast_kinematics
 
 warnings.filterwarnings("ignore", message=".*is out of date.*")
 clock = time.process_time
@@ -100,6 +102,8 @@ def main() -> None:
             env.return_state = False  # as a worker steps when it keeps no state
             for b in range(n):
                 env.reset(TensorDict(state=roots[b]), set_state=True)
+                # The gym step observes as the worker env's own steps do (no pandas).
+                use_fast_kinematics(env.gym_env.unwrapped)
                 for t in range(h):
                     start = clock()
                     if torchrl:
