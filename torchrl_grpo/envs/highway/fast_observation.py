@@ -2,7 +2,7 @@
 
 ``KinematicObservation.observe`` builds a pandas DataFrame from the observed vehicles'
 dicts, normalises and clips its columns, pads it and reads it back: on highway-fast-v0
-and merge-v0 that is 3 to 4 ms of a 10 to 12 ms step, most of it pandas' own
+and merge-v0 that is 3 to 4 ms of a 10 to 16 ms step, most of it pandas' own
 overhead on a 5 x 5 table. :class:`FastKinematicObservation` does the same arithmetic
 on a float64 numpy array: the same dicts (``Vehicle.to_dict``), the same ``lmap``
 expression evaluated in the same order, the same clip, padding, shuffle draw and
