@@ -102,6 +102,8 @@ class Algorithm:
         self.cfg = cfg
         self.policy = policy
         self.env = env
+        #: The policy's ``PolicyEnsemble`` (``model.ensemble > 1``), else ``None``.
+        self.ensemble = next((m for m in policy.modules() if isinstance(m, PolicyEnsemble)), None)
         # The value network draws its initial weights right after the policy's.
         self.value = self.make_value(cfg.model, env)
         self.loss = self.make_loss(cfg.algo, policy, self.value)
@@ -191,7 +193,7 @@ class Algorithm:
         members are fitted to the same data independently; the ensemble acts with
         their mean.
         """
-        ensemble = next((m for m in self.policy.modules() if isinstance(m, PolicyEnsemble)), None)
+        ensemble = self.ensemble
         if ensemble is None:
             return self.loss_terms(minibatch)
         terms = []

@@ -21,7 +21,7 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import LossModule
 
 from torchrl_grpo.branching import GROUP_ID, MASK
-from torchrl_grpo.modules import EXPLORED, CrashHead, PolicyEnsemble
+from torchrl_grpo.modules import EXPLORED, CrashHead
 from torchrl_grpo.objectives import (
     CrashHeadLoss,
     GroupRelativeAdvantage,
@@ -174,7 +174,6 @@ class GRPO(Algorithm):
         self.tail_policy = _tail_policy(algo, policy, env)
         self.replay = make_replay(algo)
         self.distill = make_distill_loss(algo, policy)
-        self.ensemble = next((m for m in policy.modules() if isinstance(m, PolicyEnsemble)), None)
         head = next((m for m in policy.modules() if isinstance(m, CrashHead)), None)
         if head is not None and self.ensemble is not None:
             # The ensemble answers for its active member (Algorithm.member_terms).
