@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 
+import pytest
 import torch
 from branching_helpers import branch_env, plain_env
 from tensordict import TensorDict
@@ -207,3 +208,51 @@ def test_stored_roots_state_dict_holds_the_read_position():
     resumed.load_state_dict(src.state_dict())
     assert src.state_dict() == {"seed": None, "pos": 2}
     assert states_equal(resumed.next_roots(None, None, 2)["state"], roots["state"][2:])
+
+
+def test_staggered_live_trunks_start_spread_over_the_episode():
+    env, slower = plain_env("highway-fast-v0"), ConstantActionPolicy("SLOWER")
+    staggered = TrunkRoots(every=2, live=True, stagger=8)
+    together = TrunkRoots(every=2, live=True)
+    staggered.set_seed(3)
+    together.set_seed(3)
+    first = staggered.next_roots(env, slower, 4)
+    # Trunk i runs i * 8 // 4 steps, in whole segments of 2: 0, 2, 4, 6.
+    assert first["root_step"].tolist() == [0, 2, 4, 6]
+    assert staggered.trunk_steps == 12
+    # Each is the state its own episode reaches after those steps: the trunks that start
+    # together, advanced segment by segment, pass through the same states.
+    seen = [together.next_roots(env, slower, 4) for _ in range(4)]
+    for i in range(4):
+        assert seen[i]["root_step"][i].item() == 2 * i
+        assert states_equal(first["state"][i], seen[i]["state"][i])
+    assert not states_equal(first["state"][1], seen[0]["state"][1])
+    # After the spread every live trunk advances one segment per batch.
+    assert staggered.next_roots(env, slower, 4)["root_step"].tolist() == [2, 4, 6, 8]
+
+
+def test_trunks_take_decision_points_from_their_first_root_step():
+    env, slower = plain_env("highway-fast-v0"), ConstantActionPolicy("SLOWER")
+    late = TrunkRoots(every=2, live=True, min_steps=3)
+    together = TrunkRoots(every=1, live=True)
+    late.set_seed(3)
+    together.set_seed(3)
+    first = late.next_roots(env, slower, 2)
+    assert first["root_step"].tolist() == [3, 3] and late.trunk_steps == 6
+    for _ in range(4):
+        seen = together.next_roots(env, slower, 2)
+    assert seen["root_step"].tolist() == [3, 3]
+    for i in range(2):
+        assert states_equal(first["state"][i], seen["state"][i])
+    assert late.next_roots(env, slower, 2)["root_step"].tolist() == [5, 5]
+    # Queued trunks drop the decision points before it.
+    queued = TrunkRoots(every=2, max_steps=7, min_steps=3)
+    queued.set_seed(0)
+    assert queued.next_roots(env, slower, 2)["root_step"].tolist() == [4, 6]
+
+
+def test_a_negative_stagger_or_an_empty_step_range_is_refused():
+    with pytest.raises(ValueError, match="stagger must be >= 0, got -1"):
+        TrunkRoots(every=1, live=True, stagger=-1)
+    with pytest.raises(ValueError, match=r"below max_steps \(4\), got 4"):
+        TrunkRoots(every=1, max_steps=4, min_steps=4)

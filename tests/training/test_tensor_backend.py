@@ -76,10 +76,17 @@ def test_a_tensor_smoke_run_trains_on_the_simulator_and_is_evaluated_on_highway_
 @pytest.mark.parametrize(
     "live",
     [pytest.param(False, marks=pytest.mark.slow), True],
-    ids=["queued_trunks", "live_trunks"],
+    ids=["queued_trunks", "live_staggered_trunks"],
 )
 def test_resume_on_the_tensor_simulator_continues_exactly(tmp_path, live):
     common = [*TINY, *TENSOR, f"rollout.live_trunks={live}", "experiment.checkpoint_every=1"]
+    if live:
+        # Spread, bounded trunks: a resumed run continues them, it does not spread them again.
+        common += [
+            "rollout.stagger_trunks=true",
+            "rollout.full_horizon_roots=true",
+            "rollout.first_root_step=4",
+        ]
 
     def train(name, overrides):
         trainer = Trainer(compose_config([*common, *overrides]), run_dir=tmp_path / name)
@@ -93,6 +100,7 @@ def test_resume_on_the_tensor_simulator_continues_exactly(tmp_path, live):
     path = tmp_path / "stopped" / "last.pt"
     cfg = compose_config([f"resume={path}", "experiment.total_frames=700"])
     assert cfg.env.backend == "tensor" and cfg.rollout.live_trunks == live
+    assert cfg.rollout.stagger_trunks == live
     resumed = Trainer(cfg, run_dir=tmp_path / "resumed")
     resumed.train()
     assert (resumed.iteration, resumed.frames) == (straight.iteration, straight.frames)

@@ -156,6 +156,14 @@ class TrunkRoots(RootSource):
             segment of K steps per batch (an ended trunk is replaced by a new episode),
             so that every batch's decision points come from the current policy. The
             default runs whole trunks, W at a time, and queues their decision points.
+        stagger: with ``live``, spread the trunks' first episodes over this many steps
+            (the episode length, say): before the first batch, trunk ``i`` of ``n`` runs
+            ``i * stagger // n`` steps (whole segments). Without it the trunks start
+            together and stay in step, so that each batch holds the decision points of
+            one episode step only and the training data cycles with the episode.
+            ``0``: no spread.
+        min_steps: the episode step of a trunk's first decision point: a new trunk runs
+            that many steps first (``0``: from the episode's start).
 
     Attributes:
         trunk_steps: env steps simulated on trunks so far (not part of any batch).
@@ -182,14 +190,24 @@ class TrunkRoots(RootSource):
         exploration_type: ExplorationType = ExplorationType.RANDOM,
         policy: Policy | None = None,
         live: bool = False,
+        stagger: int = 0,
+        min_steps: int = 0,
     ) -> None:
         if every < 1:
             raise ValueError(f"every must be >= 1, got {every}")
+        if stagger < 0:
+            raise ValueError(f"stagger must be >= 0, got {stagger}")
+        if min_steps < 0 or (max_steps is not None and min_steps >= max_steps):
+            raise ValueError(
+                f"min_steps must be >= 0 and below max_steps ({max_steps}), got {min_steps}"
+            )
         self.every = every
         self.max_steps = max_steps
         self.exploration_type = exploration_type
         self.policy = policy
         self.live = live
+        self.stagger = stagger
+        self.min_steps = min_steps
         self._queue: TensorDict | None = None
         self.trunk_steps = 0
 
@@ -209,6 +227,7 @@ class TrunkRoots(RootSource):
                 self.exploration_type,
             )
             new = new.exclude("trunk")
+            new = new[new.get(ROOT_STEP) >= self.min_steps]
             self.trunk_steps += steps
             self._queue = new if self._queue is None else torch.cat([self._queue, new])
         out, self._queue = self._queue[:num_roots], self._queue[num_roots:]
@@ -220,8 +239,27 @@ class TrunkRoots(RootSource):
         """One segment of every live trunk; new episodes for the trunks that ended."""
         live = self._queue
         if live is None or live.shape[0] != num_roots:
-            self._queue = self.fresh_roots(env, num_roots)
-            return self._queue.clone()
+            new = self._new_trunks(env, slots, policy, num_roots)
+            self._queue = self._spread(env, slots, policy, new)
+        else:
+            self._queue = self._segment(env, slots, policy, live)
+        return self._queue.clone()
+
+    def _spread(
+        self, env: EnvBase, slots: EnvSlots, policy: Policy, live: TensorDict
+    ) -> TensorDict:
+        """Run trunk ``i`` of ``n`` for ``i * stagger // n`` steps, in whole segments."""
+        n = live.shape[0]
+        segments = torch.arange(n) * (self.stagger // self.every) // max(n, 1)
+        for j in range(int(segments.max()) if n else 0):
+            rows = segments > j
+            live[rows] = self._segment(env, slots, policy, live[rows])
+        return live
+
+    def _segment(
+        self, env: EnvBase, slots: EnvSlots, policy: Policy, live: TensorDict
+    ) -> TensorDict:
+        """``live`` advanced by one segment: the trunks still alive, then new episodes."""
         n = live.shape[0]
         run = run_on(
             slots,
@@ -247,9 +285,45 @@ class TrunkRoots(RootSource):
             },
             batch_size=[int(alive.sum())],
         )
-        fresh = self.fresh_roots(env, n - kept.shape[0]) if kept.shape[0] < n else None
-        self._queue = kept if fresh is None else torch.cat([kept, fresh.to(kept.device)])
-        return self._queue.clone()
+        if kept.shape[0] == n:
+            return kept
+        new = self._new_trunks(env, slots, policy, n - kept.shape[0])
+        return torch.cat([kept, new.to(kept.device)])
+
+    def _new_trunks(self, env: EnvBase, slots: EnvSlots, policy: Policy, n: int) -> TensorDict:
+        """``n`` new episodes, run to their first decision point (step ``min_steps``)."""
+        out = self.fresh_roots(env, n)
+        if not self.min_steps:
+            return out
+        ready = []
+        while True:
+            run = run_on(
+                slots,
+                policy if self.policy is None else self.policy,
+                out.get(STATE),
+                self.min_steps,
+                group_id=torch.arange(out.shape[0]),
+                branch=torch.zeros(out.shape[0], dtype=torch.long),
+                root_step=out.get(ROOT_STEP),
+                keep="final",
+                exploration_type=self.exploration_type,
+            )
+            self.trunk_steps += int(run.lengths.sum())
+            alive = (~run.ended & (run.lengths == self.min_steps)).cpu()
+            steps = out.get(ROOT_STEP) + run.lengths.cpu()
+            ready.append(
+                TensorDict(
+                    {
+                        STATE: run.final_states[alive.to(run.final_states.device)],
+                        ROOT_STEP: steps[alive],
+                    },
+                    batch_size=[int(alive.sum())],
+                )
+            )
+            ended = int((~alive).sum())
+            if not ended:
+                return torch.cat(ready)
+            out = self.fresh_roots(env, ended)
 
     def state_dict(self) -> dict[str, Any]:
         """The seed chain, ``trunk_steps`` and the ``"queue"`` of decision points."""

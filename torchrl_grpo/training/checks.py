@@ -87,6 +87,11 @@ def _check_rollout(rollout: DictConfig) -> None:
         raise ValueError(
             f"rollout.num_workers must be 1 with rollout.backend=single, got {rollout.num_workers}"
         )
+    if rollout.get("stagger_trunks") and not rollout.get("live_trunks"):
+        raise ValueError(
+            "rollout.stagger_trunks=true spreads the episodes of live trunks: set "
+            "rollout.live_trunks=true too (with algo.roots=trunk)"
+        )
     ray = rollout.get("ray")
     if backend != "ray" or ray is None:
         return

@@ -37,6 +37,7 @@ __all__ = [
     "load_collector_state",
     "make_collector",
     "make_ray_collector",
+    "trunk_schedule",
 ]
 
 # Checkpoints written before root sources had a complete state_dict() kept the missing
@@ -50,6 +51,9 @@ def make_collector(
     policy: TensorDictModuleBase,
     seed: int,
     tail_policy: TensorDictModuleBase | None = None,
+    trunk_stagger: int = 0,
+    trunk_max_steps: int | None = None,
+    trunk_min_steps: int = 0,
 ) -> BaseCollector:
     """The collector of ``cfg.algo.name`` over ``env`` (which it owns and closes).
 
@@ -58,7 +62,11 @@ def make_collector(
     pass ``env=None`` (a given env is closed). ``tail_policy`` is the actor greedy
     tails follow: a lagging copy of ``policy`` (``algo.tail_sync_batches``; greedy
     trunks follow it too) or a scripted base policy (``algo.tail_policy``; trunks follow
-    ``policy``). Default: ``policy``.
+    ``policy``). Default: ``policy``. ``trunk_stagger`` spreads live trunks' first
+    episodes over that many steps (:class:`~torchrl_grpo.branching.TrunkRoots`'
+    ``stagger``; ``rollout.stagger_trunks``); ``trunk_max_steps`` ends trunks at that
+    episode step (``rollout.full_horizon_roots``), and ``trunk_min_steps`` starts their
+    decision points at that step (``rollout.first_root_step``).
 
     Example:
         >>> from omegaconf import OmegaConf
@@ -90,7 +98,8 @@ def make_collector(
         greedy_trunk = str(algo.get("trunk", "sample")) == "greedy"
         source = "continue" if roots == "continuation" else roots
         live = bool(rollout.get("live_trunks", False))
-        if roots == "trunk" and (greedy_trunk or base_tail or live):
+        bounded = trunk_max_steps is not None or trunk_min_steps > 0
+        if roots == "trunk" and (greedy_trunk or base_tail or live or bounded):
             # Greedy: decision points on the states the evaluated policy visits.
             source = TrunkRoots(
                 int(rollout.decision_interval),
@@ -98,7 +107,10 @@ def make_collector(
                     ExplorationType.DETERMINISTIC if greedy_trunk else ExplorationType.RANDOM
                 ),
                 policy=learner if base_tail else None,
+                max_steps=trunk_max_steps,
+                min_steps=trunk_min_steps,
                 live=live,
+                stagger=trunk_stagger if live else 0,
             )
         if str(rollout.get("backend")) == "ray":
             if env is not None:
@@ -124,6 +136,41 @@ def make_collector(
         total_frames=-1,
         auto_register_policy_transforms=False,
     )
+
+
+def trunk_schedule(rollout: DictConfig, step_limit: int) -> tuple[int, int, int | None]:
+    """The ``trunk_stagger``, ``trunk_min_steps`` and ``trunk_max_steps`` of :func:`make_collector`.
+
+    ``rollout.first_root_step`` is the episode step of a trunk's first decision point.
+    ``rollout.full_horizon_roots`` ends trunks at step ``T - H + 1`` of an episode of
+    ``T = step_limit`` steps, so that every decision point's branches of ``H`` steps end
+    before the time limit: the policy does not see the time, so a branch the limit cut
+    short would teach it, in states like any other, that a crash after the cut costs
+    nothing. ``rollout.stagger_trunks`` spreads the trunks over the steps where they
+    have decision points.
+
+    Raises:
+        ValueError: no episode step is left for decision points.
+
+    Example:
+        >>> from omegaconf import OmegaConf
+        >>> rollout = OmegaConf.create({"horizon": 8, "stagger_trunks": True,
+        ...                             "full_horizon_roots": True, "first_root_step": 3})
+        >>> trunk_schedule(rollout, 30)
+        (20, 3, 23)
+    """
+    first = int(rollout.get("first_root_step", 0))
+    last = step_limit
+    if rollout.get("full_horizon_roots"):
+        last = step_limit - int(rollout.horizon) + 1
+    if not 0 <= first < last:
+        raise ValueError(
+            f"rollout.first_root_step={first} leaves no decision point in an episode of "
+            f"{step_limit} steps (rollout.horizon={rollout.horizon}, "
+            f"rollout.full_horizon_roots={rollout.get('full_horizon_roots')})"
+        )
+    stagger = last - first if rollout.get("stagger_trunks") else 0
+    return stagger, first, last if rollout.get("full_horizon_roots") else None
 
 
 def make_ray_collector(

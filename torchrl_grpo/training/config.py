@@ -204,6 +204,9 @@ class RolloutConfig:
     decision_interval: int = 4
     groups_per_batch: int = 8
     live_trunks: bool = False
+    stagger_trunks: bool = False
+    full_horizon_roots: bool = False
+    first_root_step: int = 0
     frames_per_batch: int = 512
     num_workers: int = 1
     backend: Backend = Backend.single

@@ -56,7 +56,7 @@ from torchrl_grpo.training.choices import (
     SelectionName,
     choice_enum,
 )
-from torchrl_grpo.training.collect import make_collector
+from torchrl_grpo.training.collect import make_collector, trunk_schedule
 from torchrl_grpo.training.env_builder import episode_step_limit, make_rollout_env
 from torchrl_grpo.training.metrics import PhaseTimer, group_metrics
 from torchrl_grpo.training.model_builder import BasePolicyName, make_base_policy
@@ -242,7 +242,17 @@ class GRPO(Algorithm):
             env = make_rollout_env(
                 cfg.env, cfg.rollout, snapshots=True, device=cfg.device, seed=seed
             )
-        return make_collector(cfg, env, self.policy, seed=seed, tail_policy=self.tail_policy)
+        stagger, min_steps, max_steps = trunk_schedule(cfg.rollout, self.bootstrap.step_limit)
+        return make_collector(
+            cfg,
+            env,
+            self.policy,
+            seed=seed,
+            tail_policy=self.tail_policy,
+            trunk_stagger=stagger,
+            trunk_max_steps=max_steps,
+            trunk_min_steps=min_steps,
+        )
 
     def batch_metrics(self, batch: TensorDictBase) -> dict[str, float]:
         """Statistics of a ``[R, G, T]`` batch of branch groups."""
