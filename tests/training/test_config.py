@@ -170,6 +170,11 @@ def test_staggered_trunks_need_live_trunks():
         check_config(cfg)
     cfg.rollout.live_trunks = True
     check_config(cfg)
+    cfg = OmegaConf.structured(
+        Config(algo=GRPOConfig(roots="reset"), rollout=RolloutConfig(first_root_step=2))
+    )
+    with pytest.raises(ValueError, match="rollout.first_root_step.*needs algo.roots=trunk"):
+        check_config(cfg)
 
 
 def test_the_trunk_schedule_names_an_empty_step_range():

@@ -41,6 +41,13 @@ def check_grpo_config(cfg: DictConfig) -> None:
             "algo.tail_sync_batches null (it refreshes a learner's copy)"
         )
     rollout = cfg.get("rollout")
+    trunk_keys = ("stagger_trunks", "full_horizon_roots", "first_root_step")
+    set_keys = [k for k in trunk_keys if rollout is not None and rollout.get(k)]
+    if set_keys and str(algo.roots) != "trunk":
+        raise ValueError(
+            f"rollout.{set_keys[0]} places decision points along trunks: it needs "
+            f"algo.roots=trunk, got algo.roots={algo.roots}"
+        )
     on_ray = rollout is not None and str(rollout.backend) == "ray"
     replay = algo.replay_groups
     if replay is not None:
