@@ -210,12 +210,18 @@ def test_stored_roots_state_dict_holds_the_read_position():
     assert states_equal(resumed.next_roots(None, None, 2)["state"], roots["state"][2:])
 
 
+def seeded(*sources: TrunkRoots) -> tuple[TrunkRoots, ...]:
+    """The sources, each seeded alike: their trunks start from the same episodes."""
+    for source in sources:
+        source.set_seed(3)
+    return sources
+
+
 def test_staggered_live_trunks_start_spread_over_the_episode():
     env, slower = plain_env("highway-fast-v0"), ConstantActionPolicy("SLOWER")
-    staggered = TrunkRoots(every=2, live=True, stagger=8)
-    together = TrunkRoots(every=2, live=True)
-    staggered.set_seed(3)
-    together.set_seed(3)
+    staggered, together = seeded(
+        TrunkRoots(every=2, live=True, stagger=8), TrunkRoots(every=2, live=True)
+    )
     first = staggered.next_roots(env, slower, 4)
     # Trunk i runs i * 8 // 4 steps, in whole segments of 2: 0, 2, 4, 6.
     assert first["root_step"].tolist() == [0, 2, 4, 6]
@@ -233,10 +239,9 @@ def test_staggered_live_trunks_start_spread_over_the_episode():
 
 def test_trunks_take_decision_points_from_their_first_root_step():
     env, slower = plain_env("highway-fast-v0"), ConstantActionPolicy("SLOWER")
-    late = TrunkRoots(every=2, live=True, min_steps=3)
-    together = TrunkRoots(every=1, live=True)
-    late.set_seed(3)
-    together.set_seed(3)
+    late, together = seeded(
+        TrunkRoots(every=2, live=True, min_steps=3), TrunkRoots(every=1, live=True)
+    )
     first = late.next_roots(env, slower, 2)
     assert first["root_step"].tolist() == [3, 3] and late.trunk_steps == 6
     for _ in range(4):

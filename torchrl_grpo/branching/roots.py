@@ -261,30 +261,7 @@ class TrunkRoots(RootSource):
     ) -> TensorDict:
         """``live`` advanced by one segment: the trunks still alive, then new episodes."""
         n = live.shape[0]
-        run = run_on(
-            slots,
-            policy if self.policy is None else self.policy,
-            live.get(STATE),
-            self.every,
-            group_id=torch.arange(n),
-            branch=torch.zeros(n, dtype=torch.long),
-            root_step=live.get(ROOT_STEP),
-            keep="final",
-            exploration_type=self.exploration_type,
-        )
-        self.trunk_steps += int(run.lengths.sum())
-        steps = live.get(ROOT_STEP).to(run.lengths.device) + run.lengths
-        alive = ~run.ended & (run.lengths == self.every)
-        if self.max_steps is not None:
-            alive &= steps < self.max_steps
-        alive = alive.cpu()
-        kept = TensorDict(
-            {
-                STATE: run.final_states[alive.to(run.final_states.device)],
-                ROOT_STEP: steps.cpu()[alive],
-            },
-            batch_size=[int(alive.sum())],
-        )
+        kept = self._survivors(slots, policy, live, self.every)
         if kept.shape[0] == n:
             return kept
         new = self._new_trunks(env, slots, policy, n - kept.shape[0])
@@ -292,38 +269,47 @@ class TrunkRoots(RootSource):
 
     def _new_trunks(self, env: EnvBase, slots: EnvSlots, policy: Policy, n: int) -> TensorDict:
         """``n`` new episodes, run to their first decision point (step ``min_steps``)."""
-        out = self.fresh_roots(env, n)
         if not self.min_steps:
-            return out
-        ready = []
-        while True:
-            run = run_on(
-                slots,
-                policy if self.policy is None else self.policy,
-                out.get(STATE),
-                self.min_steps,
-                group_id=torch.arange(out.shape[0]),
-                branch=torch.zeros(out.shape[0], dtype=torch.long),
-                root_step=out.get(ROOT_STEP),
-                keep="final",
-                exploration_type=self.exploration_type,
-            )
-            self.trunk_steps += int(run.lengths.sum())
-            alive = (~run.ended & (run.lengths == self.min_steps)).cpu()
-            steps = out.get(ROOT_STEP) + run.lengths.cpu()
-            ready.append(
-                TensorDict(
-                    {
-                        STATE: run.final_states[alive.to(run.final_states.device)],
-                        ROOT_STEP: steps[alive],
-                    },
-                    batch_size=[int(alive.sum())],
-                )
-            )
-            ended = int((~alive).sum())
-            if not ended:
-                return torch.cat(ready)
-            out = self.fresh_roots(env, ended)
+            return self.fresh_roots(env, n)
+        ready: list[TensorDict] = []
+        # An episode that ends before its first decision point is replaced.
+        while (missing := n - sum(r.shape[0] for r in ready)) > 0:
+            starts = self.fresh_roots(env, missing)
+            ready.append(self._survivors(slots, policy, starts, self.min_steps))
+        return torch.cat(ready)
+
+    def _survivors(
+        self, slots: EnvSlots, policy: Policy, live: TensorDict, steps: int
+    ) -> TensorDict:
+        """The trunks of ``live`` that are still running after ``steps`` more steps.
+
+        A trunk drops out when its episode ends on the way or it reaches ``max_steps``.
+        """
+        n = live.shape[0]
+        run = run_on(
+            slots,
+            policy if self.policy is None else self.policy,
+            live.get(STATE),
+            steps,
+            group_id=torch.arange(n),
+            branch=torch.zeros(n, dtype=torch.long),
+            root_step=live.get(ROOT_STEP),
+            keep="final",
+            exploration_type=self.exploration_type,
+        )
+        self.trunk_steps += int(run.lengths.sum())
+        reached = live.get(ROOT_STEP).to(run.lengths.device) + run.lengths
+        alive = ~run.ended & (run.lengths == steps)
+        if self.max_steps is not None:
+            alive &= reached < self.max_steps
+        alive = alive.cpu()
+        return TensorDict(
+            {
+                STATE: run.final_states[alive.to(run.final_states.device)],
+                ROOT_STEP: reached.cpu()[alive],
+            },
+            batch_size=[int(alive.sum())],
+        )
 
     def state_dict(self) -> dict[str, Any]:
         """The seed chain, ``trunk_steps`` and the ``"queue"`` of decision points."""

@@ -110,7 +110,7 @@ def make_collector(
                 max_steps=trunk_max_steps,
                 min_steps=trunk_min_steps,
                 live=live,
-                stagger=trunk_stagger if live else 0,
+                stagger=trunk_stagger,
             )
         if str(rollout.get("backend")) == "ray":
             if env is not None:
