@@ -175,3 +175,47 @@ def test_a_scripted_tail_acts_after_the_enumerated_first_action():
     logits = actor.module[0](out[:, 0].select("observation").clone())["logits"]
     expected = torch.log_softmax(logits, -1)[torch.arange(N_ACTIONS), torch.arange(N_ACTIONS)]
     torch.testing.assert_close(out["action_log_prob"][:, 0], expected)
+
+
+def test_learner_steps_come_between_the_explored_step_and_a_scripted_tail():
+    actor, tail = _actor(0), _actor(1)
+    td = _rows(8, [0, 1, 2, 3, 4, 0, 1, 5])
+    out = GreedyTail(actor, explore_steps=1, tail_policy=tail, learner_steps=2)(td.clone())
+    argmax = actor.module[0](td)["logits"].argmax(-1)
+    tail_argmax = tail.module[0](td)["logits"].argmax(-1)
+    learner_rows, tail_rows = [1, 2, 6], [3, 4, 7]
+    assert torch.equal(out["action"][learner_rows], argmax[learner_rows])
+    assert torch.equal(out["action"][tail_rows], tail_argmax[tail_rows])
+    # The control: the two actors disagree on some of these rows.
+    assert not torch.equal(argmax[1:5], tail_argmax[1:5])
+    assert out[EXPLORED].tolist() == [True, False, False, False, False, True, False, False]
+
+
+def test_learner_steps_in_a_branch_rollout_then_the_scripted_tail():
+    env, actor = _env_actor("highway-fast-v0")
+    roots = reset_roots(env, 1, seed=0)
+    policy = GreedyTail(
+        actor,
+        explore_steps=1,
+        first_action="enumerate",
+        tail_policy=ConstantActionPolicy("SLOWER"),
+        learner_steps=1,
+    )
+    out = branch_rollout(env, policy, roots, group_size=N_ACTIONS, horizon=4)[0]
+    env.close()
+    assert out["action"][:, 0].tolist() == list(range(N_ACTIONS))
+    second = out[:, 1][out["mask"][:, 1]]
+    greedy = actor.module[0](second.select("observation").clone())["logits"].argmax(-1)
+    assert torch.equal(second["action"], greedy)
+    tail = out["mask"][:, 2:]
+    assert (out["action"][:, 2:][tail] == SLOWER).all()
+
+
+def test_learner_steps_need_a_tail_policy_and_a_non_negative_int():
+    actor = _actor()
+    with pytest.raises(ValueError, match="only with a tail_policy"):
+        GreedyTail(actor, explore_steps=1, learner_steps=2)
+    with pytest.raises(ValueError, match="must be >= 0"):
+        GreedyTail(actor, explore_steps=1, tail_policy=_actor(1), learner_steps=-1)
+    with pytest.raises(TypeError, match="learner_steps must be an int"):
+        GreedyTail(actor, explore_steps=1, tail_policy=_actor(1), learner_steps=1.0)

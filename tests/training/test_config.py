@@ -129,6 +129,17 @@ def test_check_config_names_the_key():
     check_config(cfg)
 
 
+def test_learner_steps_need_a_scripted_tail():
+    cfg = OmegaConf.structured(Config(algo=GRPOConfig(explore_steps=1, tail_learner_steps=2)))
+    with pytest.raises(ValueError, match="algo.tail_learner_steps=2.*scripted algo.tail_policy"):
+        check_config(cfg)
+    cfg.algo.tail_policy = "rule"
+    check_config(cfg)
+    cfg.algo.tail_learner_steps = -1
+    with pytest.raises(ValueError, match="algo.tail_learner_steps=-1: must be >= 0"):
+        check_config(cfg)
+
+
 def test_a_scripted_tail_needs_greedy_tail_branches_and_no_tail_sync():
     cfg = OmegaConf.structured(Config(algo=GRPOConfig(tail_policy="slower")))
     with pytest.raises(ValueError, match="algo.tail_policy=slower.*algo.explore_steps"):

@@ -65,6 +65,11 @@ class GreedyTail(TensorDictModuleBase):
             fixed base policy (a scripted one, which writes only the action) makes the
             group's returns ``Q_base(s, a)``: a target that does not move with the
             learner, the one-step improvement of rollout algorithms.
+        learner_steps: with a ``tail_policy``, the greedy steps ``policy`` itself takes
+            after the explored ones, before ``tail_policy`` takes over. The group then
+            scores each action followed by what the learner does next, so an action
+            that is safe only because the base policy would react on the next step
+            (and the learner would not) scores as what it is for the learner.
 
     Example:
         >>> import torch
@@ -92,6 +97,7 @@ class GreedyTail(TensorDictModuleBase):
         explore_steps: int,
         first_action: FirstAction = "sample",
         tail_policy: TensorDictModuleBase | None = None,
+        learner_steps: int = 0,
     ) -> None:
         super().__init__()
         if isinstance(explore_steps, bool) or not isinstance(explore_steps, int):
@@ -105,7 +111,15 @@ class GreedyTail(TensorDictModuleBase):
                 "first_action='enumerate' needs a probabilistic actor (a ProbabilisticActor "
                 f"with a categorical distribution), got {type(policy).__name__}"
             )
+        if isinstance(learner_steps, bool) or not isinstance(learner_steps, int):
+            raise TypeError(f"learner_steps must be an int, got {learner_steps!r}")
+        if learner_steps < 0 or (learner_steps > 0 and tail_policy is None):
+            raise ValueError(
+                f"learner_steps={learner_steps}: must be >= 0, and > 0 only with a "
+                "tail_policy (without one the policy acts on the whole tail already)"
+            )
         self.policy = policy
+        self.learner_steps = learner_steps
         self.explore_steps = explore_steps
         self.first_action = first_action
         self.tail_policy = tail_policy
@@ -142,6 +156,9 @@ class GreedyTail(TensorDictModuleBase):
             return tensordict.update(sampled).set(EXPLORED, explored)
         with set_exploration_type(ExplorationType.DETERMINISTIC):
             greedy = greedy_policy(tensordict.clone(False))
+            own = ~explored & (t < self.explore_steps + self.learner_steps)
+            if bool(own.any()):
+                self._learner_acts(greedy, self.policy(tensordict.clone(False)), own)
         sampled_keys, greedy_keys = set(sampled.keys(True)), set(greedy.keys(True))
         for key in self.policy.out_keys:
             if key not in sampled_keys:
@@ -156,6 +173,18 @@ class GreedyTail(TensorDictModuleBase):
             rows = explored.reshape(explored.shape + (1,) * (a.ndim - explored.ndim))
             tensordict.set(key, torch.where(rows, a, b))
         return tensordict.set(EXPLORED, explored)
+
+    def _learner_acts(
+        self, greedy: TensorDictBase, own: TensorDictBase, rows: torch.Tensor
+    ) -> None:
+        """Overwrite what the tail policy wrote with the learner's greedy output on ``rows``."""
+        greedy_keys = set(greedy.keys(True))
+        for key in self.policy.out_keys:
+            if key in greedy_keys:
+                b = greedy.get(key)
+                a = own.get(key).reshape(b.shape).to(b.dtype)
+                mask = rows.reshape(rows.shape + (1,) * (a.ndim - rows.ndim))
+                greedy.set(key, torch.where(mask, a, b))
 
     def _enumerate(
         self, sampled: TensorDictBase, branch: torch.Tensor, first: torch.Tensor

@@ -90,7 +90,11 @@ def make_collector(
         if explore_steps is not None:
             first_action = str(algo.get("first_action", "sample"))
             policy = GreedyTail(
-                policy, int(explore_steps), first_action=first_action, tail_policy=tail_policy
+                policy,
+                int(explore_steps),
+                first_action=first_action,
+                tail_policy=tail_policy,
+                learner_steps=int(algo.get("tail_learner_steps", 0)),
             )
         # A scripted base tail scores actions; the trunks still follow the learner, so
         # that its decision points are the states the learner visits (as in DAgger).

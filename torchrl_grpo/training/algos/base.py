@@ -61,6 +61,7 @@ class AlgoConfig:
     entropy_coeff: float = 0.01
     epochs: int = 4
     minibatch_size: int = 256
+    max_minibatches: int | None = None
 
 
 class Algorithm:
@@ -147,6 +148,9 @@ class Algorithm:
             raise ValueError(
                 f"rollout.backend=ray collects GRPO groups; algo={cfg.algo.name} is not GRPO"
             )
+        cap = cfg.algo.get("max_minibatches")
+        if cap is not None and cap < 1:
+            raise ValueError(f"algo.max_minibatches must be >= 1 (or null), got {cap}")
         model = cfg.get("model")
         if model is not None and model.get("crash_head", False) and not cls.trains_crash_head:
             raise ValueError(
@@ -210,6 +214,10 @@ class Algorithm:
     ) -> dict[str, float]:
         """``algo.epochs`` passes of shuffled minibatches of ``data`` through the loss.
 
+        With ``algo.max_minibatches=k`` the passes stop after ``k`` minibatches: a
+        large replay then gives each batch a random subset of its steps at a fixed cost
+        per batch, instead of a cost that grows with the replay.
+
         Args:
             data: flat training steps.
             refresh: called before every epoch but the first, gives the data of that
@@ -224,13 +232,18 @@ class Algorithm:
         params = [p for group in self.optimizer.param_groups for p in group["params"]]
         n = data.shape[0]
         mb = min(int(algo.minibatch_size), n)
+        cap = algo.get("max_minibatches")
+        total = (n // mb) * int(algo.epochs)
+        total = total if cap is None else min(total, int(cap))
         sums: dict[str, float] = defaultdict(float)
         count = 0
         for epoch in range(int(algo.epochs)):
+            if count == total:
+                break
             if refresh is not None and epoch > 0:
                 data = refresh()
             perm = torch.randperm(n)
-            for start in range(0, n - mb + 1, mb):
+            for start in range(0, min(n - mb + 1, (total - count) * mb), mb):
                 out = self.member_terms(data[perm[start : start + mb]])
                 loss = sum(v for k, v in out.items() if k.startswith("loss_"))
                 self.optimizer.zero_grad(set_to_none=True)

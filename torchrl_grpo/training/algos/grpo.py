@@ -128,6 +128,7 @@ class GRPOConfig(AlgoConfig):
     action_weights: ActionWeightsName = ActionWeightsName["uniform"]
     tail_sync_batches: int | None = None
     tail_policy: TailPolicyName = TailPolicyName["learner"]
+    tail_learner_steps: int = 0
     replay_groups: int | None = None
     trunk: TrunkPolicyName = TrunkPolicyName["sample"]
     distill_coeff: float = 0.0

@@ -40,6 +40,12 @@ def check_grpo_config(cfg: DictConfig) -> None:
             "branches: set algo.explore_steps too (e.g. 1), and leave "
             "algo.tail_sync_batches null (it refreshes a learner's copy)"
         )
+    learner_steps = algo.get("tail_learner_steps", 0)
+    if learner_steps < 0 or (learner_steps > 0 and tail_policy == "learner"):
+        raise ValueError(
+            f"algo.tail_learner_steps={learner_steps}: must be >= 0, and > 0 only with a "
+            "scripted algo.tail_policy (e.g. rule), which takes over after those steps"
+        )
     rollout = cfg.get("rollout")
     trunk_keys = ("stagger_trunks", "full_horizon_roots", "first_root_step")
     set_keys = [k for k in trunk_keys if rollout is not None and rollout.get(k)]
