@@ -11,13 +11,16 @@ every state, then ``--horizon`` steps of the rule policy: what the groups of
 ``algo=grpo_branch`` score; the planner's branches are rows of one batched rollout) and
 the greedy policy of each ``--checkpoint`` (with ``--ensemble``, also the mean logits of
 all of them, a :class:`~torchrl_grpo.modules.PolicyEnsemble`). Each row prints its crash
-rate beside the planner's and always-SLOWER's. With ``--anatomy``, the last five decisions before
-each crash of a checkpoint's policy are scored by the planner: a choice is costly when
-the planner's best action earns at least 0.5 more over its branch.
+rate beside the planner's and always-SLOWER's. With ``--anatomy``, the last five
+(``--look-back``) decisions before each crash of a checkpoint's policy are scored by the
+planner (``--sequences`` prints them crash by crash): a choice is costly when the
+planner's best action earns at least 0.5 more over its branch.
 
     python benchmarks/bench_crash_rates.py --checkpoint outputs/.../last.pt --episodes 1000
     python benchmarks/bench_crash_rates.py --checkpoint outputs/.../last.pt --episodes 400 \
         --no-planner --anatomy
+    python benchmarks/bench_crash_rates.py --checkpoint outputs/.../last.pt --episodes 400 \
+        --no-planner --anatomy --look-back 15 --sequences
     python benchmarks/bench_crash_rates.py --checkpoint a/last.pt --checkpoint b/last.pt \
         --no-planner --ensemble
 """
@@ -86,8 +89,14 @@ def ensemble_of(policies: list, env_cfg) -> ProbabilisticActor:
     return make_discrete_actor(PolicyEnsemble(nets), make_env(env_cfg).action_spec)
 
 
-def anatomy(env_cfg, policy, planner, episodes: int, seed: int, last: int = 5) -> None:
-    """Print how many crashes follow a costly choice among the ``last`` decisions."""
+def anatomy(
+    env_cfg, policy, planner, episodes: int, seed: int, last: int = 5, sequences: bool = False
+) -> None:
+    """Print how many crashes follow a costly choice among the ``last`` decisions.
+
+    With ``sequences``, also each crash's last decisions: the action taken, and where the
+    planner scores it as costly, its regret and the planner's choice.
+    """
     data, before = tensor_episodes(env_cfg, policy, episodes=episodes, seed=seed, return_state=True)
     hits = data.get(("next", "crashed")).reshape(episodes, -1) & before
     crashed = hits.any(1).nonzero().squeeze(-1).tolist()
@@ -106,6 +115,18 @@ def anatomy(env_cfg, policy, planner, episodes: int, seed: int, last: int = 5) -
         for a, b, c in zip(action.squeeze(-1), scores.argmax(-1), costly, strict=True)
         if c
     )
+    if sequences:
+        print()
+        best = scores.argmax(-1)
+        for i in crashed:
+            picks = [j for j, (e, _) in enumerate(rows) if e == i]
+            words = [
+                ACTIONS[int(action[j])]
+                + (f"({float(regret[j]):.1f}: {ACTIONS[int(best[j])]})" if costly[j] else "")
+                for j in picks
+            ]
+            speed = float(steps[picks[-1]].get(("state", "vehicles", "target_speed"))[0])
+            print(f"  episode {i} (set-point {speed:.0f} m/s): " + " ".join(words))
     episodes_costly = len({rows[j][0] for j in costly.nonzero().squeeze(-1).tolist()})
     print(
         f"{len(crashed)} crashes in {episodes} episodes; {episodes_costly} follow a costly "
@@ -122,6 +143,10 @@ def main() -> None:
     p.add_argument("--horizon", type=int, default=8, help="the planner's steps per branch")
     p.add_argument("--no-planner", action="store_true", help="skip the planner (minutes)")
     p.add_argument("--anatomy", action="store_true", help="score the decisions before crashes")
+    p.add_argument("--look-back", type=int, default=5, help="--anatomy: decisions per crash")
+    p.add_argument(
+        "--sequences", action="store_true", help="--anatomy: print each crash's decisions"
+    )
     p.add_argument("--threads", type=int, default=1)
     p.add_argument(
         "--aversions",
@@ -205,7 +230,15 @@ def main() -> None:
     if args.anatomy:
         for path, policy, _ in policies:
             print(f"{path}: ", end="")
-            anatomy(env_cfg, policy, planner, args.episodes, args.seed)
+            anatomy(
+                env_cfg,
+                policy,
+                planner,
+                args.episodes,
+                args.seed,
+                last=args.look_back,
+                sequences=args.sequences,
+            )
 
 
 if __name__ == "__main__":

@@ -77,5 +77,8 @@ def test_evaluate_script_on_a_checkpoint(smoke_run):
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "always-SLOWER" in proc.stdout and "grpo_branch" in proc.stdout
+    # The paired verdict against each baseline; one episode has no standard error.
+    verdict = next(line for line in proc.stdout.splitlines() if " vs always-SLOWER: " in line)
+    assert "(paired, 1 episodes)" in verdict and verdict.endswith("does not beat always-SLOWER")
     assert (run / "eval" / "eval_episode.gif").stat().st_size > 0
     assert (run / "eval" / "results.md").exists()

@@ -28,7 +28,7 @@ from torchrl_grpo.training.config import typed_config
 from torchrl_grpo.training.env_builder import make_env, make_layout
 from torchrl_grpo.training.model_builder import make_policy
 from torchrl_grpo.training.plots import plot_comparison, plot_learning_curve, save_gif
-from torchrl_grpo.training.results import EvalResult, format_table
+from torchrl_grpo.training.results import EvalResult, compare_paired, format_table
 
 __all__ = [
     "BASELINE_LABELS",
@@ -253,8 +253,12 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
         f"{env_cfg.scenario}, {episodes} deterministic episodes, "
         f"seeds {seed}..{seed + episodes - 1}"
     )
+    verdicts = ""
+    if ckpt is not None and len(results) > 1:
+        # "Beats" is paired on these episodes (the training issue's definition).
+        verdicts = "\n" + "\n".join(compare_paired(results[0], b) for b in results[1:]) + "\n"
     files["table"] = out_dir / "results.md"
-    files["table"].write_text(f"{header}\n\n{table}\n")
+    files["table"].write_text(f"{header}\n\n{table}\n{verdicts}")
     files["json"] = out_dir / "results.json"
     files["json"].write_text(json.dumps([r.to_dict() for r in results], indent=1))
     if results:
