@@ -11,7 +11,7 @@ from PIL import Image
 from torchrl_grpo.training import Trainer, load_checkpoint, plot_learning_curve
 from torchrl_grpo.training.evaluation import evaluate_checkpoint
 
-# The README's main job (experiment=quick: one evaluation, at the end) on a tiny budget.
+# A main-job-like run (one evaluation, at the end) on a tiny budget.
 _MAIN_JOB = [
     "experiment=smoke",
     "experiment.eval_every=0",
