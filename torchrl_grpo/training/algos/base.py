@@ -233,7 +233,7 @@ class Algorithm:
         n = data.shape[0]
         mb = min(int(algo.minibatch_size), n)
         cap = algo.get("max_minibatches")
-        total = (n // mb) * int(algo.epochs)
+        total = (n // mb) * int(algo.epochs) if mb else 0
         total = total if cap is None else min(total, int(cap))
         sums: dict[str, float] = defaultdict(float)
         count = 0
