@@ -21,15 +21,20 @@ import logging
 from collections import Counter
 
 import torch
+from bench_crash_rates import ACTIONS, trained
 
 from torchrl_grpo.modules import make_scripted_policy
-from torchrl_grpo.training import compose_config, load_checkpoint, make_env, tensor_episodes
-from torchrl_grpo.training.config import typed_config
-from torchrl_grpo.training.model_builder import make_policy
+from torchrl_grpo.training import compose_config, make_env, tensor_episodes
 
 logging.basicConfig(level=logging.INFO, format="%(message)s")
 
-ACTIONS = ("LANE_LEFT", "IDLE", "LANE_RIGHT", "FASTER", "SLOWER")
+#: Who steers to another lane in the crash's step: (the ego, the partner).
+MOVERS = {
+    (True, True): "both changing",
+    (True, False): "ego changing",
+    (False, True): "partner changing",
+    (False, False): "neither changing",
+}
 #: highway-env's vehicle length (m): the Kinematics observation keeps vehicles at most
 #: two lengths behind the ego when ``see_behind`` is off.
 VEHICLE_LENGTH = 5.0
@@ -38,11 +43,7 @@ VEHICLE_LENGTH = 5.0
 def load(args):
     """The env config and the policy to drive."""
     if args.checkpoint:
-        ckpt = load_checkpoint(args.checkpoint)
-        run_cfg = typed_config(ckpt["config"])
-        policy = make_policy(run_cfg.model, make_env(run_cfg.env))
-        policy.load_state_dict(ckpt["policy"])
-        return run_cfg.env, policy
+        return trained(args.checkpoint)
     env_cfg = compose_config([]).env
     return env_cfg, make_scripted_policy(args.policy, make_env(env_cfg))
 
@@ -76,15 +77,7 @@ def describe(before, after, action: int, count: int, see_behind: bool, lane_widt
     return {
         "partner": "ahead" if dx > 0 else "behind",
         "lane": "beside" if side else "same lane",
-        "mover": (
-            "both changing"
-            if ego_changing and partner_changing
-            else "ego changing"
-            if ego_changing
-            else "partner changing"
-            if partner_changing
-            else "neither changing"
-        ),
+        "mover": MOVERS[(ego_changing, partner_changing)],
         "ego set-point": f"{float(veh['target_speed'][0]):.0f} m/s",
         "ego action": ACTIONS[action],
         "seen": "seen" if observed(veh, partner, count, see_behind) else "not seen",
