@@ -11,6 +11,7 @@ all the config an algorithm adds. See ``docs/training.md`` for a worked example.
 
 from __future__ import annotations
 
+import math
 from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -233,17 +234,18 @@ class Algorithm:
         n = data.shape[0]
         mb = min(int(algo.minibatch_size), n)
         cap = algo.get("max_minibatches")
-        total = (n // mb) * int(algo.epochs) if mb else 0
-        total = total if cap is None else min(total, int(cap))
+        limit = math.inf if cap is None else int(cap)
         sums: dict[str, float] = defaultdict(float)
         count = 0
         for epoch in range(int(algo.epochs)):
-            if count == total:
+            if count >= limit:
                 break
             if refresh is not None and epoch > 0:
                 data = refresh()
             perm = torch.randperm(n)
-            for start in range(0, min(n - mb + 1, (total - count) * mb), mb):
+            for start in range(0, n - mb + 1, mb):
+                if count >= limit:
+                    break
                 out = self.member_terms(data[perm[start : start + mb]])
                 loss = sum(v for k, v in out.items() if k.startswith("loss_"))
                 self.optimizer.zero_grad(set_to_none=True)
