@@ -59,8 +59,10 @@ if args.labels is not None and len(args.labels) != len(args.runs):
 labels = dict(zip(args.runs, args.labels, strict=True)) if args.labels else {}
 
 curves = defaultdict(lambda: defaultdict(list))  # env -> algo -> [history]
+periodic = defaultdict(lambda: defaultdict(list))  # the same, periodic evaluations only
 rows = []
 envs = {}
+eval_seeds = defaultdict(set)  # env -> the runs' periodic seed sets
 for run in sorted(args.runs):
     hist_path = run / "eval_history.jsonl"
     if not (run / "config.yaml").exists() or not hist_path.exists():
@@ -72,6 +74,14 @@ for run in sorted(args.runs):
     env, algo = str(cfg.env.name), labels.get(run, str(cfg.algo.name))
     envs[env] = cfg.env
     curves[env][algo].append(history)
+    # The final evaluation drives another seed set: only the periodic rows meet the
+    # baselines below on their own episodes (rows written before they named their seed
+    # tell the final one by its episode count).
+    seed, size = int(cfg.experiment.eval_seed), int(cfg.experiment.eval_episodes)
+    eval_seeds[env].add(seed)
+    periodic[env][algo].append(
+        [r for r in history if r.get("seed", seed) == seed and int(r["episodes"]) == size]
+    )
     last = history[-1]
     rows.append((env, algo, int(cfg.seed), last))
 
@@ -91,13 +101,15 @@ for env, by_algo in curves.items():
     cut = args.max_frames or 1.05 * min(h[-1]["frames"] for hs in by_algo.values() for h in hs)
     by_algo = {a: [[r for r in h if r["frames"] <= cut] for h in hs] for a, hs in by_algo.items()}
     hlines = {}
+    if len(eval_seeds[env]) > 1:
+        raise SystemExit(f"the runs of {env} evaluate on different seed sets: {eval_seeds[env]}")
     if args.baselines:
         base_cfg = OmegaConf.create(
             {
                 "env": OmegaConf.to_container(envs[env]),
                 "checkpoint": None,
                 "episodes": args.baseline_episodes,
-                "seed": None,
+                "seed": next(iter(eval_seeds[env])),
                 "baselines": list(args.baselines),
                 "video": False,
             }
@@ -138,6 +150,9 @@ for env, by_algo in curves.items():
             raise SystemExit(f"--baseline-episodes must be >= {n}, the runs' evaluation size")
         return statistics.mean(slower.returns[:n])
 
+    by_algo = {
+        a: [[r for r in h if r["frames"] <= cut] for h in hs] for a, hs in periodic[env].items()
+    }
     for algo, histories in by_algo.items():
         beaten = [
             next((r for r in h if r["return"] > slower_on(int(r["episodes"]))), None)

@@ -81,6 +81,11 @@ def test_each_iteration_is_one_wandb_row_keyed_by_frames(tmp_path, monkeypatch):
     # One row per iteration, then the final evaluation's.
     assert result.iterations >= 2 and len(rows) == result.iterations + 1, [sorted(r) for r in rows]
     history = [json.loads(line) for line in (tmp_path / "run" / "eval_history.jsonl").open()]
+    # Each row names its seed set: the periodic one, then the final one.
+    exp = cfg.experiment
+    assert [h["seed"] for h in history] == [exp.eval_seed] * result.iterations + [
+        exp.final_eval_seed
+    ]
     for row, evaluation in zip(rows[:-1], history, strict=False):
         frames = row["collect/frames"]
         # Every namespace's step is the frames; a row holds each of them.

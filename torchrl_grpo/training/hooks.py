@@ -190,7 +190,8 @@ class EvaluationHook(Hook):
     """Deterministic evaluations during training, and the final one beside the baselines.
 
     Every ``experiment.eval_every`` iterations: ``eval_episodes`` episodes from
-    ``eval_seed`` (``eval/`` metrics, a row of ``eval_history.jsonl``). At the end:
+    ``eval_seed`` (``eval/`` metrics, a row of ``eval_history.jsonl`` that names its
+    first seed). At the end:
     ``final_eval_episodes`` episodes from ``final_eval_seed`` (a disjoint seed set) of
     the policy and of every baseline of ``experiment.baselines``, the baselines from
     their cache (:func:`~torchrl_grpo.training.evaluate_baselines`; ``results.md``,
@@ -245,7 +246,8 @@ class EvaluationHook(Hook):
             tensor = evaluate_on_tensor(cfg.env, trainer.eval_policy, episodes=episodes, seed=seed)
             summary |= {f"transfer_{k}": v for k, v in paired_gap(res, tensor).items()}
         progress = trainer.progress
-        row = {"iteration": progress.iteration, "frames": progress.frames}
+        # The seed names the seed set, so that a row is compared with baselines on its own.
+        row = {"iteration": progress.iteration, "frames": progress.frames, "seed": seed}
         progress.eval_history.append({**row, "wall_seconds": trainer.wall_seconds(), **summary})
         with open(trainer.run_dir / "eval_history.jsonl", "a") as f:
             f.write(json.dumps(progress.eval_history[-1]) + "\n")
@@ -265,7 +267,7 @@ class EvaluationHook(Hook):
             # One row: the final evaluation's metrics and its video.
             log_metrics(trainer.logger, {**final, "eval/final_episode": video}, step=frames)
             summary = trainer.progress.eval_history[-1]
-            result.final = {k: v for k, v in summary.items() if k != "iteration"}
+            result.final = {k: v for k, v in summary.items() if k not in ("iteration", "seed")}
             cache = exp.get("baseline_cache")
             baselines = evaluate_baselines(
                 cfg.env,
