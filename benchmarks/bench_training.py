@@ -28,6 +28,12 @@ from torchrl_grpo.training.evaluation import evaluate_checkpoint
 logging.basicConfig(level=logging.INFO, format="%(message)s")
 log = logging.getLogger("bench_training")
 
+
+def up_to(histories: dict[str, list[list[dict]]], cut: float) -> dict[str, list[list[dict]]]:
+    """Each algorithm's histories, cut to the rows at or below ``cut`` frames."""
+    return {a: [[r for r in h if r["frames"] <= cut] for h in hs] for a, hs in histories.items()}
+
+
 p = argparse.ArgumentParser()
 p.add_argument("runs", nargs="+", type=Path, help="run folders (config.yaml + eval_history.jsonl)")
 p.add_argument("--out", type=Path, default=Path("docs/img"))
@@ -85,6 +91,7 @@ for run in sorted(args.runs):
     last = history[-1]
     rows.append((env, algo, int(cfg.seed), last))
 
+
 args.out.mkdir(parents=True, exist_ok=True)
 print("| env | algo | seed | frames | return | crash rate | speed | episodes |")
 print("|---|---|---|---|---|---|---|---|")
@@ -99,7 +106,7 @@ for env, by_algo in curves.items():
     # Compare at the same frames: cut every run where the shortest one stops.
     # (5% slack: runs stop at the first batch boundary past their budget).
     cut = args.max_frames or 1.05 * min(h[-1]["frames"] for hs in by_algo.values() for h in hs)
-    by_algo = {a: [[r for r in h if r["frames"] <= cut] for h in hs] for a, hs in by_algo.items()}
+    by_algo = up_to(by_algo, cut)
     hlines = {}
     if len(eval_seeds[env]) > 1:
         raise SystemExit(f"the runs of {env} evaluate on different seed sets: {eval_seeds[env]}")
@@ -150,10 +157,7 @@ for env, by_algo in curves.items():
             raise SystemExit(f"--baseline-episodes must be >= {n}, the runs' evaluation size")
         return statistics.mean(slower.returns[:n])
 
-    by_algo = {
-        a: [[r for r in h if r["frames"] <= cut] for h in hs] for a, hs in periodic[env].items()
-    }
-    for algo, histories in by_algo.items():
+    for algo, histories in up_to(periodic[env], cut).items():
         beaten = [
             next((r for r in h if r["return"] > slower_on(int(r["episodes"]))), None)
             for h in histories
