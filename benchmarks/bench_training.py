@@ -91,7 +91,6 @@ for run in sorted(args.runs):
     last = history[-1]
     rows.append((env, algo, int(cfg.seed), last))
 
-
 args.out.mkdir(parents=True, exist_ok=True)
 print("| env | algo | seed | frames | return | crash rate | speed | episodes |")
 print("|---|---|---|---|---|---|---|---|")
