@@ -258,6 +258,14 @@ def test_distillation_needs_one_roots_enumerated_actions():
         check_config(cfg)
 
 
+def test_a_survival_bootstrap_needs_a_crash_head():
+    cfg = compose_config(["experiment=drive", "algo.bootstrap=survival", "model.crash_head=false"])
+    with pytest.raises(ValueError, match="algo.bootstrap=survival.*model.crash_head=true"):
+        check_config(cfg)
+    cfg.model.crash_head = True
+    check_config(cfg)
+
+
 def test_evaluate_config_composes():
     cfg = compose_config(["checkpoint=x.pt", "env=merge"], config_name="evaluate")
     assert cfg.checkpoint == "x.pt" and cfg.env.scenario == "merge-v0" and cfg.episodes >= 30

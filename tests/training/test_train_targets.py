@@ -93,6 +93,19 @@ def test_a_crash_head_learns_from_each_branchs_crash(tmp_path):
             Trainer(cfg, run_dir=tmp_path / "refused")
 
 
+def test_a_survival_bootstrap_asks_the_crash_head_at_each_branchs_end(tmp_path):
+    overrides = [*REPLAY, "model.crash_head=true", "algo.bootstrap=survival", "logger=csv"]
+    overrides += ["algo.tail_policy=idle", "rollout.horizon=4", "experiment.total_frames=120"]
+    trainer = train_run(tmp_path, "survival", overrides)
+    survival = csv_scalars(tmp_path / "survival")["train/tail_survival_mean"]
+    assert len(survival) == trainer.iteration
+    assert all(0 < p < 1 for p in survival)
+    assert trainer.algo.tail_survival.head is trainer.algo.crash_head.head
+    cfg = compose_config([*TINY, *REPLAY, "algo.bootstrap=survival"])
+    with pytest.raises(ValueError, match="algo.bootstrap=survival.*model.crash_head=true"):
+        Trainer(cfg, run_dir=tmp_path / "refused")
+
+
 def test_each_member_of_an_ensemble_learns_from_its_own_outputs(tmp_path):
     overrides = [*REPLAY, "model.crash_head=true", "model.ensemble=2", "algo.distill_coeff=1"]
     overrides += ["algo.distill_loss=regression", "algo.distill_temperature=1"]

@@ -1,7 +1,8 @@
 """Critic-free objectives: group-relative advantages, GRPOLoss, KL estimators, reference sync.
 
 Also the distillation of enumerated groups' action comparisons (``GroupDistillLoss``,
-``AdvantageRegressionLoss``) and the loss of a crash head (``CrashHeadLoss``).
+``AdvantageRegressionLoss``), the loss of a crash head (``CrashHeadLoss``) and what it
+tells the horizon bootstrap (``TailSurvival``).
 """
 
 from torchrl_grpo.objectives.advantage import GroupRelativeAdvantage
@@ -12,6 +13,7 @@ from torchrl_grpo.objectives.grpo import Aggregation, GRPOLoss
 from torchrl_grpo.objectives.kl import KLEstimator, analytic_kl, kl_estimate
 from torchrl_grpo.objectives.reference import ReferenceSync
 from torchrl_grpo.objectives.regression import AdvantageRegressionLoss
+from torchrl_grpo.objectives.survival import TailSurvival
 
 __all__ = [
     "AdvantageRegressionLoss",
@@ -24,6 +26,7 @@ __all__ = [
     "HorizonBootstrap",
     "KLEstimator",
     "ReferenceSync",
+    "TailSurvival",
     "analytic_kl",
     "group_softmax_target",
     "group_spread",

@@ -18,8 +18,10 @@ from tensordict.nn import TensorDictModuleBase
 __all__ = ["BootstrapMode", "HorizonBootstrap"]
 
 #: ``"batch_mean"``: credit truncated branches with the batch's mean reward per step for
-#: the episode steps left; ``"none"``: the training reward is the env's reward.
-BootstrapMode = Literal["none", "batch_mean"]
+#: the episode steps left; ``"survival"``: the same, times each branch's probability of
+#: surviving past its horizon (:class:`~torchrl_grpo.objectives.TailSurvival`);
+#: ``"none"``: the training reward is the env's reward.
+BootstrapMode = Literal["none", "batch_mean", "survival"]
 
 
 class HorizonBootstrap(TensorDictModuleBase):
@@ -37,8 +39,12 @@ class HorizonBootstrap(TensorDictModuleBase):
     Args:
         step_limit: the episode length in steps (e.g. a highway-env scenario's
             ``duration`` times its ``policy_frequency``).
-        mode: ``"batch_mean"`` (the tail above) or ``"none"`` (the training reward is a
-            copy of the env's).
+        mode: ``"batch_mean"`` (the tail above), ``"survival"`` (that tail times the
+            ``survival`` key at the branch's last step: the probability that the policy
+            would not crash soon after the horizon, so that a branch that ends in a trap
+            is not credited the steps it would not drive; written by
+            :class:`~torchrl_grpo.objectives.TailSurvival`), or ``"none"`` (the training
+            reward is a copy of the env's).
         termination_penalty: subtracted from the training reward of a step where the
             env ended the episode (in highway-env a crash, or leaving the road with
             ``offroad_terminal``): shaping that makes a crash cost more than the reward
@@ -46,7 +52,8 @@ class HorizonBootstrap(TensorDictModuleBase):
 
     Keys (change them with :meth:`set_keys`): ``reward`` (``("next", "reward")``),
     ``terminated`` (``("next", "terminated")``), ``mask`` (``"mask"``: valid steps),
-    ``root_step`` (``"root_step"``: the episode step of the branch's root), written:
+    ``root_step`` (``"root_step"``: the episode step of the branch's root), ``survival``
+    (``"tail_survival"``, read with ``mode="survival"`` only), written:
     ``train_reward`` (``("next", "train_reward")``) and ``bootstrap`` (``"bootstrap"``:
     what was added to each step's reward, shaped like the reward).
 
@@ -76,6 +83,10 @@ class HorizonBootstrap(TensorDictModuleBase):
         >>> out = HorizonBootstrap(step_limit=10, termination_penalty=5.0)(td)
         >>> out["next", "train_reward"].squeeze(-1)[1]  # the crash costs 5 more
         tensor([ 1., -5.,  0.])
+        >>> td["tail_survival"] = torch.tensor([[0.5, 0.5, 0.25], [1.0, 1.0, 1.0]])
+        >>> out = HorizonBootstrap(step_limit=10, mode="survival")(td)
+        >>> out["bootstrap"].sum((-2, -1))  # 2.4 x 0.25, read at the first one's last step
+        tensor([0.6000, 0.0000])
     """
 
     @dataclass
@@ -87,6 +98,8 @@ class HorizonBootstrap(TensorDictModuleBase):
             terminated: whether the env ended the episode at that step.
             mask: boolean, ``True`` on valid steps (a branch's steps come first).
             root_step: episode step of the branch's root, on every step.
+            survival: with ``mode="survival"``, the probability of surviving past the
+                horizon after each step, shaped like ``mask``; read at the last valid one.
             train_reward: written, the reward plus the tail (shaped like ``reward``).
             bootstrap: written, the tail added to each step (shaped like ``reward``).
         """
@@ -95,6 +108,7 @@ class HorizonBootstrap(TensorDictModuleBase):
         terminated: NestedKey = ("next", "terminated")
         mask: NestedKey = "mask"
         root_step: NestedKey = "root_step"
+        survival: NestedKey = "tail_survival"
         train_reward: NestedKey = ("next", "train_reward")
         bootstrap: NestedKey = "bootstrap"
 
@@ -109,8 +123,8 @@ class HorizonBootstrap(TensorDictModuleBase):
                 f"termination_penalty must be a finite number >= 0, got {termination_penalty}."
             )
         self.termination_penalty = float(termination_penalty)
-        if mode not in ("none", "batch_mean"):
-            raise ValueError(f"mode must be 'none' or 'batch_mean', got {mode!r}.")
+        if mode not in ("none", "batch_mean", "survival"):
+            raise ValueError(f"mode must be 'none', 'batch_mean' or 'survival', got {mode!r}.")
         if step_limit < 1:
             raise ValueError(f"step_limit must be >= 1, got {step_limit}.")
         self.step_limit = int(step_limit)
@@ -135,7 +149,8 @@ class HorizonBootstrap(TensorDictModuleBase):
     @property
     def in_keys(self) -> list[NestedKey]:  # noqa: D102
         k = self.tensor_keys
-        return [k.reward, k.terminated, k.mask, k.root_step]
+        survival = [k.survival] if self.mode == "survival" else []
+        return [k.reward, k.terminated, k.mask, k.root_step, *survival]
 
     @property
     def out_keys(self) -> list[NestedKey]:  # noqa: D102
@@ -150,7 +165,7 @@ class HorizonBootstrap(TensorDictModuleBase):
         shape = mask.shape
         train = reward.clone()
         bonus = torch.zeros_like(reward)
-        if self.mode == "batch_mean" and bool(mask.any()):
+        if self.mode != "none" and bool(mask.any()):
             rate = float(reward.reshape(shape)[mask].mean())
             lengths = mask.sum(-1)
             last = (lengths - 1).clamp(min=0).unsqueeze(-1)
@@ -158,7 +173,10 @@ class HorizonBootstrap(TensorDictModuleBase):
             ended_by_env = terminated.gather(-1, last).squeeze(-1)
             step_end = tensordict.get(keys.root_step).reshape(shape)[..., 0] + lengths
             left = (self.step_limit - step_end).clamp(min=0)
-            tail = (rate * left * (~ended_by_env & (lengths > 0))).unsqueeze(-1)
+            tail = rate * left * (~ended_by_env & (lengths > 0))
+            if self.mode == "survival":
+                tail = tail * self._survival(tensordict, shape).gather(-1, last).squeeze(-1)
+            tail = tail.unsqueeze(-1)
             train.view(shape).scatter_add_(-1, last, tail.to(train.dtype))
             bonus.view(shape).scatter_(-1, last, tail.to(bonus.dtype))
         if self.termination_penalty and bool(mask.any()):
@@ -169,6 +187,18 @@ class HorizonBootstrap(TensorDictModuleBase):
         tensordict.set(keys.train_reward, train)
         tensordict.set(keys.bootstrap, bonus)
         return tensordict
+
+    def _survival(self, tensordict: TensorDictBase, shape: torch.Size) -> torch.Tensor:
+        key = self.tensor_keys.survival
+        if key not in tensordict.keys(include_nested=True):
+            raise KeyError(
+                f"HorizonBootstrap(mode='survival') reads {key!r}, which the tensordict "
+                "lacks: run a TailSurvival on it first"
+            )
+        survival = tensordict.get(key).reshape(shape).float()
+        if bool(((survival < 0) | (survival > 1) | survival.isnan()).any()):
+            raise ValueError(f"{key!r} must hold probabilities in [0, 1]")
+        return survival
 
     def extra_repr(self) -> str:  # noqa: D102
         return (

@@ -7,14 +7,12 @@ trunk episodes, ``grpo_episode`` rolls whole episodes from one reset. A batch is
 
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass
 from typing import Any, Literal, get_args
 
 import torch
 from omegaconf import MISSING, DictConfig, OmegaConf
 from tensordict import TensorDictBase
-from torch import nn
 from torchrl.collectors import BaseCollector
 from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, ValueOperator
@@ -44,6 +42,7 @@ from torchrl_grpo.training.algos.enumerated import (
     replay_rows,
 )
 from torchrl_grpo.training.algos.grpo_checks import check_grpo_config
+from torchrl_grpo.training.algos.tails import make_tail_policy, make_tail_survival
 from torchrl_grpo.training.choices import (
     AggregationName,
     BaselineName,
@@ -59,7 +58,7 @@ from torchrl_grpo.training.choices import (
 from torchrl_grpo.training.collect import make_collector, trunk_schedule
 from torchrl_grpo.training.env_builder import episode_step_limit, make_rollout_env
 from torchrl_grpo.training.metrics import PhaseTimer, group_metrics
-from torchrl_grpo.training.model_builder import BasePolicyName, make_base_policy
+from torchrl_grpo.training.model_builder import BasePolicyName
 
 __all__ = ["GRPO", "TRAIN_REWARD", "GRPOConfig", "GRPOVariant", "make_replay", "policy_weighted"]
 
@@ -172,7 +171,7 @@ class GRPO(Algorithm):
             termination_penalty=float(algo.crash_penalty),
         ).set_keys(train_reward=TRAIN_REWARD)
         self.ref_sync = self.make_reference_sync(algo, self.loss)
-        self.tail_policy = _tail_policy(algo, policy, env)
+        self.tail_policy = make_tail_policy(algo, policy, env)
         self.replay = make_replay(algo)
         self.distill = make_distill_loss(algo, policy)
         head = next((m for m in policy.modules() if isinstance(m, CrashHead)), None)
@@ -182,6 +181,7 @@ class GRPO(Algorithm):
         self.crash_head = (
             None if head is None else CrashHeadLoss(head, coeff=float(algo.crash_head_coeff))
         )
+        self.tail_survival = make_tail_survival(algo, head)
 
     @classmethod
     def make_loss(
@@ -262,6 +262,8 @@ class GRPO(Algorithm):
     def update(self, batch: TensorDictBase, timer: PhaseTimer) -> dict[str, float]:
         """Bootstrap, advantage, the trained steps (and replay), then the epochs."""
         with timer("advantage"):
+            if self.tail_survival is not None:
+                self.tail_survival(batch)
             self.bootstrap(batch)
             self.advantage(batch)
             if self.crash_head is not None:
@@ -292,6 +294,9 @@ class GRPO(Algorithm):
                 batch.get("bootstrap").reshape(shape).sum(-1).mean()
             ),
         }
+        if self.tail_survival is not None:
+            survival = batch.get("tail_survival")[..., 0]
+            stats["train/tail_survival_mean"] = float(survival.mean())
         if self.replay is not None:
             data = self.replayed(data)
             stats["train/replay_steps"] = float(data.shape[0])
@@ -381,20 +386,3 @@ class GRPO(Algorithm):
             self.replay.load_state_dict(checkpoint["replay"])
         if self.ref_sync is not None and checkpoint.get("ref_sync_counter") is not None:
             self.ref_sync.counter = int(checkpoint["ref_sync_counter"])
-
-
-def _tail_policy(algo: DictConfig, policy: nn.Module, env: EnvBase) -> nn.Module | None:
-    """The actor of greedy tails when it is not ``policy`` itself, or ``None``.
-
-    A scripted base policy (``algo.tail_policy``), or a frozen copy of ``policy``
-    (``algo.tail_sync_batches``).
-    """
-    # check_config has refused both settings without explore_steps, and together.
-    base = str(algo.tail_policy)
-    if base != "learner":
-        return make_base_policy(base, env, "algo.tail_policy")
-    if algo.tail_sync_batches is None:
-        return None
-    tail = copy.deepcopy(policy)
-    tail.requires_grad_(False)
-    return tail

@@ -89,7 +89,13 @@ def check_grpo_config(cfg: DictConfig) -> None:
             "yet; use the parallel, serial or single backend"
         )
     model = cfg.get("model")
-    if model is not None and model.get("crash_head", False):
+    has_head = model is not None and bool(model.get("crash_head", False))
+    if str(algo.get("bootstrap", "none")) == "survival" and not has_head:
+        raise ValueError(
+            "algo.bootstrap=survival asks the crash head how likely a branch's last state "
+            "is to crash next: set model.crash_head=true"
+        )
+    if has_head:
         if not (algo.crash_head_coeff > 0 and algo.crash_head_coeff < float("inf")):
             raise ValueError(
                 f"algo.crash_head_coeff must be a finite number > 0 to train model.crash_head, "
