@@ -10,7 +10,9 @@ the rule policy, the lookahead planner over the rule policy (every action tried 
 every state, then ``--horizon`` steps of the rule policy: what the groups of
 ``algo=grpo_branch`` score; the planner's branches are rows of one batched rollout) and
 the greedy policy of each ``--checkpoint`` (with ``--ensemble``, also the mean logits of
-all of them, a :class:`~torchrl_grpo.modules.PolicyEnsemble`). Each row prints its crash
+all of them, a :class:`~torchrl_grpo.modules.PolicyEnsemble`; with ``--live``, also
+the policy the optimiser trained, where the run saved a weight average; with
+``--aversions``, also the crash head acting with other weights). Each row prints its crash
 rate beside the planner's and always-SLOWER's. With ``--anatomy``, the last five
 (``--look-back``) decisions before each crash of a checkpoint's policy are scored by the
 planner (``--sequences`` prints them crash by crash): a choice is costly when the
@@ -23,6 +25,8 @@ planner's best action earns at least 0.5 more over its branch.
         --no-planner --anatomy --look-back 15 --sequences
     python benchmarks/bench_crash_rates.py --checkpoint a/last.pt --checkpoint b/last.pt \
         --no-planner --ensemble
+    python benchmarks/bench_crash_rates.py --checkpoint outputs/.../last.pt --no-planner \
+        --live --aversions 5 8
 """
 
 from __future__ import annotations
@@ -63,12 +67,21 @@ logging.basicConfig(level=logging.INFO, format="%(message)s")
 log = logging.getLogger("bench_crash_rates")
 
 
-def trained(path: str):
-    """The env config and greedy-ready policy of a checkpoint."""
+def trained(path: str, live: bool = False):
+    """The env config and greedy-ready policy of a checkpoint.
+
+    With ``live``, the policy the optimiser trained rather than the weight average that
+    a run with ``optim.ema_decay`` evaluates and saves as its policy.
+    """
     ckpt = load_checkpoint(path)
     run_cfg = typed_config(ckpt["config"])
     policy = make_policy(run_cfg.model, make_env(run_cfg.env))
-    policy.load_state_dict(ckpt["policy"])
+    state = ckpt["policy"]
+    if live:
+        if not ckpt.get("policy_average"):
+            raise SystemExit(f"--live: {path} was written without optim.ema_decay")
+        state = ckpt["policy_average"]["train_policy"]
+    policy.load_state_dict(state)
     return run_cfg.env, policy
 
 
@@ -156,6 +169,11 @@ def main() -> None:
         help="also evaluate each crash-head checkpoint with these crash aversions",
     )
     p.add_argument(
+        "--live",
+        action="store_true",
+        help="also evaluate the live policy of checkpoints averaged with optim.ema_decay",
+    )
+    p.add_argument(
         "--ensemble",
         action="store_true",
         help="also evaluate the mean logits of all the checkpoints' networks (one policy)",
@@ -172,11 +190,13 @@ def main() -> None:
             policies.append(
                 (f"{path} (aversion {aversion:g})", with_aversion(policy, path, aversion), False)
             )
+        if args.live:
+            policies.append((f"{path} (live policy)", trained(path, live=True)[1], False))
     env_cfg.max_episode_steps = env_cfg.get("max_episode_steps", 40)
     if args.ensemble:
         if len(args.checkpoint) < 2:
             raise SystemExit("--ensemble needs at least 2 --checkpoint")
-        members = [policy for _, policy, _ in policies[:: 1 + len(args.aversions)]]
+        members = [policy for _, policy, _ in policies[:: 1 + len(args.aversions) + args.live]]
         name = f"mean logits of the {len(members)} checkpoints"
         policies.append((name, ensemble_of(members, env_cfg), False))
     layout = make_layout(make_env(env_cfg))
