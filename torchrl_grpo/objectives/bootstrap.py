@@ -8,12 +8,13 @@ runs before the group-relative advantage, which then reads the training reward.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 from typing import Literal
 
 import torch
 from tensordict import NestedKey, TensorDictBase
-from tensordict.nn import TensorDictModuleBase
+
+from torchrl_grpo.objectives._keyed import KeyedModule
 
 __all__ = ["BootstrapMode", "HorizonBootstrap"]
 
@@ -24,7 +25,7 @@ __all__ = ["BootstrapMode", "HorizonBootstrap"]
 BootstrapMode = Literal["none", "batch_mean", "survival"]
 
 
-class HorizonBootstrap(TensorDictModuleBase):
+class HorizonBootstrap(KeyedModule):
     """Writes the training reward: the env's, plus a tail for branches cut by the horizon.
 
     A branch truncated by the horizon would go on collecting reward until its episode
@@ -129,22 +130,6 @@ class HorizonBootstrap(TensorDictModuleBase):
             raise ValueError(f"step_limit must be >= 1, got {step_limit}.")
         self.step_limit = int(step_limit)
         self.mode = mode
-        self.tensor_keys = self._AcceptedKeys()
-
-    def set_keys(self, **keys: NestedKey) -> HorizonBootstrap:
-        """Renames the keys read and written, e.g. ``set_keys(train_reward="r")``.
-
-        Raises:
-            ValueError: for a name that is not one of the accepted keys.
-        """
-        accepted = sorted(f.name for f in fields(self._AcceptedKeys))
-        unknown = sorted(set(keys) - set(accepted))
-        if unknown:
-            raise ValueError(
-                f"{unknown} are not accepted keys of {type(self).__name__}: {accepted}."
-            )
-        self.tensor_keys = replace(self.tensor_keys, **keys)
-        return self
 
     @property
     def in_keys(self) -> list[NestedKey]:  # noqa: D102

@@ -11,17 +11,18 @@ the bootstrap how much of the tail to credit, for no extra simulated step.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 
 import torch
 from tensordict import NestedKey, TensorDictBase
-from tensordict.nn import TensorDictModuleBase
 from torch import nn
+
+from torchrl_grpo.objectives._keyed import KeyedModule
 
 __all__ = ["TailSurvival"]
 
 
-class TailSurvival(TensorDictModuleBase):
+class TailSurvival(KeyedModule):
     """Writes ``1 - p_crash(s_end, a*)`` on every step of each branch of a ``[..., T]`` batch.
 
     ``s_end`` is the observation after a branch's last valid step and ``a*`` the
@@ -79,22 +80,6 @@ class TailSurvival(TensorDictModuleBase):
             )
         super().__init__()
         self.head = head
-        self.tensor_keys = self._AcceptedKeys()
-
-    def set_keys(self, **keys: NestedKey) -> TailSurvival:
-        """Renames the keys read and written, e.g. ``set_keys(survival="p")``.
-
-        Raises:
-            ValueError: for a name that is not one of the accepted keys.
-        """
-        accepted = sorted(f.name for f in fields(self._AcceptedKeys))
-        unknown = sorted(set(keys) - set(accepted))
-        if unknown:
-            raise ValueError(
-                f"{unknown} are not accepted keys of {type(self).__name__}: {accepted}."
-            )
-        self.tensor_keys = replace(self.tensor_keys, **keys)
-        return self
 
     @property
     def in_keys(self) -> list[NestedKey]:  # noqa: D102
