@@ -12,7 +12,8 @@ every state, then ``--horizon`` steps of the rule policy: what the groups of
 the greedy policy of each ``--checkpoint`` (with ``--ensemble``, also the mean logits of
 all of them, a :class:`~torchrl_grpo.modules.PolicyEnsemble`; with ``--live``, also
 the policy the optimiser trained, where the run saved a weight average; with
-``--aversions``, also the crash head acting with other weights). Each row prints its crash
+``--aversions``, also the crash head acting with other weights; with ``--versus``, each
+policy's paired verdict against that checkpoint). Each row prints its crash
 rate beside the planner's and always-SLOWER's. With ``--anatomy``, the last five
 (``--look-back``) decisions before each crash of a checkpoint's policy are scored by the
 planner (``--sequences`` prints them crash by crash): a choice is costly when the
@@ -27,6 +28,8 @@ planner's best action earns at least 0.5 more over its branch.
         --no-planner --ensemble
     python benchmarks/bench_crash_rates.py --checkpoint outputs/.../last.pt --no-planner \
         --live --aversions 5 8
+    python benchmarks/bench_crash_rates.py --checkpoint grpo/last.pt --versus ppo/last.pt \
+        --no-planner
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ from torchrl_grpo.modules import (
     make_scripted_policy,
 )
 from torchrl_grpo.training import (
+    compare_paired,
     evaluate_on_tensor,
     load_checkpoint,
     make_env,
@@ -174,6 +178,12 @@ def main() -> None:
         help="also evaluate the live policy of checkpoints averaged with optim.ema_decay",
     )
     p.add_argument(
+        "--versus",
+        default=None,
+        help="a checkpoint every other one is compared with, paired on the same episodes "
+        "(the issue's 'beats': a return higher by > 2 standard errors, crashes no more)",
+    )
+    p.add_argument(
         "--ensemble",
         action="store_true",
         help="also evaluate the mean logits of all the checkpoints' networks (one policy)",
@@ -199,6 +209,9 @@ def main() -> None:
         members = [policy for _, policy, _ in policies[:: 1 + len(args.aversions) + args.live]]
         name = f"mean logits of the {len(members)} checkpoints"
         policies.append((name, ensemble_of(members, env_cfg), False))
+    if args.versus is not None:
+        _, policy = trained(args.versus)
+        policies.append((args.versus, policy, False))
     layout = make_layout(make_env(env_cfg))
     rule = make_scripted_policy("rule", layout)
     baselines = [("always-SLOWER", make_scripted_policy("slower", layout), False)]
@@ -247,6 +260,11 @@ def main() -> None:
             f"| {name} | {ret.mean():.2f} ± {ret.std():.2f} | {100 * crash:.1f}% ± "
             f"{100 * sem:.1f} | {vs_slower} | {vs_planner} |"
         )
+    if args.versus is not None:
+        print()
+        for name, _, _ in policies:
+            if name != args.versus:
+                print(compare_paired(rows[name], rows[args.versus]))
     if args.anatomy:
         for path, policy, _ in policies:
             print(f"{path}: ", end="")
