@@ -295,7 +295,7 @@ class GRPO(Algorithm):
             ),
         }
         if self.tail_survival is not None:
-            survival = batch.get("tail_survival")[..., 0]
+            survival = batch.get(self.tail_survival.tensor_keys.survival)[..., 0]
             stats["train/tail_survival_mean"] = float(survival.mean())
         if self.replay is not None:
             data = self.replayed(data)

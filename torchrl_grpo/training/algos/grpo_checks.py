@@ -6,7 +6,7 @@ from omegaconf import DictConfig
 
 from torchrl_grpo.training.algos.enumerated import check_distill
 
-__all__ = ["check_grpo_config"]
+__all__ = ["check_grpo_config", "check_survival_bootstrap"]
 
 
 def check_grpo_config(cfg: DictConfig) -> None:
@@ -90,11 +90,7 @@ def check_grpo_config(cfg: DictConfig) -> None:
         )
     model = cfg.get("model")
     has_head = model is not None and bool(model.get("crash_head", False))
-    if str(algo.get("bootstrap", "none")) == "survival" and not has_head:
-        raise ValueError(
-            "algo.bootstrap=survival asks the crash head how likely a branch's last state "
-            "is to crash next: set model.crash_head=true"
-        )
+    check_survival_bootstrap(algo, has_head)
     if has_head:
         if not (algo.crash_head_coeff > 0 and algo.crash_head_coeff < float("inf")):
             raise ValueError(
@@ -106,3 +102,23 @@ def check_grpo_config(cfg: DictConfig) -> None:
                 "model.crash_head learns whether each action, then the tail, crashes: set "
                 "algo.first_action=enumerate and algo.explore_steps=1 (algo=grpo_branch)"
             )
+
+
+def check_survival_bootstrap(algo: DictConfig, has_head: bool) -> None:
+    """Refuse ``algo.bootstrap=survival`` without a crash head to ask.
+
+    Raises:
+        ValueError: naming ``model.crash_head=true``.
+
+    Example:
+        >>> from omegaconf import OmegaConf
+        >>> check_survival_bootstrap(OmegaConf.create({"bootstrap": "survival"}), False)
+        Traceback (most recent call last):
+        ...
+        ValueError: algo.bootstrap=survival asks the crash head how likely a branch's last state is to crash next: set model.crash_head=true
+    """  # noqa: E501 - a doctest's expected output is one line
+    if str(algo.get("bootstrap", "none")) == "survival" and not has_head:
+        raise ValueError(
+            "algo.bootstrap=survival asks the crash head how likely a branch's last state "
+            "is to crash next: set model.crash_head=true"
+        )

@@ -15,6 +15,7 @@ from torch import nn
 from torchrl.envs import EnvBase
 
 from torchrl_grpo.objectives import TailSurvival
+from torchrl_grpo.training.algos.grpo_checks import check_survival_bootstrap
 from torchrl_grpo.training.model_builder import make_base_policy
 
 __all__ = ["make_tail_policy", "make_tail_survival"]
@@ -59,11 +60,5 @@ def make_tail_survival(algo: DictConfig, head: nn.Module | None) -> TailSurvival
         >>> make_tail_survival(OmegaConf.create({"bootstrap": "batch_mean"}), None) is None
         True
     """
-    if str(algo.bootstrap) != "survival":
-        return None
-    if head is None:
-        raise ValueError(
-            "algo.bootstrap=survival asks the crash head how likely a branch's last state "
-            "is to crash next: set model.crash_head=true"
-        )
-    return TailSurvival(head)
+    check_survival_bootstrap(algo, head is not None)
+    return TailSurvival(head) if str(algo.bootstrap) == "survival" else None
