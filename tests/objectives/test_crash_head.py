@@ -51,6 +51,28 @@ def test_the_loss_is_the_mean_cross_entropy_of_each_rows_action():
     torch.testing.assert_close(grad[:, 2:], expected_grad)
 
 
+def test_a_probability_label_gives_the_soft_cross_entropy_and_bad_labels_are_named():
+    # p = 1/2 and 3/4; labels 1/4 and 1 (a bootstrapped label and a crash).
+    table = torch.tensor([[0.0, 0.0, 0.0, math.log(3)]])
+    head = CrashHead(_Table(table), 2)
+    data = TensorDict(
+        observation=torch.tensor([0, 0]),
+        action=torch.tensor([0, 1]),
+        branch_crashed=torch.tensor([0.25, 1.0]),
+        batch_size=[2],
+    )
+    out = CrashHeadLoss(head, coeff=1.0)(data)
+    # -(1/4 log 1/2 + 3/4 log 1/2) = log 2, and -log 3/4.
+    expected = (math.log(2) + math.log(4 / 3)) / 2
+    assert float(out["crash_head_bce"]) == pytest.approx(expected)
+    # Label 1/4 reads "no crash" and p = 1/2 too; label 1 and p = 3/4 read "crash".
+    assert float(out["crash_head_accuracy"]) == 1.0
+    for bad in (1.5, -0.1, float("nan")):
+        data["branch_crashed"] = torch.tensor([0.25, bad])
+        with pytest.raises(ValueError, match="crash label 'branch_crashed' must lie in"):
+            CrashHeadLoss(head, coeff=1.0)(data)
+
+
 def test_aversion_adds_the_log_survival_probability_and_trains_nothing_through_it():
     table = torch.tensor([[1.0, 2.0, math.log(3), -math.log(3)]])
     head = CrashHead(_Table(table), 2, aversion=4.0)

@@ -11,7 +11,7 @@ from test_bootstrap import LAST, TAILS, _batch
 from torch import nn
 
 from torchrl_grpo.modules import CrashHead
-from torchrl_grpo.objectives import HorizonBootstrap, TailSurvival
+from torchrl_grpo.objectives import HorizonBootstrap, TailSurvival, crash_label
 
 
 class StepHead(nn.Module):
@@ -103,3 +103,16 @@ def test_survival_from_a_crash_head_network_feeds_the_bootstrap():
     out = HorizonBootstrap(step_limit=30, mode="survival")(batch)
     # Action 1's crash logit 0: every tail is halved.
     torch.testing.assert_close(out["bootstrap"].reshape(3, 4).sum(-1), torch.tensor(TAILS) * 0.5)
+
+
+def test_the_bootstrapped_crash_label_is_one_the_heads_estimate_or_zero():
+    crashed = torch.tensor([True, True, False, False])
+    cut = torch.tensor([False, True, True, False])
+    survival = torch.tensor([0.9, 0.2, 0.75, 0.5])
+    # A crash is 1 whatever the head says; a cut branch is the head's 1 - survival; a
+    # branch whose episode ended alive is 0.
+    assert crash_label(crashed, cut, survival).tolist() == [1.0, 1.0, 0.25, 0.0]
+    # Broadcast: one survival per branch against a [branches, steps] mask.
+    out = crash_label(crashed[:, None].expand(4, 3), cut[:, None], survival[:, None])
+    assert out.shape == (4, 3) and out[:, 0].tolist() == [1.0, 1.0, 0.25, 0.0]
+    assert crash_label(crashed, cut, survival.double()).dtype == torch.float64

@@ -258,12 +258,18 @@ def test_distillation_needs_one_roots_enumerated_actions():
         check_config(cfg)
 
 
-def test_a_survival_bootstrap_needs_a_crash_head():
-    cfg = compose_config(["experiment=drive", "algo.bootstrap=survival", "model.crash_head=false"])
-    with pytest.raises(ValueError, match="algo.bootstrap=survival.*model.crash_head=true"):
+@pytest.mark.parametrize("option", ["algo.bootstrap=survival", "algo.crash_label=bootstrap"])
+def test_a_survival_bootstrap_needs_a_crash_head(option):
+    cfg = compose_config(["experiment=drive", option, "model.crash_head=false"])
+    with pytest.raises(ValueError, match=f"{option}.*model.crash_head=true"):
         check_config(cfg)
     cfg.model.crash_head = True
     check_config(cfg)
+
+
+def test_the_crash_label_is_a_checked_choice():
+    with pytest.raises(Exception, match="crash_label"):
+        compose_config(["algo.crash_label=episode"])
 
 
 def test_evaluate_config_composes():

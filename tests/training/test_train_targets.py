@@ -5,10 +5,14 @@ from __future__ import annotations
 import pytest
 import torch
 from conftest import TINY, compose_config
+from tensordict import TensorDict
+from torch import nn
 from train_helpers import REPLAY, csv_scalars, logged_ratios, train_run
 
-from torchrl_grpo.modules import PolicyEnsemble
+from torchrl_grpo.modules import CrashHead, PolicyEnsemble
+from torchrl_grpo.objectives import HorizonBootstrap, TailSurvival
 from torchrl_grpo.training import Trainer
+from torchrl_grpo.training.algos.tails import crash_labels
 
 
 def test_distillation_stores_each_groups_target_and_trains_on_it(tmp_path):
@@ -103,6 +107,43 @@ def test_a_survival_bootstrap_asks_the_crash_head_at_each_branchs_end(tmp_path):
     assert trainer.algo.tail_survival.head is trainer.algo.crash_head.head
     cfg = compose_config([*TINY, *REPLAY, "algo.bootstrap=survival"])
     with pytest.raises(ValueError, match="algo.bootstrap=survival.*model.crash_head=true"):
+        Trainer(cfg, run_dir=tmp_path / "refused")
+
+
+def test_bootstrapped_crash_labels_are_the_heads_estimate_where_the_horizon_cut(tmp_path):
+    # Three branches of 3 steps from roots at episode steps 2, 2 and 27 (limit 30): one
+    # crashes at its second step, one is cut alive, one reaches the episode's end.
+    mask = torch.tensor([[[True, True, False], [True, True, True], [True, True, True]]])
+    terminated = torch.zeros(1, 3, 3, 1, dtype=torch.bool)
+    terminated[0, 0, 1] = True
+    batch = TensorDict(
+        {
+            "mask": mask,
+            "root_step": torch.tensor([2, 2, 27]).reshape(1, 3, 1).expand(1, 3, 3),
+            "tail_survival": torch.tensor([0.5, 0.75, 0.1]).reshape(1, 3, 1).expand(1, 3, 3),
+            ("next", "terminated"): terminated,
+        },
+        batch_size=[1, 3, 3],
+    )
+    survival = TailSurvival(CrashHead(nn.Linear(1, 4), 2))
+    labels = crash_labels(batch, HorizonBootstrap(30), survival)
+    assert labels.tolist() == [[[1.0] * 3, [0.25] * 3, [0.0] * 3]]
+    # Without the survival module: whether each branch crashed.
+    assert crash_labels(batch, HorizonBootstrap(30), None).tolist() == [
+        [[True] * 3, [False] * 3, [False] * 3]
+    ]
+    # End to end, with the batch-mean bootstrap: the head's estimate is asked for the
+    # labels alone, and the refusal without a head names the option.
+    overrides = [*REPLAY, "model.crash_head=true", "algo.crash_label=bootstrap", "logger=csv"]
+    overrides += ["algo.tail_policy=idle", "rollout.horizon=4", "experiment.total_frames=120"]
+    trainer = train_run(tmp_path, "labels", overrides)
+    assert str(trainer.cfg.algo.bootstrap) == "batch_mean"
+    assert trainer.algo.tail_survival.head is trainer.algo.crash_head.head
+    scalars = csv_scalars(tmp_path / "labels")
+    assert len(scalars["train/crash_head_bce"]) == trainer.iteration
+    assert len(scalars["train/tail_survival_mean"]) == trainer.iteration
+    cfg = compose_config([*TINY, *REPLAY, "algo.crash_label=bootstrap"])
+    with pytest.raises(ValueError, match="algo.crash_label=bootstrap.*model.crash_head=true"):
         Trainer(cfg, run_dir=tmp_path / "refused")
 
 

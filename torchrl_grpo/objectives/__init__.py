@@ -2,7 +2,7 @@
 
 Also the distillation of enumerated groups' action comparisons (``GroupDistillLoss``,
 ``AdvantageRegressionLoss``), the loss of a crash head (``CrashHeadLoss``) and what it
-tells the horizon bootstrap (``TailSurvival``).
+tells the horizon bootstrap and its own labels (``TailSurvival``, ``crash_label``).
 """
 
 from torchrl_grpo.objectives.advantage import GroupRelativeAdvantage
@@ -13,13 +13,14 @@ from torchrl_grpo.objectives.grpo import Aggregation, GRPOLoss
 from torchrl_grpo.objectives.kl import KLEstimator, analytic_kl, kl_estimate
 from torchrl_grpo.objectives.reference import ReferenceSync
 from torchrl_grpo.objectives.regression import AdvantageRegressionLoss
-from torchrl_grpo.objectives.survival import TailSurvival
+from torchrl_grpo.objectives.survival import CrashLabel, TailSurvival, crash_label
 
 __all__ = [
     "AdvantageRegressionLoss",
     "Aggregation",
     "BootstrapMode",
     "CrashHeadLoss",
+    "CrashLabel",
     "GRPOLoss",
     "GroupDistillLoss",
     "GroupRelativeAdvantage",
@@ -28,6 +29,7 @@ __all__ = [
     "ReferenceSync",
     "TailSurvival",
     "analytic_kl",
+    "crash_label",
     "group_softmax_target",
     "group_spread",
     "kl_estimate",

@@ -33,10 +33,11 @@ class CrashHeadLoss(LossModule):
 
     Keys (change them with :meth:`set_keys`): ``observation`` (``"observation"``),
     ``action`` (``"action"``) and ``label`` (``"branch_crashed"``: whether the row's
-    branch ended in a crash).
+    branch ended in a crash, or a probability of it, such as
+    :func:`~torchrl_grpo.objectives.crash_label`'s).
 
     Outputs: ``loss_crash_head``, and the diagnostics ``crash_head_bce`` (without
-    ``coeff``) and ``crash_head_accuracy`` (predictions on the right side of 1/2).
+    ``coeff``) and ``crash_head_accuracy`` (predictions on the label's side of 1/2).
 
     Example:
         >>> import torch
@@ -58,7 +59,7 @@ class CrashHeadLoss(LossModule):
         Attributes:
             observation: the head's input.
             action: the row's action (its branch's first action).
-            label: whether the row's branch ended in a crash.
+            label: whether the row's branch ended in a crash (bool), or its probability.
         """
 
         observation: NestedKey = "observation"
@@ -92,11 +93,13 @@ class CrashHeadLoss(LossModule):
         observation = require(tensordict, keys.observation, "observation")
         action = require(tensordict, keys.action, "action").reshape(-1, 1).long()
         label = require(tensordict, keys.label, "label").reshape(-1).float()
+        if bool(((label < 0) | (label > 1) | label.isnan()).any()):
+            raise ValueError(f"the crash label {keys.label!r} must lie in [0, 1]")
         logits = self.head.crash_logits(observation).reshape(action.shape[0], -1)
         logit = logits.gather(-1, action).squeeze(-1)
         check_finite({"crash logits": logit})
         bce = nn.functional.binary_cross_entropy_with_logits(logit, label)
-        accuracy = ((logit > 0).float() == label).float().mean()
+        accuracy = ((logit > 0) == (label > 0.5)).float().mean()
         return TensorDict(
             loss_crash_head=self.coeff * bce,
             crash_head_bce=bce.detach(),

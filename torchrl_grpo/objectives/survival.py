@@ -7,11 +7,18 @@ will not be driven: a target blind past the horizon scores the action that led t
 as safe. A crash head already predicts, for every action, whether the next H steps
 crash; asked at a branch's last state for the action the policy would take, it tells
 the bootstrap how much of the tail to credit, for no extra simulated step.
+
+The same probability can teach the head itself to look further
+(:func:`crash_label`, ``algo.crash_label=bootstrap``): a branch the horizon cut alive is
+labelled with the head's crash probability at its last state instead of 0, so the
+head learns the probability of crashing before the episode ends, one horizon of
+bootstrapping at a time (a temporal-difference target of the crash indicator).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 from tensordict import NestedKey, TensorDictBase
@@ -19,7 +26,12 @@ from torch import nn
 
 from torchrl_grpo.objectives._keyed import KeyedModule
 
-__all__ = ["TailSurvival"]
+__all__ = ["CrashLabel", "TailSurvival", "crash_label"]
+
+#: What a crash head learns of a branch: ``"branch"``, whether it crashed within the
+#: horizon; ``"bootstrap"``, that, or where the horizon cut it alive, the head's own
+#: crash probability at its last state (:func:`crash_label`).
+CrashLabel = Literal["branch", "bootstrap"]
 
 
 class TailSurvival(KeyedModule):
@@ -107,3 +119,26 @@ class TailSurvival(KeyedModule):
         survival = survival.reshape(shape[:-1]).unsqueeze(-1).expand(shape)
         tensordict.set(keys.survival, survival.contiguous())
         return tensordict
+
+
+def crash_label(crashed: torch.Tensor, cut: torch.Tensor, survival: torch.Tensor) -> torch.Tensor:
+    """The probability that a branch's episode crashes: its bootstrapped crash label.
+
+    1 where the branch crashed; ``1 - survival`` where the horizon cut it alive (the
+    head's estimate for the rest of the episode from there, as :class:`TailSurvival`
+    writes it); 0 where its episode ended without a crash. Arguments broadcast.
+
+    Args:
+        crashed: boolean, the branch crashed (the env terminated it).
+        cut: boolean, the horizon ended the branch before its episode's end.
+        survival: the probability of surviving the rest of the episode from the
+            branch's last state, in ``[0, 1]``.
+
+    Example:
+        >>> crash_label(torch.tensor([True, False, False]), torch.tensor([False, True, False]),
+        ...             torch.tensor([0.9, 0.75, 0.5]))
+        tensor([1.0000, 0.2500, 0.0000])
+    """
+    zero = torch.zeros((), dtype=survival.dtype, device=survival.device)
+    later = torch.where(cut & ~crashed, 1.0 - survival, zero)
+    return torch.where(crashed, torch.ones_like(later), later)

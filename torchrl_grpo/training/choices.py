@@ -22,7 +22,7 @@ from typing import Any
 
 from torchrl_grpo import branching
 from torchrl_grpo.modules.greedy_tail import FirstAction
-from torchrl_grpo.objectives import Aggregation, BootstrapMode, KLEstimator
+from torchrl_grpo.objectives import Aggregation, BootstrapMode, CrashLabel, KLEstimator
 from torchrl_grpo.objectives.advantage import Baseline, Returns, RewardScaling
 from torchrl_grpo.training.env_builder import EnvBackend, RolloutBackend
 from torchrl_grpo.training.logging_builder import LoggerKind, WandbRunMode
@@ -33,6 +33,7 @@ __all__ = [
     "Backend",
     "BaselineName",
     "BootstrapName",
+    "CrashLabelName",
     "EnvBackendName",
     "FirstActionName",
     "KLEstimatorName",
@@ -128,6 +129,9 @@ ScaleRewards = _choices(
 )
 BootstrapName = _choices(
     "BootstrapName", BootstrapMode, "Value credited to a GRPO branch cut by the horizon."
+)
+CrashLabelName = _choices(
+    "CrashLabelName", CrashLabel, "What a crash head learns of a branch (``algo.crash_label``)."
 )
 FirstActionName = _choices(
     "FirstActionName",

@@ -33,7 +33,6 @@ from torchrl_grpo.training.algos.enumerated import (
     ActionWeightsName,
     DistillLossName,
     DistillWeightingName,
-    branch_crashed,
     check_replay_targets,
     distill_targets,
     make_distill_loss,
@@ -42,11 +41,12 @@ from torchrl_grpo.training.algos.enumerated import (
     replay_rows,
 )
 from torchrl_grpo.training.algos.grpo_checks import check_grpo_config
-from torchrl_grpo.training.algos.tails import make_tail_policy, make_tail_survival
+from torchrl_grpo.training.algos.tails import crash_labels, make_tail_policy, make_tail_survival
 from torchrl_grpo.training.choices import (
     AggregationName,
     BaselineName,
     BootstrapName,
+    CrashLabelName,
     FirstActionName,
     KLEstimatorName,
     ReturnsName,
@@ -135,6 +135,7 @@ class GRPOConfig(AlgoConfig):
     distill_weighting: DistillWeightingName = DistillWeightingName["uniform"]
     distill_loss: DistillLossName = DistillLossName["cross_entropy"]
     crash_head_coeff: float = 1.0
+    crash_label: CrashLabelName = CrashLabelName["branch"]
 
 
 @register_algorithm
@@ -267,7 +268,8 @@ class GRPO(Algorithm):
             self.bootstrap(batch)
             self.advantage(batch)
             if self.crash_head is not None:
-                batch.set(BRANCH_CRASHED, branch_crashed(batch, MASK))
+                label = crash_labels(batch, self.bootstrap, self.tail_survival)
+                batch.set(BRANCH_CRASHED, label)
             data = batch.select(*_TRAINED_KEYS, EXPLORED, BRANCH_CRASHED, strict=False)
             data = data.reshape(-1)
             train = data.get(MASK)

@@ -105,10 +105,12 @@ def check_grpo_config(cfg: DictConfig) -> None:
 
 
 def check_survival_bootstrap(algo: DictConfig, has_head: bool) -> None:
-    """Refuse ``algo.bootstrap=survival`` without a crash head to ask.
+    """Refuse ``algo.bootstrap=survival`` or ``algo.crash_label=bootstrap`` without a head.
+
+    Both ask the crash head how likely a branch's last state is to crash next.
 
     Raises:
-        ValueError: naming ``model.crash_head=true``.
+        ValueError: naming the option and ``model.crash_head=true``.
 
     Example:
         >>> from omegaconf import OmegaConf
@@ -117,8 +119,11 @@ def check_survival_bootstrap(algo: DictConfig, has_head: bool) -> None:
         ...
         ValueError: algo.bootstrap=survival asks the crash head how likely a branch's last state is to crash next: set model.crash_head=true
     """  # noqa: E501 - a doctest's expected output is one line
-    if str(algo.get("bootstrap", "none")) == "survival" and not has_head:
-        raise ValueError(
-            "algo.bootstrap=survival asks the crash head how likely a branch's last state "
-            "is to crash next: set model.crash_head=true"
-        )
+    if has_head:
+        return
+    for key, value in (("bootstrap", "survival"), ("crash_label", "bootstrap")):
+        if str(algo.get(key, "")) == value:
+            raise ValueError(
+                f"algo.{key}={value} asks the crash head how likely a branch's last state "
+                "is to crash next: set model.crash_head=true"
+            )

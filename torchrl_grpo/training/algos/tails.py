@@ -3,22 +3,28 @@
 A greedy-tail branch explores its first steps, then a tail actor drives it: the learner,
 a frozen copy of it, or a scripted base policy (``algo.tail_policy``). A branch the
 horizon cuts is credited the episode steps left (``algo.bootstrap``); with
-``algo.bootstrap=survival``, times the crash head's probability of surviving them.
+``algo.bootstrap=survival``, times the crash head's probability of surviving them. With
+``algo.crash_label=bootstrap`` the same probability labels the head's own training rows
+of branches cut alive.
 """
 
 from __future__ import annotations
 
 import copy
 
+import torch
 from omegaconf import DictConfig
+from tensordict import TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
 
-from torchrl_grpo.objectives import TailSurvival
+from torchrl_grpo.branching import MASK
+from torchrl_grpo.objectives import HorizonBootstrap, TailSurvival, crash_label
+from torchrl_grpo.training.algos.enumerated import branch_crashed
 from torchrl_grpo.training.algos.grpo_checks import check_survival_bootstrap
 from torchrl_grpo.training.model_builder import make_base_policy
 
-__all__ = ["make_tail_policy", "make_tail_survival"]
+__all__ = ["crash_labels", "make_tail_policy", "make_tail_survival"]
 
 
 def make_tail_policy(algo: DictConfig, policy: nn.Module, env: EnvBase) -> nn.Module | None:
@@ -48,12 +54,15 @@ def make_tail_policy(algo: DictConfig, policy: nn.Module, env: EnvBase) -> nn.Mo
 def make_tail_survival(algo: DictConfig, head: nn.Module | None) -> TailSurvival | None:
     """The :class:`~torchrl_grpo.objectives.TailSurvival` of ``algo.bootstrap=survival``.
 
+    Also built for ``algo.crash_label=bootstrap``, whose labels it gives.
+
     Args:
         algo: the ``algo`` config.
         head: the policy's crash head (or its ensemble); ``None`` without one.
 
     Raises:
-        ValueError: ``algo.bootstrap=survival`` without a crash head.
+        ValueError: ``algo.bootstrap=survival`` or ``algo.crash_label=bootstrap`` without
+            a crash head.
 
     Example:
         >>> from omegaconf import OmegaConf
@@ -61,4 +70,40 @@ def make_tail_survival(algo: DictConfig, head: nn.Module | None) -> TailSurvival
         True
     """
     check_survival_bootstrap(algo, head is not None)
-    return TailSurvival(head) if str(algo.bootstrap) == "survival" else None
+    asked = str(algo.bootstrap) == "survival" or str(algo.get("crash_label")) == "bootstrap"
+    return TailSurvival(head) if asked else None
+
+
+def crash_labels(
+    batch: TensorDictBase, bootstrap: HorizonBootstrap, survival: TailSurvival | None
+) -> torch.Tensor:
+    """``[R, G, T]``: each branch's crash label, on every step of the branch.
+
+    Whether the branch crashed; with ``survival`` (``algo.crash_label=bootstrap``, after
+    ``survival`` has written its key), :func:`~torchrl_grpo.objectives.crash_label`:
+    where the horizon cut the branch before its episode's last step, the head's crash
+    probability at its last state. ``bootstrap`` gives the episode's step limit and the
+    key of each branch's root step.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> from torchrl_grpo.modules import CrashHead
+        >>> batch = TensorDict({"mask": torch.tensor([[[True, True], [True, True]]]),
+        ...                     "root_step": torch.tensor([[[3, 3], [8, 8]]]),
+        ...                     "tail_survival": torch.full((1, 2, 2), 0.75),
+        ...                     ("next", "terminated"): torch.zeros(1, 2, 2, 1, dtype=bool)},
+        ...                    batch_size=[1, 2, 2])
+        >>> survival = TailSurvival(CrashHead(nn.Linear(1, 4), 2))
+        >>> labels = crash_labels(batch, HorizonBootstrap(10), survival)
+        >>> labels.tolist()  # the second branch ends at the episode's step limit, 10
+        [[[0.25, 0.25], [0.0, 0.0]]]
+    """
+    crashed = branch_crashed(batch, MASK)
+    if survival is None:
+        return crashed
+    mask = batch.get(MASK)
+    lengths = mask.sum(-1, keepdim=True)
+    root = batch.get(bootstrap.tensor_keys.root_step).reshape(mask.shape)[..., :1]
+    cut = (lengths > 0) & (root + lengths < bootstrap.step_limit)
+    alive = batch.get(survival.tensor_keys.survival).reshape(mask.shape)
+    return crash_label(crashed, cut, alive.float())
