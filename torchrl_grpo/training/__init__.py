@@ -52,7 +52,12 @@ from torchrl_grpo.training.metrics import PhaseTimer
 from torchrl_grpo.training.model_builder import make_net, make_policy, make_value
 from torchrl_grpo.training.optim_builder import make_optimizer
 from torchrl_grpo.training.plots import plot_comparison, plot_learning_curve, save_gif
-from torchrl_grpo.training.results import EvalResult, compare_paired, format_table
+from torchrl_grpo.training.results import (
+    EvalResult,
+    compare_paired,
+    format_table,
+    paired_verdicts,
+)
 from torchrl_grpo.training.trainer import Trainer, TrainResult
 from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap, tensor_episodes
 
@@ -109,6 +114,7 @@ __all__ = [
     "make_rollout_env",
     "make_value",
     "paired_gap",
+    "paired_verdicts",
     "plot_comparison",
     "plot_learning_curve",
     "register_algorithm",

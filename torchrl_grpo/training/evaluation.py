@@ -28,7 +28,7 @@ from torchrl_grpo.training.config import typed_config
 from torchrl_grpo.training.env_builder import make_env, make_layout
 from torchrl_grpo.training.model_builder import make_policy
 from torchrl_grpo.training.plots import plot_comparison, plot_learning_curve, save_gif
-from torchrl_grpo.training.results import EvalResult, compare_paired, format_table
+from torchrl_grpo.training.results import EvalResult, format_table, paired_verdicts
 
 __all__ = [
     "BASELINE_LABELS",
@@ -256,7 +256,7 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
     verdicts = ""
     if ckpt is not None and len(results) > 1:
         # "Beats" is paired on these episodes (the training issue's definition).
-        verdicts = "\n" + "\n".join(compare_paired(results[0], b) for b in results[1:]) + "\n"
+        verdicts = f"\n{paired_verdicts(results[0], results[1:])}\n"
     files["table"] = out_dir / "results.md"
     files["table"].write_text(f"{header}\n\n{table}\n{verdicts}")
     files["json"] = out_dir / "results.json"

@@ -27,7 +27,7 @@ from torchrl_grpo.training.env_builder import make_env, tensor_covers
 from torchrl_grpo.training.evaluation import evaluate
 from torchrl_grpo.training.logging_builder import log_metrics
 from torchrl_grpo.training.plots import plot_learning_curve, save_gif
-from torchrl_grpo.training.results import EvalResult, compare_paired, format_table
+from torchrl_grpo.training.results import EvalResult, format_table, paired_verdicts
 from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
 
 __all__ = [
@@ -279,7 +279,7 @@ class EvaluationHook(Hook):
             )
             results = [trained, *baselines]
             table = format_table(results)
-            verdicts = "\n".join(compare_paired(trained, b) for b in baselines)
+            verdicts = paired_verdicts(trained, baselines)
             result.results_table = trainer.run_dir / "results.md"
             result.results_table.write_text(
                 f"{cfg.env.scenario}, {episodes} episodes from seed {seed}, "

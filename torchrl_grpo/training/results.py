@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-__all__ = ["EvalResult", "compare_paired", "format_table"]
+__all__ = ["EvalResult", "compare_paired", "format_table", "paired_verdicts"]
 
 
 @dataclass
@@ -125,3 +125,15 @@ def compare_paired(policy: EvalResult, baseline: EvalResult) -> str:
         f"episodes), crash rate {100 * crash_a:.1f}% vs {100 * crash_b:.1f}%: "
         + (f"beats {baseline.name}" if beats else f"does not beat {baseline.name}")
     )
+
+
+def paired_verdicts(policy: EvalResult, others: Sequence[EvalResult]) -> str:
+    """:func:`compare_paired` of ``policy`` against each of ``others``, one per line.
+
+    Example:
+        >>> a = EvalResult("a", [22.0, 23.0], [False] * 2, [30] * 2, [25.0] * 2, [0, 1])
+        >>> b = EvalResult("b", [20.0, 21.0], [True, False], [9, 30], [20.0] * 2, [0, 1])
+        >>> print(paired_verdicts(a, [b, b]).splitlines()[1])
+        a vs b: return +2.00 ± 0.00 (paired, 2 episodes), crash rate 0.0% vs 50.0%: beats b
+    """
+    return "\n".join(compare_paired(policy, other) for other in others)
