@@ -54,6 +54,9 @@ CONF = Path(__file__).resolve().parents[1] / "conf"
 FULL = [
     "env=merge",
     "experiment=quick",
+    # experiment=quick's own budget (400k frames) is sized for the tensor simulator;
+    # merge-v0 runs on highway-env workers, so the tutorial keeps 4,000 frames.
+    "experiment.total_frames=4000",
     "logger=wandb",
     "experiment.eval_every=1",
     "experiment.progress_bar=false",
