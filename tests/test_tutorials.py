@@ -183,3 +183,20 @@ def test_docs_images_exist():
     for image in images:
         assert not image.startswith(("/", "http")), image
         assert (docs.parent / image).is_file(), f"docs/tutorials.md embeds a missing {image}"
+
+
+def test_the_merge_tutorials_full_run_keeps_its_documented_budget():
+    # merge-v0 runs on highway-env workers (about 60 steps a second a core): the
+    # tensor simulator's experiment=quick budget, 400,000 frames, would take an hour
+    # there, where the tutorial promises about 3 minutes.
+    import importlib.util
+
+    from torchrl_grpo.training import compose_config
+
+    spec = importlib.util.spec_from_file_location("train_merge", ROOT / "tutorials/train_merge.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    cfg = compose_config(module.FULL, conf_dir=ROOT / "conf")
+    assert cfg.env.scenario == "merge-v0" and cfg.experiment.name == "quick"
+    assert cfg.experiment.total_frames == 4000
+    assert "4,000 frames" in module.__doc__
