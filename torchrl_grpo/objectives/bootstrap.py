@@ -152,13 +152,8 @@ class HorizonBootstrap(KeyedModule):
         bonus = torch.zeros_like(reward)
         if self.mode != "none" and bool(mask.any()):
             rate = float(reward.reshape(shape)[mask].mean())
-            lengths = mask.sum(-1)
-            last = (lengths - 1).clamp(min=0).unsqueeze(-1)
-            terminated = tensordict.get(keys.terminated).reshape(shape)
-            ended_by_env = terminated.gather(-1, last).squeeze(-1)
-            step_end = tensordict.get(keys.root_step).reshape(shape)[..., 0] + lengths
-            left = (self.step_limit - step_end).clamp(min=0)
-            tail = rate * left * (~ended_by_env & (lengths > 0))
+            last = (mask.sum(-1) - 1).clamp(min=0).unsqueeze(-1)
+            tail = rate * self.steps_left(tensordict)
             if self.mode == "survival":
                 tail = tail * self._survival(tensordict, shape).gather(-1, last).squeeze(-1)
             tail = tail.unsqueeze(-1)
@@ -172,6 +167,24 @@ class HorizonBootstrap(KeyedModule):
         tensordict.set(keys.train_reward, train)
         tensordict.set(keys.bootstrap, bonus)
         return tensordict
+
+    def steps_left(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """``[...]``: the episode steps each branch's horizon cut off (``mask`` without ``T``).
+
+        ``step_limit - (root_step + length)``, at least 0; 0 for a branch the env ended
+        (``terminated`` at its last valid step) and for one without a valid step. It is
+        what the tail is credited for, and > 0 exactly where the horizon cut a branch
+        alive before its episode's end.
+        """
+        keys = self.tensor_keys
+        mask = tensordict.get(keys.mask)
+        lengths = mask.sum(-1)
+        last = (lengths - 1).clamp(min=0).unsqueeze(-1)
+        terminated = tensordict.get(keys.terminated).reshape(mask.shape)
+        ended_by_env = terminated.gather(-1, last).squeeze(-1)
+        step_end = tensordict.get(keys.root_step).reshape(mask.shape)[..., 0] + lengths
+        left = (self.step_limit - step_end).clamp(min=0)
+        return left * (~ended_by_env & (lengths > 0))
 
     def _survival(self, tensordict: TensorDictBase, shape: torch.Size) -> torch.Tensor:
         key = self.tensor_keys.survival

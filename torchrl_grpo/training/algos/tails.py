@@ -81,9 +81,9 @@ def crash_labels(
 
     Whether the branch crashed; with ``survival`` (``algo.crash_label=bootstrap``, after
     ``survival`` has written its key), :func:`~torchrl_grpo.objectives.crash_label`:
-    where the horizon cut the branch before its episode's last step, the head's crash
-    probability at its last state. ``bootstrap`` gives the episode's step limit and the
-    key of each branch's root step.
+    where the horizon cut the branch before its episode's last step
+    (:meth:`~torchrl_grpo.objectives.HorizonBootstrap.steps_left` > 0), the head's crash
+    probability at its last state.
 
     Example:
         >>> from tensordict import TensorDict
@@ -102,8 +102,6 @@ def crash_labels(
     if survival is None:
         return crashed
     mask = batch.get(MASK)
-    lengths = mask.sum(-1, keepdim=True)
-    root = batch.get(bootstrap.tensor_keys.root_step).reshape(mask.shape)[..., :1]
-    cut = (lengths > 0) & (root + lengths < bootstrap.step_limit)
+    cut = (bootstrap.steps_left(batch) > 0).unsqueeze(-1)
     alive = batch.get(survival.tensor_keys.survival).reshape(mask.shape)
     return crash_label(crashed, cut, alive.float())
