@@ -6,7 +6,7 @@ from omegaconf import DictConfig
 
 from torchrl_grpo.training.algos.enumerated import check_distill
 
-__all__ = ["check_grpo_config", "check_survival_bootstrap"]
+__all__ = ["check_grpo_config", "check_crash_head_needed"]
 
 
 def check_grpo_config(cfg: DictConfig) -> None:
@@ -90,7 +90,7 @@ def check_grpo_config(cfg: DictConfig) -> None:
         )
     model = cfg.get("model")
     has_head = model is not None and bool(model.get("crash_head", False))
-    check_survival_bootstrap(algo, has_head)
+    check_crash_head_needed(algo, has_head)
     if has_head:
         if not (algo.crash_head_coeff > 0 and algo.crash_head_coeff < float("inf")):
             raise ValueError(
@@ -104,7 +104,7 @@ def check_grpo_config(cfg: DictConfig) -> None:
             )
 
 
-def check_survival_bootstrap(algo: DictConfig, has_head: bool) -> None:
+def check_crash_head_needed(algo: DictConfig, has_head: bool) -> None:
     """Refuse ``algo.bootstrap=survival`` or ``algo.crash_label=bootstrap`` without a head.
 
     Both ask the crash head how likely a branch's last state is to crash next.
@@ -114,7 +114,7 @@ def check_survival_bootstrap(algo: DictConfig, has_head: bool) -> None:
 
     Example:
         >>> from omegaconf import OmegaConf
-        >>> check_survival_bootstrap(OmegaConf.create({"bootstrap": "survival"}), False)
+        >>> check_crash_head_needed(OmegaConf.create({"bootstrap": "survival"}), False)
         Traceback (most recent call last):
         ...
         ValueError: algo.bootstrap=survival asks the crash head how likely a branch's last state is to crash next: set model.crash_head=true

@@ -21,7 +21,7 @@ from torchrl.envs import EnvBase
 from torchrl_grpo.branching import MASK
 from torchrl_grpo.objectives import HorizonBootstrap, TailSurvival, crash_label
 from torchrl_grpo.training.algos.enumerated import branch_crashed
-from torchrl_grpo.training.algos.grpo_checks import check_survival_bootstrap
+from torchrl_grpo.training.algos.grpo_checks import check_crash_head_needed
 from torchrl_grpo.training.model_builder import make_base_policy
 
 __all__ = ["crash_labels", "make_tail_policy", "make_tail_survival"]
@@ -69,7 +69,7 @@ def make_tail_survival(algo: DictConfig, head: nn.Module | None) -> TailSurvival
         >>> make_tail_survival(OmegaConf.create({"bootstrap": "batch_mean"}), None) is None
         True
     """
-    check_survival_bootstrap(algo, head is not None)
+    check_crash_head_needed(algo, head is not None)
     asked = str(algo.bootstrap) == "survival" or str(algo.get("crash_label")) == "bootstrap"
     return TailSurvival(head) if asked else None
 
