@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import pytest
 import torch
 from conftest import TINY, compose_config
@@ -9,7 +11,7 @@ from tensordict import TensorDict
 from torch import nn
 from train_helpers import REPLAY, csv_scalars, logged_ratios, train_run
 
-from torchrl_grpo.modules import CrashHead, PolicyEnsemble
+from torchrl_grpo.modules import CrashHead, PolicyEnsemble, shared_forward, shared_networks
 from torchrl_grpo.objectives import HorizonBootstrap, TailSurvival
 from torchrl_grpo.training import Trainer
 from torchrl_grpo.training.algos.tails import crash_labels
@@ -187,3 +189,36 @@ def test_each_member_of_an_ensemble_learns_from_its_own_outputs(tmp_path):
     torch.testing.assert_close(ensemble(obs), (first(obs) + second(obs)) / 2)
     with pytest.raises(ValueError, match="model.ensemble must be >= 1"):
         Trainer(compose_config([*TINY, "model.ensemble=0"]), run_dir=tmp_path / "refused")
+
+
+def test_the_losses_of_a_minibatch_run_the_network_once(tmp_path):
+    overrides = [*REPLAY, "model.crash_head=true", "algo.distill_coeff=1"]
+    overrides += ["algo.distill_loss=regression", "algo.distill_temperature=1"]
+    trainer = train_run(tmp_path, "shared", [*overrides, "experiment.total_frames=60"])
+    algo = trainer.algo
+    [net] = shared_networks(algo.policy)
+    runs: list[int] = []
+    layer = next(m for m in net.modules() if isinstance(m, nn.Linear))
+    layer.register_forward_hook(lambda *args: runs.append(1))
+    batch = algo.current_log_probs(algo.replay[:])
+
+    def terms(shared: bool) -> tuple[TensorDict, int, list[torch.Tensor]]:
+        algo.optimizer.zero_grad(set_to_none=False)
+        runs.clear()
+        with shared_forward(algo.policy) if shared else contextlib.nullcontext():
+            out = algo.member_terms(batch)
+        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        return out, len(runs), [p.grad.clone() for p in algo.policy.parameters()]
+
+    separate, separate_runs, separate_grads = terms(False)
+    shared, shared_runs, shared_grads = terms(True)
+    # The surrogate, the regression and the crash head: three runs, or one shared.
+    assert {"loss_objective", "loss_distill", "loss_crash_head"} <= set(shared.keys())
+    assert (separate_runs, shared_runs) == (3, 1)
+    for key in separate.keys():
+        torch.testing.assert_close(shared[key], separate[key], rtol=0, atol=0)
+    for a, b in zip(separate_grads, shared_grads, strict=True):
+        torch.testing.assert_close(a, b)
+    runs.clear()
+    stats = algo.optimise(batch)  # what training does: one run per minibatch
+    assert len(runs) == stats["train/minibatches"] > 0

@@ -48,6 +48,7 @@ from torchrl_grpo.modules.scripted import (
     make_scripted_policy,
     time_to_collision,
 )
+from torchrl_grpo.modules.sharing import shared_forward, shared_networks
 
 __all__ = [
     "DEFAULT_FEATURES",
@@ -92,5 +93,7 @@ __all__ = [
     "make_network",
     "make_scripted_policy",
     "make_value_net",
+    "shared_forward",
+    "shared_networks",
     "time_to_collision",
 ]

@@ -26,7 +26,7 @@ from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import LossModule
 
-from torchrl_grpo.modules import PolicyEnsemble
+from torchrl_grpo.modules import PolicyEnsemble, shared_forward
 from torchrl_grpo.training.collect import make_collector
 from torchrl_grpo.training.env_builder import make_rollout_env
 from torchrl_grpo.training.metrics import PhaseTimer, metric_name
@@ -246,7 +246,9 @@ class Algorithm:
             for start in range(0, n - mb + 1, mb):
                 if count >= limit:
                     break
-                out = self.member_terms(data[perm[start : start + mb]])
+                # The losses of one minibatch share the network's forward and backward.
+                with shared_forward(self.policy):
+                    out = self.member_terms(data[perm[start : start + mb]])
                 loss = sum(v for k, v in out.items() if k.startswith("loss_"))
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
