@@ -248,3 +248,25 @@ def test_asking_for_cuda_without_a_gpu_is_a_clear_error(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     with pytest.raises(ValueError, match="cuda"):
         TensorHighwayEnv(num_envs=2, device="cuda")
+
+
+def test_compile_traces_the_dense_step_once_and_keeps_the_bits():
+    # compile= in the constructor is TorchRL's keyword: it must reach this env's compile
+    # (the pure step, static shapes), not TorchRL's whole step_and_maybe_reset, which
+    # recompiled at every step here. The eager backend traces without code generation.
+    from torch._dynamo.utils import counters
+
+    torch._dynamo.reset()
+    compiled = TensorHighwayEnv(num_envs=4, seed=3, compile={"backend": "eager"})
+    eager = TensorHighwayEnv(num_envs=4, seed=3)
+    assert "_compiled_step_and_maybe_reset" not in vars(compiled)
+    script = actions(4, 5, seed=1)
+    graphs = []
+    for a in script:
+        torch.testing.assert_close(compiled.step(a.clone()), eager.step(a.clone()), rtol=0, atol=0)
+        graphs.append(counters["stats"]["unique_graphs"])
+    assert graphs[0] >= 1 and graphs[-1] == graphs[0]  # traced at the first step only
+    for key, value in eager.get_state().items(True, True):
+        assert torch.equal(compiled.get_state()[key], value), key
+    assert compiled.eager() is compiled
+    torch.testing.assert_close(compiled.step(script[0].clone()), eager.step(script[0].clone()))

@@ -63,7 +63,6 @@ class TensorHighwayEnv(EnvBase):
             (``torch.float64`` for step-by-step parity with highway-env).
         seed: seeds the worlds' random streams (``None``: drawn from torch's generator).
         return_state: write each step's state into the trajectory.
-        compile: run the step through ``torch.compile`` (static shapes throughout).
         check_states: check the values of restored states (finite floats, lanes and
             indices in range, valid generator words); structure and config are checked
             always. Turn off for speed once states are known good.
@@ -98,7 +97,6 @@ class TensorHighwayEnv(EnvBase):
         dtype: torch.dtype = torch.float32,
         seed: int | None = None,
         return_state: bool = False,
-        compile: bool = False,
         check_states: bool = True,
         categorical_action_encoding: bool = True,
     ) -> None:
@@ -120,10 +118,7 @@ class TensorHighwayEnv(EnvBase):
         self._categorical = categorical_action_encoding
         self._bridge: HighwayBridge | None = None
         self.fingerprint = stable_hash("TensorHighwayEnv", scenario, repr(self.params), str(dtype))
-        # Static shapes (no compaction) where a host sync or a graph break would cost most.
-        dense = compile or device.type == "cuda"
-        step_fn = functools.partial(step, params=self.params, dense=dense)
-        self._step_fn = torch.compile(step_fn, dynamic=False) if compile else step_fn
+        self.eager()
         self._world = empty_world(num_envs, self.params.num_vehicles, dtype, device)
         #: Worlds stepped so far, masked rows included (the simulator's throughput).
         self.world_steps = 0
@@ -136,6 +131,45 @@ class TensorHighwayEnv(EnvBase):
         counter = self._world.rng_counter
         self._reset()
         self._world = self._world._replace(rng_counter=counter)
+
+    def compile(self, *, warmup: int | None = None, **kwargs: Any) -> TensorHighwayEnv:
+        """Run the simulator's step through ``torch.compile``, with static shapes; ``self``.
+
+        Also what ``TensorHighwayEnv(..., compile=True)`` (or ``compile={...}``, the
+        keyword TorchRL gives every env's constructor) calls. TorchRL's own
+        ``EnvBase.compile`` compiles the whole ``step_and_maybe_reset``, TensorDict
+        plumbing included, around the eager step's data-dependent compaction: on this
+        env that recompiled at every step until Dynamo's limit of 8 (85 s of
+        recompiles at B = 64). Here only the pure step function is compiled, on its
+        dense path (static shapes; the same bits as the compacted one, tested): one
+        graph per batch size, compiled on the first step (minutes on a CPU).
+
+        Args:
+            warmup: accepted for TorchRL's signature: the step's inputs are tensors of
+                fixed shapes, so the first call compiles the graph every call runs.
+            **kwargs: forwarded to ``torch.compile`` (``mode``, ``backend``, ...;
+                ``dynamic`` defaults to ``False``).
+
+        Returns:
+            The env; :meth:`eager` undoes it.
+
+        Example:
+            >>> env = TensorHighwayEnv(num_envs=4, compile=True)  # compiles at its first step
+            >>> env.eager() is env  # eager steps again
+            True
+        """
+        kwargs.setdefault("dynamic", False)
+        dense_step = functools.partial(step, params=self.params, dense=True)
+        self._step_fn = torch.compile(dense_step, **kwargs)
+        return self
+
+    def eager(self) -> TensorHighwayEnv:
+        """Step eagerly again (after :meth:`compile`); ``self``."""
+        # Static shapes (no compaction) where a host sync would cost most.
+        self._step_fn = functools.partial(
+            step, params=self.params, dense=self.device.type == "cuda"
+        )
+        return self
 
     def _make_specs(self) -> None:
         b, d, dev = self.batch_size, self.dtype, self.device
