@@ -63,6 +63,8 @@ class TensorHighwayEnv(EnvBase):
             (``torch.float64`` for step-by-step parity with highway-env).
         seed: seeds the worlds' random streams (``None``: drawn from torch's generator).
         return_state: write each step's state into the trajectory.
+        compile: TorchRL's keyword of every env: ``True``, or a dict of
+            ``torch.compile`` options, calls :meth:`compile` (the step, static shapes).
         check_states: check the values of restored states (finite floats, lanes and
             indices in range, valid generator words); structure and config are checked
             always. Turn off for speed once states are known good.
