@@ -26,7 +26,6 @@ import statistics
 import tempfile
 import time
 import warnings
-from collections.abc import Iterator
 
 import torch
 from claims import claim
@@ -37,14 +36,10 @@ from torchrl_grpo.training import Trainer, compose_config
 _SHARED = algo_base.shared_forward
 
 
-@contextlib.contextmanager
-def _separate(policy: torch.nn.Module) -> Iterator[None]:
-    yield
-
-
 def use(shared: bool) -> None:
     """Make ``Algorithm.optimise`` share the forward (the library's way) or not."""
-    algo_base.shared_forward = _SHARED if shared else _separate
+    # nullcontext(policy) does nothing: each loss runs the network itself, as before.
+    algo_base.shared_forward = _SHARED if shared else contextlib.nullcontext
 
 
 def trainer(frames: int, seed: int) -> Trainer:
