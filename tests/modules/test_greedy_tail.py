@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from contextlib import nullcontext
+from unittest.mock import patch
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -14,11 +17,23 @@ from torchrl_grpo.modules import (
     EXPLORED,
     SLOWER,
     ConstantActionPolicy,
+    CrashHead,
     GreedyTail,
+    greedy_tail,
     make_discrete_actor,
 )
 
 N_ACTIONS = 5
+
+
+class CountedLinear(torch.nn.Linear):
+    """A linear layer that counts how often it really runs."""
+
+    runs = 0
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        self.runs += 1
+        return super().forward(x)
 
 
 def _actor(seed: int = 0) -> torch.nn.Module:
@@ -219,3 +234,35 @@ def test_learner_steps_need_a_tail_policy_and_a_non_negative_int():
         GreedyTail(actor, explore_steps=1, tail_policy=_actor(1), learner_steps=-1)
     with pytest.raises(TypeError, match="learner_steps must be an int"):
         GreedyTail(actor, explore_steps=1, tail_policy=_actor(1), learner_steps=1.0)
+
+
+def test_the_sampled_and_greedy_outputs_share_one_forward_and_keep_their_values():
+    # experiment=drive's rollout policy: a crash head, a scripted tail, learner steps.
+    torch.manual_seed(0)
+    net = CountedLinear(25, 2 * N_ACTIONS)
+    head = CrashHead(torch.nn.Sequential(torch.nn.Flatten(-2), net), N_ACTIONS, aversion=3.0)
+    actor = make_discrete_actor(head, Categorical(N_ACTIONS))
+    td = _rows(8, [0, 1, 2, 3, 4, 0, 1, 5])
+    td["observation"] = torch.randn(8, 5, 5)  # a Kinematics table, as the scripted tail reads
+    td["branch"] = torch.arange(8)
+    policy = GreedyTail(
+        actor,
+        explore_steps=1,
+        first_action="enumerate",
+        tail_policy=ConstantActionPolicy("SLOWER"),
+        learner_steps=3,
+    )
+    with torch.no_grad():
+        torch.manual_seed(1)
+        out = policy(td.clone())
+        assert net.runs == 1
+        # The reference: the same calls without the shared forward (its network runs twice).
+        torch.manual_seed(1)
+        with patch.object(greedy_tail, "shared_forward", lambda *a, **k: nullcontext()):
+            alone = policy(td.clone())
+        assert net.runs == 3
+    assert (out == alone).all()
+    logits = actor.module[0](td)["logits"]
+    learner_rows, tail_rows = [1, 2, 3, 6], [4, 7]
+    assert torch.equal(out["action"][learner_rows], logits[learner_rows].argmax(-1))
+    assert (out["action"][tail_rows] == SLOWER).all()  # past the learner's steps

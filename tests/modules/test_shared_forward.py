@@ -84,6 +84,26 @@ def test_only_the_same_unmodified_tensor_in_the_same_grad_mode_is_shared():
         assert net.runs == runs + 1
 
 
+def test_no_grad_calls_are_shared_among_themselves_when_asked():
+    net = Counted(2, 1)
+    x = torch.ones(3, 2)
+    with shared_forward(net), torch.no_grad():
+        net(x), net(x)
+    assert net.runs == 2  # by default a no-grad call always runs
+    net.runs = 0
+    with shared_forward(net, include_no_grad=True):
+        with torch.no_grad():
+            kept = net(x)
+            assert net(x) is kept and net.runs == 1
+        graph = net(x)  # the grad mode keeps its own output
+        assert graph.requires_grad and net.runs == 2
+        with torch.no_grad():
+            assert net(x) is kept and net.runs == 2  # and the no-grad one survives it
+        with torch.inference_mode():
+            net(x), net(x)  # inference tensors have no version to key on: never shared
+        assert net.runs == 4
+
+
 def test_the_networks_forward_is_restored_after_the_block_even_on_an_error():
     net = Counted(2, 1)
     own = net.forward

@@ -9,6 +9,8 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, exploration_type, set_exploration_type
 
+from torchrl_grpo.modules.sharing import shared_forward
+
 __all__ = ["EXPLORED", "FirstAction", "GreedyTail"]
 
 FirstAction = Literal["sample", "enumerate"]
@@ -148,6 +150,15 @@ class GreedyTail(TensorDictModuleBase):
         t = tensordict.get(_STEP_COUNT).reshape(tensordict.batch_size) - tensordict.get(
             _ROOT_STEP
         ).reshape(tensordict.batch_size)
+        # The sampled and the greedy outputs of the learner come from one forward of
+        # its network: they differ only in how the action is drawn from the logits.
+        with shared_forward(self.policy, include_no_grad=True):
+            return self._act(tensordict, t, greedy_policy)
+
+    def _act(
+        self, tensordict: TensorDictBase, t: torch.Tensor, greedy_policy: TensorDictModuleBase
+    ) -> TensorDictBase:
+        """Sample, enumerate or act greedily on each row by its branch-local step ``t``."""
         explored = t < self.explore_steps
         sampled = self.policy(tensordict.clone(False))
         if self.first_action == "enumerate":

@@ -72,10 +72,12 @@ def shared_networks(policy: nn.Module) -> list[nn.Module]:
     return found
 
 
-def _memoised(net: nn.Module) -> Callable[..., torch.Tensor]:
+def _memoised(net: nn.Module, include_no_grad: bool) -> Callable[..., torch.Tensor]:
     """``net.forward``, returning its last output again when nothing it reads has changed."""
     forward = net.forward
-    last: list = [None, None]  # what the output was computed from, the output
+    # Per grad mode: what the last output was computed from, and the output. A no-grad
+    # output never stands in for one with a graph, nor the other way round.
+    last: dict[bool, list] = {True: [None, None], False: [None, None]}
 
     def inputs(x: torch.Tensor) -> tuple:
         # Every tensor the output depends on, by identity and version: TorchRL's losses
@@ -86,38 +88,48 @@ def _memoised(net: nn.Module) -> Callable[..., torch.Tensor]:
 
     def call(*args: object, **kwargs: object) -> torch.Tensor:
         x = args[0] if len(args) == 1 and not kwargs else None
-        # Only outputs with a graph are shared: a no-grad call (a reference policy's
-        # log-probs) neither uses nor replaces the kept output.
-        if not isinstance(x, torch.Tensor) or not torch.is_grad_enabled():
+        grad = torch.is_grad_enabled()
+        # By default only outputs with a graph are shared: a no-grad call (a reference
+        # policy's log-probs) neither uses nor replaces the kept output.
+        if (
+            not isinstance(x, torch.Tensor)
+            or not (grad or include_no_grad)
+            or torch.is_inference_mode_enabled()  # inference tensors have no versions
+        ):
             return forward(*args, **kwargs)
         tensors, versions = inputs(x)
-        seen = last[0]
+        kept = last[grad]
+        seen = kept[0]
         if (
             seen is not None
             and seen[1] == versions
             and len(seen[0]) == len(tensors)
             and all(a is b for a, b in zip(seen[0], tensors, strict=True))
         ):
-            return last[1]
+            return kept[1]
         out = forward(x)
-        last[0], last[1] = (tensors, versions), out
+        kept[0], kept[1] = (tensors, versions), out
         return out
 
     return call
 
 
 @contextlib.contextmanager
-def shared_forward(policy: nn.Module) -> Iterator[None]:
+def shared_forward(policy: nn.Module, include_no_grad: bool = False) -> Iterator[None]:
     """Within the block, each of ``policy``'s networks runs once per input tensor.
 
     For the losses of one minibatch: the last output of each network is kept (with
     its graph) until the block ends. A call with another tensor (even of equal
     values), with the input or a parameter written to since, with other parameters
     swapped in (a reference policy's, through TorchRL's ``to_module``) runs the network
-    again. Calls without grad are never shared: they run, and leave the kept output.
+    again. Calls without grad are not shared unless ``include_no_grad``: they run, and
+    leave the kept output.
 
     Args:
         policy: the actor (see :func:`shared_networks`), or any module.
+        include_no_grad: share calls without grad as well, among themselves (a rollout
+            that acts twice on one observation, sampled then greedy); each grad mode
+            keeps its own last output.
 
     Example:
         >>> net = nn.Linear(2, 1)
@@ -130,7 +142,7 @@ def shared_forward(policy: nn.Module) -> Iterator[None]:
     # An instance attribute shadows the class's forward for nn.Module.__call__.
     saved = [net.__dict__.get("forward") for net in nets]
     for net in nets:
-        net.forward = _memoised(net)
+        net.forward = _memoised(net, include_no_grad)
     try:
         yield
     finally:
