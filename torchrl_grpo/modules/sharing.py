@@ -8,7 +8,9 @@ backpropagated three times. Inside :func:`shared_forward` each network runs once
 input tensor: the later calls return the first call's output, graph included, so the
 summed loss backpropagates through the network once. The gradient is the same sum,
 accumulated at the network's output instead of at its parameters: equal up to float
-rounding.
+rounding. With ``include_no_grad=True`` calls without grad are shared too, among
+themselves: :class:`~torchrl_grpo.modules.GreedyTail` takes the learner's sampled and
+greedy outputs on one rollout step from one forward.
 
 Example:
     >>> import torch
