@@ -41,6 +41,17 @@ def _actor(seed: int = 0) -> torch.nn.Module:
     return make_discrete_actor(torch.nn.Linear(4, N_ACTIONS), Categorical(N_ACTIONS))
 
 
+def _enumerated_then_slower(actor: torch.nn.Module, learner_steps: int) -> GreedyTail:
+    """Every first action enumerated, the learner's greedy steps, then always-SLOWER."""
+    return GreedyTail(
+        actor,
+        explore_steps=1,
+        first_action="enumerate",
+        tail_policy=ConstantActionPolicy("SLOWER"),
+        learner_steps=learner_steps,
+    )
+
+
 def _rows(n: int, t: list[int]) -> TensorDict:
     return TensorDict(
         observation=torch.randn(n, 4),
@@ -209,13 +220,7 @@ def test_learner_steps_come_between_the_explored_step_and_a_scripted_tail():
 def test_learner_steps_in_a_branch_rollout_then_the_scripted_tail():
     env, actor = _env_actor("highway-fast-v0")
     roots = reset_roots(env, 1, seed=0)
-    policy = GreedyTail(
-        actor,
-        explore_steps=1,
-        first_action="enumerate",
-        tail_policy=ConstantActionPolicy("SLOWER"),
-        learner_steps=1,
-    )
+    policy = _enumerated_then_slower(actor, learner_steps=1)
     out = branch_rollout(env, policy, roots, group_size=N_ACTIONS, horizon=4)[0]
     env.close()
     assert out["action"][:, 0].tolist() == list(range(N_ACTIONS))
@@ -245,13 +250,7 @@ def test_the_sampled_and_greedy_outputs_share_one_forward_and_keep_their_values(
     td = _rows(8, [0, 1, 2, 3, 4, 0, 1, 5])
     td["observation"] = torch.randn(8, 5, 5)  # a Kinematics table, as the scripted tail reads
     td["branch"] = torch.arange(8)
-    policy = GreedyTail(
-        actor,
-        explore_steps=1,
-        first_action="enumerate",
-        tail_policy=ConstantActionPolicy("SLOWER"),
-        learner_steps=3,
-    )
+    policy = _enumerated_then_slower(actor, learner_steps=3)
     with torch.no_grad():
         torch.manual_seed(1)
         out = policy(td.clone())
