@@ -117,7 +117,14 @@ def main() -> None:
     algo = last.algo
     batch = algo.current_log_probs(algo.replay[:])
     rows = branch_rows(algo, batch)
-    rollout = GreedyTail(algo.policy, 1, "enumerate", algo.tail_policy, learner_steps=7)
+    recipe = algo.cfg.algo
+    rollout = GreedyTail(
+        algo.policy,
+        int(recipe.explore_steps),
+        first_action=str(recipe.first_action),
+        tail_policy=algo.tail_policy,
+        learner_steps=int(recipe.tail_learner_steps),
+    )
     seconds: dict[bool, list[float]] = {True: [], False: []}
     step: dict[bool, list[float]] = {True: [], False: []}
     for update in range(args.updates):
