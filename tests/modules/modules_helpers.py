@@ -1,4 +1,4 @@
-"""Helpers shared by the modules tests: hand-built Kinematics observations.
+"""Helpers shared by the modules tests: hand-built Kinematics observations, a counted network.
 
 A plain module rather than conftest.py, whose name other test folders share.
 """
@@ -6,6 +6,7 @@ A plain module rather than conftest.py, whose name other test folders share.
 from __future__ import annotations
 
 import torch
+from torch import nn
 
 from torchrl_grpo.modules import KinematicsLayout
 
@@ -28,3 +29,16 @@ def scene(
         cols["y"][i] = dlane * LANE
         cols["vx"][i] = dvx
     return LAYOUT.encode(cols)
+
+
+class Counted(nn.Module):
+    """A linear layer that counts how often it really runs."""
+
+    def __init__(self, n_in: int, n_out: int) -> None:
+        super().__init__()
+        self.linear = nn.Linear(n_in, n_out)
+        self.runs = 0
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        self.runs += 1
+        return self.linear(x)

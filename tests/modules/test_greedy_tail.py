@@ -7,6 +7,7 @@ from unittest.mock import patch
 
 import pytest
 import torch
+from modules_helpers import Counted
 from tensordict import TensorDict
 from torchrl.data import Categorical
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -24,16 +25,6 @@ from torchrl_grpo.modules import (
 )
 
 N_ACTIONS = 5
-
-
-class CountedLinear(torch.nn.Linear):
-    """A linear layer that counts how often it really runs."""
-
-    runs = 0
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        self.runs += 1
-        return super().forward(x)
 
 
 def _actor(seed: int = 0) -> torch.nn.Module:
@@ -244,7 +235,7 @@ def test_learner_steps_need_a_tail_policy_and_a_non_negative_int():
 def test_the_sampled_and_greedy_outputs_share_one_forward_and_keep_their_values():
     # experiment=drive's rollout policy: a crash head, a scripted tail, learner steps.
     torch.manual_seed(0)
-    net = CountedLinear(25, 2 * N_ACTIONS)
+    net = Counted(25, 2 * N_ACTIONS)
     head = CrashHead(torch.nn.Sequential(torch.nn.Flatten(-2), net), N_ACTIONS, aversion=3.0)
     actor = make_discrete_actor(head, Categorical(N_ACTIONS))
     td = _rows(8, [0, 1, 2, 3, 4, 0, 1, 5])

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 import torch
+from modules_helpers import Counted
 from tensordict import TensorDict
-from torch import nn
 from torchrl.data import Categorical
 
 from torchrl_grpo.modules import (
@@ -15,19 +15,6 @@ from torchrl_grpo.modules import (
     shared_forward,
     shared_networks,
 )
-
-
-class Counted(nn.Module):
-    """A linear layer that counts how often it really runs."""
-
-    def __init__(self, n_in: int, n_out: int) -> None:
-        super().__init__()
-        self.linear = nn.Linear(n_in, n_out)
-        self.runs = 0
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        self.runs += 1
-        return self.linear(x)
 
 
 def test_the_networks_are_the_ones_the_actor_calls():
