@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch import nn
 
-from torchrl_grpo.modules import CrashHead, PolicyEnsemble
+from torchrl_grpo.modules import CrashHead, PolicyEnsemble, member_halves
 
 
 class _Constant(nn.Module):
@@ -64,3 +64,28 @@ def test_bad_input_is_refused_with_the_problem_named():
     with pytest.raises(TypeError, match="no crash_logits.*model.crash_head=true"):
         ensemble.crash_logits(torch.zeros(1, 1))
     assert ensemble.active is None
+
+
+def test_member_halves_by_hand():
+    # frac(g * a_k): a_0 = frac(sqrt 2) = 0.4142.., a_1 = frac(sqrt 3) = 0.7320..
+    # g = 1: 0.414 | 0.732; g = 2: 0.828 | 0.464; g = 4: 0.657 | 0.928, in no half, so
+    # it goes to member 4 mod 2 = 0.
+    halves = member_halves(torch.tensor([0, 1, 2, 4]), 2)
+    expected = torch.tensor([[True, True], [True, False], [False, True], [True, False]])
+    assert torch.equal(halves, expected)
+    assert member_halves(torch.tensor([[1, 2]]), 2).shape == (1, 2, 2)
+    with pytest.raises(TypeError, match="group ids are integers"):
+        member_halves(torch.tensor([1.0]), 2)
+    with pytest.raises(ValueError, match="at least 1 member"):
+        member_halves(torch.tensor([1]), 0)
+
+
+def test_member_halves_are_even_and_independent():
+    halves = member_halves(torch.arange(100_000), 4)
+    # Each member: half of the groups, plus its share of the 1 in 16 in no half.
+    share = halves.float().mean(0)
+    assert torch.allclose(share, torch.full((4,), 0.5 + 1 / 64), atol=0.002)
+    # Two members' halves overlap in a quarter of the groups, as independent halves do.
+    both = (halves[:, 0] & halves[:, 1]).float().mean()
+    assert abs(float(both) - 0.25) < 0.02
+    assert bool(halves.any(-1).all())

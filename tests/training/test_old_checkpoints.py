@@ -60,7 +60,7 @@ def test_an_old_config_validates_against_todays_schemas(run):
     assert {key: model[key] for key in old} == old
     # Keys added since take defaults that keep the old behaviour: no crash head, one network.
     added = {key: model[key] for key in model.keys() - old.keys()}
-    assert added == {"crash_head": False, "crash_aversion": 0.0, "ensemble": 1}
+    assert added == {"crash_head": False, "crash_aversion": 0.0, "ensemble": 1, "bagging": False}
     if run == "grpo_continuation":
         assert ckpt["config"]["algo"]["roots"] == "continuation"
         assert str(cfg.algo.roots) == "continue"

@@ -11,7 +11,13 @@ from tensordict import TensorDict
 from torch import nn
 from train_helpers import REPLAY, csv_scalars, logged_ratios, train_run
 
-from torchrl_grpo.modules import CrashHead, PolicyEnsemble, shared_forward, shared_networks
+from torchrl_grpo.modules import (
+    CrashHead,
+    PolicyEnsemble,
+    member_halves,
+    shared_forward,
+    shared_networks,
+)
 from torchrl_grpo.objectives import HorizonBootstrap, TailSurvival
 from torchrl_grpo.training import Trainer
 from torchrl_grpo.training.algos.tails import crash_labels
@@ -189,6 +195,35 @@ def test_each_member_of_an_ensemble_learns_from_its_own_outputs(tmp_path):
     torch.testing.assert_close(ensemble(obs), (first(obs) + second(obs)) / 2)
     with pytest.raises(ValueError, match="model.ensemble must be >= 1"):
         Trainer(compose_config([*TINY, "model.ensemble=0"]), run_dir=tmp_path / "refused")
+
+
+def test_bagged_members_learn_from_their_own_half_of_the_groups(tmp_path):
+    overrides = [*REPLAY, "model.crash_head=true", "model.ensemble=2", "model.bagging=true"]
+    overrides += ["algo.distill_coeff=1", "algo.distill_loss=regression"]
+    trainer = train_run(tmp_path, "bagged", [*overrides, "experiment.total_frames=60"])
+    algo = trainer.algo
+    [ensemble] = [m for m in algo.policy.modules() if isinstance(m, PolicyEnsemble)]
+    batch = algo.current_log_probs(algo.replay[:])
+    halves = member_halves(batch["group_id"], 2)
+    assert bool(halves.all(-1).any()) and not bool(halves.all())  # some groups train one
+
+    def member_grads(terms, data, member: int) -> list[torch.Tensor]:
+        algo.optimizer.zero_grad(set_to_none=False)
+        out = terms(data)
+        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        return [p.grad.clone() for p in ensemble.members[member].parameters()]
+
+    for member in range(2):
+        bagged = member_grads(algo.member_terms, batch, member)
+        with ensemble.acting(member):
+            own = member_grads(algo.loss_terms, batch[halves[:, member]], member)
+        # Each member's gradient is that of its own groups' loss, halved by the mean.
+        for mixed, alone in zip(bagged, own, strict=True):
+            torch.testing.assert_close(mixed, alone / 2)
+    for refused in (["model.ensemble=1"], ["algo=ppo"]):
+        cfg = compose_config([*TINY, "model.ensemble=2", "model.bagging=true", *refused])
+        with pytest.raises(ValueError, match="model.bagging gives each ensemble member"):
+            Trainer(cfg, run_dir=tmp_path / "refused")
 
 
 def test_the_losses_of_a_minibatch_run_the_network_once(tmp_path):

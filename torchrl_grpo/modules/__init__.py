@@ -8,7 +8,7 @@ from torchrl_grpo.modules.actors import (
     make_value_net,
 )
 from torchrl_grpo.modules.crash_head import CrashHead
-from torchrl_grpo.modules.ensemble import PolicyEnsemble
+from torchrl_grpo.modules.ensemble import PolicyEnsemble, member_halves
 from torchrl_grpo.modules.greedy_tail import EXPLORED, GreedyTail
 from torchrl_grpo.modules.kinematics import (
     DEFAULT_FEATURES,
@@ -93,6 +93,7 @@ __all__ = [
     "make_network",
     "make_scripted_policy",
     "make_value_net",
+    "member_halves",
     "shared_forward",
     "shared_networks",
     "time_to_collision",

@@ -15,13 +15,14 @@ five members did not do what five runs did: 4.8% on seed 0, within that run's ow
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import torch
 from torch import nn
 
-__all__ = ["PolicyEnsemble"]
+__all__ = ["PolicyEnsemble", "member_halves"]
 
 
 class PolicyEnsemble(nn.Module):
@@ -86,3 +87,62 @@ class PolicyEnsemble(nn.Module):
                 "crash_logits(observation): build them with model.crash_head=true"
             )
         return self._combine(lambda member: member.crash_logits(observation))
+
+
+def _primes(count: int) -> list[int]:
+    """The first ``count`` primes."""
+    found: list[int] = []
+    candidate = 2
+    while len(found) < count:
+        if all(candidate % p for p in found if p * p <= candidate):
+            found.append(candidate)
+        candidate += 1
+    return found
+
+
+def member_halves(group_id: torch.Tensor, members: int) -> torch.Tensor:
+    """Which of ``members`` networks train on each row: a fixed half of the groups each.
+
+    Five runs of a recipe crash in different states and their mean logits crash half as
+    often; five members trained on the same groups do not (docs/results.md). Giving each
+    member its own half of the groups (subsampling without replacement, "subagging")
+    lets the members differ by their data inside one run. Member ``k`` keeps the groups
+    with ``frac(group_id * a_k) < 1/2``, ``a_k`` the fractional part of the square root
+    of the ``k``-th prime: a Weyl sequence per member, so consecutive group ids split
+    evenly and the halves of two members are independent (the square roots of distinct
+    primes are linearly independent over the rationals). The rows of one group (its
+    branches, and its replays in later batches) fall in the same halves. A group in no
+    member's half (one in ``2 ** members``) goes to member ``group_id mod members``, so
+    none is dropped.
+
+    Args:
+        group_id: integer group ids, any shape.
+        members: the ensemble's size (>= 1).
+
+    Returns:
+        A bool tensor ``[*group_id.shape, members]``: row ``i`` trains member ``k``
+        where it is ``True``.
+
+    Raises:
+        ValueError: ``members < 1``.
+        TypeError: the ids are not integers.
+
+    Example:
+        >>> halves = member_halves(torch.arange(10_000), 3)
+        >>> halves.shape, [round(float(f), 3) for f in halves.float().mean(0)]
+        (torch.Size([10000, 3]), [0.541, 0.542, 0.543])
+        >>> bool(halves.any(-1).all())  # every group trains some member
+        True
+        >>> bool((member_halves(torch.tensor([7, 7]), 3) == halves[7]).all())
+        True
+    """
+    if members < 1:
+        raise ValueError(f"an ensemble has at least 1 member, got {members}")
+    if group_id.dtype.is_floating_point or group_id.dtype == torch.bool:
+        raise TypeError(f"group ids are integers, got {group_id.dtype}")
+    ids = group_id.to(torch.float64).unsqueeze(-1)
+    steps = torch.tensor([math.sqrt(p) % 1.0 for p in _primes(members)], dtype=torch.float64)
+    halves = torch.frac(ids * steps) < 0.5
+    orphan = ~halves.any(-1, keepdim=True)
+    owner = torch.nn.functional.one_hot(group_id.long() % members, members).bool()
+    return halves | (orphan & owner)

@@ -161,6 +161,7 @@ class ModelConfig:
     crash_head: bool = False
     crash_aversion: float = 0.0
     ensemble: int = 1
+    bagging: bool = False
 
 
 @dataclass

@@ -26,7 +26,8 @@ from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import LossModule
 
-from torchrl_grpo.modules import PolicyEnsemble, shared_forward
+from torchrl_grpo.branching import GROUP_ID
+from torchrl_grpo.modules import PolicyEnsemble, member_halves, shared_forward
 from torchrl_grpo.training.collect import make_collector
 from torchrl_grpo.training.env_builder import make_rollout_env
 from torchrl_grpo.training.metrics import PhaseTimer, metric_name
@@ -99,6 +100,7 @@ class Algorithm:
     config_name: ClassVar[str] = ""
     supports_ray: ClassVar[bool] = False
     trains_crash_head: ClassVar[bool] = False
+    has_groups: ClassVar[bool] = False
 
     def __init__(self, cfg: DictConfig, policy: ProbabilisticActor, env: EnvBase) -> None:
         self.cfg = cfg
@@ -153,6 +155,13 @@ class Algorithm:
         if cap is not None and cap < 1:
             raise ValueError(f"algo.max_minibatches must be >= 1 (or null), got {cap}")
         model = cfg.get("model")
+        if model is not None and model.get("bagging", False):
+            if int(model.get("ensemble", 1)) < 2 or not cls.has_groups:
+                raise ValueError(
+                    "model.bagging gives each ensemble member its own half of the groups: it "
+                    f"needs model.ensemble >= 2 (got {model.get('ensemble', 1)}) and an algo "
+                    f"with branch groups (got algo={cfg.algo.name})"
+                )
         if model is not None and model.get("crash_head", False) and not cls.trains_crash_head:
             raise ValueError(
                 f"model.crash_head is trained on the crashes of enumerated branch groups; "
@@ -196,15 +205,22 @@ class Algorithm:
         Each member of a :class:`~torchrl_grpo.modules.PolicyEnsemble` gets the whole
         loss of its own outputs (its ratios, targets and crash predictions), so the
         members are fitted to the same data independently; the ensemble acts with
-        their mean.
+        their mean. With ``model.bagging``, member ``k`` gets the loss of the rows of
+        its own half of the groups only (:func:`~torchrl_grpo.modules.member_halves`).
         """
         ensemble = self.ensemble
         if ensemble is None:
             return self.loss_terms(minibatch)
+        halves = None
+        if self.cfg.model.get("bagging", False):
+            halves = member_halves(minibatch.get(GROUP_ID), len(ensemble))
         terms = []
         for member in range(len(ensemble)):
+            rows = minibatch if halves is None else minibatch[halves[:, member]]
+            if rows.shape[0] == 0:
+                continue  # a small minibatch with none of this member's groups
             with ensemble.acting(member):
-                terms.append(self.loss_terms(minibatch))
+                terms.append(self.loss_terms(rows))
         mean = terms[0].empty()
         for key in terms[0].keys(include_nested=True, leaves_only=True):
             mean.set(key, torch.stack([t.get(key).float() for t in terms]).mean(0))

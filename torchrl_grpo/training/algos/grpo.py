@@ -161,6 +161,7 @@ class GRPO(Algorithm):
     config_name = "base_grpo"
     supports_ray = True
     trains_crash_head = True
+    has_groups = True
 
     def __init__(self, cfg: DictConfig, policy: ProbabilisticActor, env: EnvBase) -> None:
         super().__init__(cfg, policy, env)
