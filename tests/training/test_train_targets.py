@@ -155,14 +155,18 @@ def test_bootstrapped_crash_labels_are_the_heads_estimate_where_the_horizon_cut(
         Trainer(cfg, run_dir=tmp_path / "refused")
 
 
-def test_each_member_of_an_ensemble_learns_from_its_own_outputs(tmp_path):
+def ensemble_run(tmp_path, name: str, extra: list[str]) -> tuple:
+    """A tiny run of two members with a crash head and the regression: algo, ensemble, replay."""
     overrides = [*REPLAY, "model.crash_head=true", "model.ensemble=2", "algo.distill_coeff=1"]
-    overrides += ["algo.distill_loss=regression", "algo.distill_temperature=1"]
-    trainer = train_run(tmp_path, "ensemble", [*overrides, "experiment.total_frames=60"])
-    algo = trainer.algo
+    overrides += ["algo.distill_loss=regression", "algo.distill_temperature=1", *extra]
+    algo = train_run(tmp_path, name, [*overrides, "experiment.total_frames=60"]).algo
     [ensemble] = [m for m in algo.policy.modules() if isinstance(m, PolicyEnsemble)]
+    return algo, ensemble, algo.current_log_probs(algo.replay[:])
+
+
+def test_each_member_of_an_ensemble_learns_from_its_own_outputs(tmp_path):
+    algo, ensemble, batch = ensemble_run(tmp_path, "ensemble", [])
     first, second = ensemble.members
-    batch = algo.current_log_probs(algo.replay[:])
     # Each member's ratio is taken around its own log-probs.
     for member in range(2):
         with ensemble.acting(member):
@@ -198,12 +202,7 @@ def test_each_member_of_an_ensemble_learns_from_its_own_outputs(tmp_path):
 
 
 def test_bagged_members_learn_from_their_own_half_of_the_groups(tmp_path):
-    overrides = [*REPLAY, "model.crash_head=true", "model.ensemble=2", "model.bagging=true"]
-    overrides += ["algo.distill_coeff=1", "algo.distill_loss=regression"]
-    trainer = train_run(tmp_path, "bagged", [*overrides, "experiment.total_frames=60"])
-    algo = trainer.algo
-    [ensemble] = [m for m in algo.policy.modules() if isinstance(m, PolicyEnsemble)]
-    batch = algo.current_log_probs(algo.replay[:])
+    algo, ensemble, batch = ensemble_run(tmp_path, "bagged", ["model.bagging=true"])
     halves = member_halves(batch["group_id"], 2)
     assert bool(halves.all(-1).any()) and not bool(halves.all())  # some groups train one
 

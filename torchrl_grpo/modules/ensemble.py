@@ -10,7 +10,9 @@ training loop gives each member the whole loss of its own outputs (the members a
 fitted to the same data independently, rather than their mean fitted once, which would
 be one wider network). Trained together in one run of the recipe (``model.ensemble=5``),
 five members did not do what five runs did: 4.8% on seed 0, within that run's own range
-(docs/results.md, "Where the crash rate moves").
+(docs/results.md, "Where the crash rate moves"). :func:`member_halves` gives each member
+its own half of the groups instead (``model.bagging``): three such members on the
+recipe with branches of 4 steps crash in 3.2% over two seeds, one network in 3.7%.
 """
 
 from __future__ import annotations
