@@ -81,7 +81,8 @@ class Algorithm:
     the schema's name in Hydra's ConfigStore, which the defaults of
     ``conf/algo/<name>.yaml`` start from; ``supports_ray``, whether it collects with
     ``rollout.backend=ray``; ``trains_crash_head``, whether it trains a
-    ``model.crash_head``.
+    ``model.crash_head``; ``has_groups``, whether its batches carry group ids
+    (``model.bagging`` splits them between ensemble members).
 
     Args:
         cfg: the composed config.
