@@ -18,6 +18,7 @@ from torchrl_grpo.training import (
     PPO,
     AlgoConfig,
     Algorithm,
+    TeacherDistill,
     Trainer,
     algorithm_for,
     load_checkpoint,
@@ -115,6 +116,7 @@ def test_the_registry_names_every_built_in_algorithm():
         "grpo_branch": GRPO,
         "grpo_episode": GRPO,
         "ppo": PPO,
+        "distill": TeacherDistill,
     }
     # By name, or by schema when the name is not set yet.
     assert algorithm_for(OmegaConf.create({"name": "grpo_episode"})) is GRPO

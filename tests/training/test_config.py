@@ -11,6 +11,7 @@ from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 from omegaconf.errors import ValidationError
 
+from torchrl_grpo.training import DistillConfig
 from torchrl_grpo.training.config import (
     Config,
     GRPOConfig,
@@ -31,18 +32,20 @@ def _options(group: str) -> list[str]:
     "group,option", [(g, o) for g in GROUPS for o in _options(g)], ids=lambda x: str(x)
 )
 def test_every_group_option_composes(group, option):
-    cfg = compose_config([f"{group}={option}"])
+    # The distillation has no default teachers: a path is enough to compose and check.
+    teachers = ["algo.teachers=[runs/a/last.pt]"] if option == "distill" else []
+    cfg = compose_config([f"{group}={option}", *teachers])
     check_config(cfg)
     assert OmegaConf.to_container(cfg, resolve=True)  # every interpolation resolves
     if group == "env":
         assert cfg.env.name == option
     if group == "algo":
         assert str(cfg.algo.name) == option
-        schema = PPOConfig if option == "ppo" else GRPOConfig
+        schema = {"ppo": PPOConfig, "distill": DistillConfig}.get(option, GRPOConfig)
         assert OmegaConf.get_type(cfg.algo) is schema
 
 
-@pytest.mark.parametrize("algo", ["grpo_branch", "grpo_episode", "ppo"])
+@pytest.mark.parametrize("algo", ["grpo_branch", "grpo_episode", "ppo", "distill"])
 def test_rollout_follows_the_algorithm(algo):
     cfg = compose_config([f"algo={algo}"])
     expected = OmegaConf.load(CONF / "rollout" / f"{algo}.yaml")

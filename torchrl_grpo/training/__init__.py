@@ -10,8 +10,10 @@ from torchrl_grpo.training.algos import (
     PPO,
     AlgoConfig,
     Algorithm,
+    DistillConfig,
     GRPOConfig,
     PPOConfig,
+    TeacherDistill,
     algorithm_for,
     register_algorithm,
 )
@@ -58,6 +60,7 @@ from torchrl_grpo.training.results import (
     format_table,
     paired_verdicts,
 )
+from torchrl_grpo.training.teachers import Teachers, load_teachers
 from torchrl_grpo.training.trainer import Trainer, TrainResult
 from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap, tensor_episodes
 
@@ -68,6 +71,7 @@ __all__ = [
     "BASELINE_LABELS",
     "CheckpointHook",
     "Config",
+    "DistillConfig",
     "EnvConfig",
     "EvalResult",
     "EvaluationHook",
@@ -83,6 +87,8 @@ __all__ = [
     "PPOConfig",
     "PhaseTimer",
     "RolloutConfig",
+    "TeacherDistill",
+    "Teachers",
     "TrainResult",
     "Trainer",
     "algorithm_for",
@@ -98,6 +104,7 @@ __all__ = [
     "format_table",
     "is_grpo",
     "load_checkpoint",
+    "load_teachers",
     "load_collector_state",
     "log_metrics",
     "log_video",

@@ -1,6 +1,7 @@
 """The training algorithms, one file each, and their registry.
 
-``grpo.py`` (``grpo_branch``, ``grpo_episode``) and ``ppo.py`` (``ppo``) are built in.
+``grpo.py`` (``grpo_branch``, ``grpo_episode``), ``ppo.py`` (``ppo``) and ``teacher.py``
+(``distill``: trained runs distilled into one policy) are built in.
 Every other module of this package is imported with it, so a new algorithm is one
 file here (a registered :class:`~torchrl_grpo.training.Algorithm` and its config
 dataclass) plus its ``conf/algo/<name>.yaml``; see ``docs/training.md``.
@@ -18,6 +19,7 @@ from torchrl_grpo.training.algos.base import (
 )
 from torchrl_grpo.training.algos.grpo import GRPO, GRPOConfig
 from torchrl_grpo.training.algos.ppo import PPO, PPOConfig
+from torchrl_grpo.training.algos.teacher import DistillConfig, TeacherDistill
 
 __all__ = [
     "ALGORITHMS",
@@ -25,8 +27,10 @@ __all__ = [
     "PPO",
     "AlgoConfig",
     "Algorithm",
+    "DistillConfig",
     "GRPOConfig",
     "PPOConfig",
+    "TeacherDistill",
     "algorithm_for",
     "register_algorithm",
 ]

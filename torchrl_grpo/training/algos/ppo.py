@@ -8,9 +8,8 @@ The advantage is recomputed with the updated critic before every epoch, as Torch
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Literal, get_args
+from typing import Literal, get_args
 
-import numpy as np
 import torch
 from omegaconf import MISSING, DictConfig
 from tensordict import TensorDictBase
@@ -19,7 +18,8 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from torchrl_grpo.training.algos.base import AlgoConfig, Algorithm, register_algorithm
+from torchrl_grpo.training.algos.base import AlgoConfig, register_algorithm
+from torchrl_grpo.training.algos.episodes import TrunkEpisodes
 from torchrl_grpo.training.choices import choice_enum
 from torchrl_grpo.training.metrics import PhaseTimer
 from torchrl_grpo.training.model_builder import make_value
@@ -57,7 +57,7 @@ class PPOConfig(AlgoConfig):
 
 
 @register_algorithm
-class PPO(Algorithm):
+class PPO(TrunkEpisodes):
     """PPO with a critic of the policy's architecture, GAE recomputed every epoch.
 
     Example:
@@ -76,8 +76,6 @@ class PPO(Algorithm):
     def __init__(self, cfg: DictConfig, policy: ProbabilisticActor, env: EnvBase) -> None:
         super().__init__(cfg, policy, env)
         self.advantage = self.make_advantage(cfg.algo, self.value)
-        # Return of each worker's episode in progress, carried across batches.
-        self.episode_return: torch.Tensor | None = None
 
     @classmethod
     def make_value(cls, model_cfg: DictConfig, env: EnvBase) -> ValueOperator:
@@ -114,32 +112,6 @@ class PPO(Algorithm):
             average_gae=False,
         )
 
-    def batch_metrics(self, batch: TensorDictBase) -> dict[str, float]:
-        """Returns and crashes of the episodes that ended in the batch."""
-        data = batch if batch.ndim == 2 else batch.unsqueeze(0)
-        reward = data.get(("next", "reward")).reshape(data.shape)
-        done = data.get(("next", "done")).reshape(data.shape)
-        crashed = data.get(("next", "crashed")).reshape(data.shape)
-        acc = self.episode_return
-        acc = torch.zeros(data.shape[0]) if acc is None else acc.clone()
-        returns, crashes = [], []
-        for t in range(data.shape[1]):
-            acc += reward[:, t]
-            for w in done[:, t].nonzero().flatten().tolist():
-                returns.append(float(acc[w]))
-                crashes.append(bool(crashed[w, t]))
-                acc[w] = 0.0
-        self.episode_return = acc
-        out = {
-            "collect/speed": float(data.get(("next", "speed")).float().mean()),
-            "collect/reward": float(reward.float().mean()),
-        }
-        if returns:
-            out["collect/episode_return"] = float(np.mean(returns))
-            out["collect/crash_rate"] = float(np.mean(crashes))
-            out["collect/episodes"] = float(len(returns))
-        return out
-
     def update(self, batch: TensorDictBase, timer: PhaseTimer) -> dict[str, float]:
         """GAE, then epochs of minibatches (GAE recomputed before each)."""
         data = batch.exclude("state", ("next", "state"))
@@ -162,11 +134,3 @@ class PPO(Algorithm):
         with timer("update"):
             stats.update(self.optimise(data.reshape(-1), refresh=refresh))
         return stats
-
-    def state_dict(self) -> dict[str, Any]:  # noqa: D102
-        acc = self.episode_return
-        return {**super().state_dict(), "episode_acc": {} if acc is None else {"return": acc}}
-
-    def load_state_dict(self, checkpoint: dict[str, Any], source: str = "") -> None:  # noqa: D102
-        super().load_state_dict(checkpoint, source)
-        self.episode_return = (checkpoint.get("episode_acc") or {}).get("return")

@@ -1,0 +1,101 @@
+"""Policy distillation: the KL divergence from a teacher's action distribution to the policy's.
+
+A teacher here is a trained policy, or the mean logits of several, that labels every
+state the student visits with its whole distribution over actions (DAgger's labels,
+soft). Each state then teaches every action's probability at once, at the cost of one
+forward of the teacher, where a branch group needs a simulated branch per action.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import NestedKey, TensorDict, TensorDictBase
+from tensordict.nn import ProbabilisticTensorDictSequential
+from torchrl.objectives import LossModule
+
+from torchrl_grpo.objectives.checks import check_finite, require
+
+__all__ = ["TeacherDistillLoss"]
+
+
+class TeacherDistillLoss(LossModule):
+    r"""``KL(teacher || policy)`` per state, averaged: ``sum_a p_T(a|s) (log p_T - log pi)``.
+
+    Each row carries the teacher's logits for its state. The loss is the mean over rows
+    of the KL divergence from the teacher's softmax to the policy's distribution; it is
+    0 exactly when the policy gives every action the teacher's probability.
+
+    Args:
+        actor_network: the policy; its ``get_dist`` gives a categorical distribution
+            (its ``logits`` are normalised log-probabilities). Its parameters are used
+            as they are (not copied).
+
+    Keys (change them with :meth:`set_keys`): ``teacher_logits`` (``"teacher_logits"``).
+
+    Outputs: ``loss_distill``, and the diagnostics ``distill_agreement`` (the share of
+    rows where the policy's most likely action is the teacher's) and
+    ``teacher_entropy`` (the mean entropy of the teacher's distributions, in nats).
+
+    Example:
+        >>> import math
+        >>> from tensordict.nn import TensorDictModule
+        >>> from torchrl.modules import ProbabilisticActor
+        >>> net = TensorDictModule(torch.nn.Linear(3, 2), ["observation"], ["logits"])
+        >>> torch.nn.init.zeros_(net.module.weight); torch.nn.init.zeros_(net.module.bias)
+        Parameter containing:...
+        >>> actor = ProbabilisticActor(net, ["logits"],
+        ...                            distribution_class=torch.distributions.Categorical)
+        >>> teacher = torch.tensor([[0.0, math.log(3.0)]])  # p_T = (1/4, 3/4)
+        >>> data = TensorDict(observation=torch.ones(1, 3), teacher_logits=teacher,
+        ...                   batch_size=[1])
+        >>> out = TeacherDistillLoss(actor)(data)  # the policy is uniform: pi = (1/2, 1/2)
+        >>> expected = 0.25 * math.log(0.5) + 0.75 * math.log(1.5)
+        >>> round(float(out["loss_distill"]), 6) == round(expected, 6)
+        True
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Tensordict keys read by :class:`TeacherDistillLoss`, set with ``set_keys``.
+
+        Attributes:
+            teacher_logits: the teacher's logits of the row's state, ``[N, n_actions]``.
+        """
+
+        teacher_logits: NestedKey = "teacher_logits"
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    out_keys = ["loss_distill", "distill_agreement", "teacher_entropy"]
+
+    def __init__(self, actor_network: ProbabilisticTensorDictSequential) -> None:
+        super().__init__()
+        self.actor_network = actor_network
+
+    @property
+    def in_keys(self) -> list[NestedKey]:  # noqa: D102
+        return list(dict.fromkeys([*self.actor_network.in_keys, self.tensor_keys.teacher_logits]))
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """The mean KL divergence over ``tensordict``'s rows (a flat batch)."""
+        teacher = require(tensordict, self.tensor_keys.teacher_logits, "teacher_logits")
+        log_pi = self.actor_network.get_dist(tensordict).logits
+        if teacher.shape != log_pi.shape:
+            raise ValueError(
+                f"the teacher has {tuple(teacher.shape)} logits, the policy "
+                f"{tuple(log_pi.shape)}: were they trained with the same actions?"
+            )
+        check_finite({"the teacher's logits": teacher, "the policy's log-probs": log_pi})
+        log_teacher = torch.log_softmax(teacher, dim=-1)
+        p_teacher = log_teacher.exp()
+        kl = (p_teacher * (log_teacher - log_pi)).sum(-1)
+        agreement = (log_pi.argmax(-1) == teacher.argmax(-1)).float().mean()
+        entropy = -(p_teacher * log_teacher).sum(-1).mean()
+        return TensorDict(
+            loss_distill=kl.mean(),
+            distill_agreement=agreement.detach(),
+            teacher_entropy=entropy.detach(),
+            batch_size=[],
+        )

@@ -1,0 +1,132 @@
+"""Teacher distillation (``algo=distill``): one policy trained on trained policies' labels.
+
+The student drives (TorchRL's ``Collector``, as PPO's trunks), and every state it visits
+is labelled with the teachers' mean logits (:func:`~torchrl_grpo.training.load_teachers`):
+DAgger with soft labels. The labelled states are kept, up to ``algo.replay_frames`` of
+them, and each batch trains ``algo.max_minibatches`` minibatches drawn from all of them
+through :class:`~torchrl_grpo.objectives.TeacherDistillLoss`. A frame is a step of the
+student's worlds, as for the other algorithms; the teachers' own frames are not counted
+here, and a result should add them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal, get_args
+
+import torch
+from omegaconf import MISSING, DictConfig
+from tensordict import TensorDictBase
+from torchrl.envs import EnvBase
+from torchrl.modules import ProbabilisticActor, ValueOperator
+
+from torchrl_grpo.objectives import TeacherDistillLoss
+from torchrl_grpo.training.algos.base import AlgoConfig, register_algorithm
+from torchrl_grpo.training.algos.episodes import TrunkEpisodes
+from torchrl_grpo.training.algos.labelled import LabelledStates
+from torchrl_grpo.training.choices import choice_enum
+from torchrl_grpo.training.metrics import PhaseTimer
+from torchrl_grpo.training.teachers import load_teachers
+
+__all__ = ["DistillConfig", "DistillVariant", "TeacherDistill"]
+
+#: Teacher distillation's name (``algo.name``).
+DistillVariant = Literal["distill"]
+
+DistillName = choice_enum("DistillName", DistillVariant, "The distillation.", module=__name__)
+
+
+@dataclass
+class DistillConfig(AlgoConfig):
+    """``algo=distill``: the student fits the teachers' mean logits on its own states.
+
+    ``teachers`` are checkpoints of runs on the same scenario and env config;
+    ``replay_frames`` is how many labelled states are kept (the oldest go first);
+    ``max_minibatches`` of ``minibatch_size`` states are drawn from them per batch.
+
+    Example:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.merge(OmegaConf.structured(DistillConfig),
+        ...                       {"name": "distill", "teachers": ["runs/a/last.pt"]})
+        >>> cfg.replay_frames, cfg.minibatch_size, cfg.max_minibatches
+        (1000000, 1024, 200)
+    """
+
+    name: DistillName = MISSING
+    teachers: list[str] = field(default_factory=list)
+    replay_frames: int = 1_000_000
+    entropy_coeff: float = 0.0
+    epochs: int = 1
+    minibatch_size: int = 1024
+    max_minibatches: int | None = 200
+
+
+@register_algorithm
+class TeacherDistill(TrunkEpisodes):
+    """DAgger with the teachers' soft labels, on the student's own trunks.
+
+    Example:
+        >>> from torchrl_grpo.training import compose_config
+        >>> cfg = compose_config(["algo=distill"])  # no teachers given
+        >>> try:
+        ...     TeacherDistill.check_config(cfg)
+        ... except ValueError as err:
+        ...     print(str(err)[:39])
+        algo=distill needs algo.teachers: the c
+    """
+
+    names = get_args(DistillVariant)
+    config_class = DistillConfig
+    config_name = "base_distill"
+
+    def __init__(self, cfg: DictConfig, policy: ProbabilisticActor, env: EnvBase) -> None:
+        super().__init__(cfg, policy, env)
+        self.teachers = load_teachers(list(cfg.algo.teachers), cfg.env, env).to(cfg.device)
+        keys = [*policy.in_keys, *self.teachers.out_keys]
+        self.keys = list(dict.fromkeys(keys))
+        self.replay = LabelledStates(int(cfg.algo.replay_frames))
+
+    @classmethod
+    def check_config(cls, cfg: DictConfig) -> None:
+        """Also refuses an empty ``algo.teachers`` and a replay smaller than a minibatch."""
+        super().check_config(cfg)
+        algo = cfg.algo
+        if not algo.teachers:
+            raise ValueError(
+                "algo=distill needs algo.teachers: the checkpoints whose policies it "
+                "distils, e.g. algo.teachers=[runs/a/last.pt,runs/b/last.pt]"
+            )
+        if algo.replay_frames < algo.minibatch_size:
+            raise ValueError(
+                f"algo.replay_frames ({algo.replay_frames}) must hold at least one "
+                f"minibatch (algo.minibatch_size={algo.minibatch_size})"
+            )
+
+    @classmethod
+    def make_loss(
+        cls, algo_cfg: DictConfig, policy: ProbabilisticActor, value: ValueOperator | None = None
+    ) -> TeacherDistillLoss:
+        """The KL divergence from the teachers' mean logits to the policy."""
+        return TeacherDistillLoss(policy)
+
+    def update(self, batch: TensorDictBase, timer: PhaseTimer) -> dict[str, float]:
+        """Label the batch's states, keep them, then train on minibatches of all kept."""
+        with timer("teacher"):
+            data = self.teachers(batch.reshape(-1).select(*self.policy.in_keys))
+        self.replay.extend(data.select(*self.keys))
+        kept = len(self.replay)
+        algo = self.cfg.algo
+        draws = int(algo.minibatch_size) * int(algo.max_minibatches or 1)
+        # Drawn with replacement: a fixed cost per batch, however many states are kept.
+        rows = self.replay.rows[torch.randint(kept, (min(draws, kept),))]
+        with timer("update"):
+            stats = self.optimise(rows)
+        stats["train/replay_steps"] = float(kept)
+        return stats
+
+    def state_dict(self) -> dict[str, Any]:  # noqa: D102
+        return {**super().state_dict(), "replay": self.replay.state_dict()}
+
+    def load_state_dict(self, checkpoint: dict[str, Any], source: str = "") -> None:  # noqa: D102
+        super().load_state_dict(checkpoint, source)
+        self.replay.load_state_dict(checkpoint["replay"])

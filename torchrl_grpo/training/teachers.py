@@ -1,0 +1,114 @@
+"""Trained policies as teachers: their checkpoints loaded, frozen, and acting as one.
+
+``algo=distill`` trains a student on the states it visits, labelled with the mean
+logits of one or more trained runs (their saved policies: the weight average where the
+run kept one). The mean logits of several runs crash less than any of them
+(docs/results.md, "Where the crash rate moves"); distilled, they are one network to run.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tensordict import NestedKey, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import nn
+from torchrl.envs import EnvBase
+
+from torchrl_grpo.training.checkpoint import load_checkpoint
+from torchrl_grpo.training.env_builder import env_overrides
+from torchrl_grpo.training.model_builder import make_policy
+
+__all__ = ["Teachers", "load_teachers"]
+
+
+class Teachers(TensorDictModuleBase):
+    """Frozen logits modules that write their mean logits, without gradients.
+
+    Args:
+        members: modules that each write ``"logits"`` (a trained actor's first module).
+        out_key: where the mean logits are written.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> from tensordict.nn import TensorDictModule
+        >>> nets = [TensorDictModule(nn.Linear(3, 2), ["observation"], ["logits"])
+        ...         for _ in range(2)]
+        >>> td = Teachers(nets)(TensorDict(observation=torch.ones(4, 3), batch_size=[4]))
+        >>> mean = (nets[0].module(torch.ones(4, 3)) + nets[1].module(torch.ones(4, 3))) / 2
+        >>> torch.allclose(td["teacher_logits"], mean), td["teacher_logits"].requires_grad
+        (True, False)
+    """
+
+    def __init__(
+        self, members: Sequence[TensorDictModuleBase], out_key: NestedKey = "teacher_logits"
+    ) -> None:
+        super().__init__()
+        if not members:
+            raise ValueError("Teachers needs at least one teacher")
+        self.members = nn.ModuleList(members).requires_grad_(False).eval()
+        self.in_keys = list(dict.fromkeys(k for m in members for k in m.in_keys))
+        self.out_keys = [out_key]
+
+    @torch.no_grad()
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Writes the members' mean logits of ``tensordict``'s states."""
+        logits = [
+            member(tensordict.select(*member.in_keys).copy()).get("logits")
+            for member in self.members
+        ]
+        tensordict.set(self.out_keys[0], torch.stack(logits).mean(0))
+        return tensordict
+
+
+def load_teachers(paths: Sequence[str], env_cfg: DictConfig, env: EnvBase) -> Teachers:
+    """The saved policies of the checkpoints at ``paths``, as one :class:`Teachers`.
+
+    Each teacher keeps its own ``model`` config (networks, crash head, ensemble), so
+    teachers of different architectures mix. Each must have been trained on this
+    scenario and env config: its observations must mean what the student's mean.
+
+    Args:
+        paths: checkpoints written by training runs (``last.pt``).
+        env_cfg: the student's ``env`` config.
+        env: an env of that config, for the specs.
+
+    Raises:
+        FileNotFoundError: a path holds no file (naming it).
+        ValueError: no path, a file that is not a checkpoint, or a teacher trained on
+            another scenario or env config (naming its path and both configs).
+
+    Example:
+        >>> import tempfile
+        >>> from torchrl_grpo.training import compose_config, make_env, save_checkpoint
+        >>> from torchrl_grpo.training import to_container
+        >>> cfg = compose_config(["experiment=smoke"])
+        >>> env = make_env(cfg.env, seed=0)
+        >>> policy = make_policy(cfg.model, env)
+        >>> path = save_checkpoint({"config": to_container(cfg), "policy": policy.state_dict()},
+        ...                        tempfile.mkdtemp() + "/last.pt")
+        >>> state = env.reset()
+        >>> labelled = load_teachers([str(path)], cfg.env, env)(state.clone())
+        >>> torch.equal(labelled["teacher_logits"], policy(state.clone())["logits"])
+        True
+    """
+    if not paths:
+        raise ValueError("algo.teachers is empty: give the checkpoints to distil")
+    want = (str(env_cfg.scenario), env_overrides(env_cfg))
+    members = []
+    for path in paths:
+        ckpt = load_checkpoint(path)
+        # Untyped: the algo's schema is not needed, and typing it would import the algos.
+        run_cfg = OmegaConf.create(ckpt["config"])
+        got = (str(run_cfg.env.scenario), env_overrides(run_cfg.env))
+        if got != want:
+            raise ValueError(
+                f"teacher {path} was trained on {got[0]} with env.config {got[1]}; this run "
+                f"is on {want[0]} with {want[1]}: its observations would mean other things"
+            )
+        policy = make_policy(run_cfg.model, env)
+        policy.load_state_dict(ckpt["policy"])
+        members.append(policy.module[0])
+    return Teachers(members)
