@@ -40,17 +40,14 @@ class TeacherDistillLoss(LossModule):
 
     Example:
         >>> import math
-        >>> from tensordict.nn import TensorDictModule
-        >>> from torchrl.modules import ProbabilisticActor
-        >>> net = TensorDictModule(torch.nn.Linear(3, 2), ["observation"], ["logits"])
-        >>> torch.nn.init.zeros_(net.module.weight); torch.nn.init.zeros_(net.module.bias)
-        Parameter containing:...
-        >>> actor = ProbabilisticActor(net, ["logits"],
-        ...                            distribution_class=torch.distributions.Categorical)
+        >>> from torchrl_grpo.modules import make_discrete_actor
+        >>> net = torch.nn.Linear(3, 2)
+        >>> _ = torch.nn.init.zeros_(net.weight), torch.nn.init.zeros_(net.bias)
+        >>> actor = make_discrete_actor(net, 2)  # every state: pi = (1/2, 1/2)
         >>> teacher = torch.tensor([[0.0, math.log(3.0)]])  # p_T = (1/4, 3/4)
         >>> data = TensorDict(observation=torch.ones(1, 3), teacher_logits=teacher,
         ...                   batch_size=[1])
-        >>> out = TeacherDistillLoss(actor)(data)  # the policy is uniform: pi = (1/2, 1/2)
+        >>> out = TeacherDistillLoss(actor)(data)
         >>> expected = 0.25 * math.log(0.5) + 0.75 * math.log(1.5)
         >>> round(float(out["loss_distill"]), 6) == round(expected, 6)
         True
