@@ -194,3 +194,15 @@ def test_resume_of_a_distillation_continues_exactly(teachers, tmp_path):
     assert torch.equal(
         straight.algo.replay.rows["observation"], resumed.algo.replay.rows["observation"]
     )
+
+
+def test_without_a_cap_each_batch_passes_over_every_kept_state(teachers, tmp_path):
+    cfg = distill_config(
+        teachers,
+        ["experiment.total_frames=192", "algo.max_minibatches=null", "algo.epochs=2"],
+    )
+    trainer = Trainer(cfg, run_dir=tmp_path / "uncapped")
+    trainer.train()
+    # Batches of 64 frames, minibatches of 64: 64, 128 then 192 states kept, two passes each.
+    assert len(trainer.algo.replay) == 192
+    assert trainer.algo.updates == 2 * (1 + 2 + 3)

@@ -42,7 +42,8 @@ class DistillConfig(AlgoConfig):
 
     ``teachers`` are checkpoints of runs on the same scenario and env config;
     ``replay_frames`` is how many labelled states are kept (the oldest go first);
-    ``max_minibatches`` of ``minibatch_size`` states are drawn from them per batch.
+    ``max_minibatches`` of ``minibatch_size`` states are drawn from them per batch
+    (``null``: ``epochs`` passes over all of them, a cost that grows with what is kept).
 
     Example:
         >>> from omegaconf import OmegaConf
@@ -116,9 +117,11 @@ class TeacherDistill(TrunkEpisodes):
         self.replay.extend(data.select(*self.keys))
         kept = len(self.replay)
         algo = self.cfg.algo
-        draws = int(algo.minibatch_size) * int(algo.max_minibatches or 1)
-        # Drawn with replacement: a fixed cost per batch, however many states are kept.
-        rows = self.replay.rows[torch.randint(kept, (min(draws, kept),))]
+        rows = self.replay.rows
+        if algo.max_minibatches is not None:
+            # Drawn with replacement: a fixed cost per batch, however many states are kept.
+            draws = int(algo.minibatch_size) * int(algo.max_minibatches)
+            rows = rows[torch.randint(kept, (min(draws, kept),))]
         with timer("update"):
             stats = self.optimise(rows)
         stats["train/replay_steps"] = float(kept)
