@@ -12,9 +12,9 @@ every state, then ``--horizon`` steps of the rule policy: what the groups of
 the greedy policy of each ``--checkpoint`` (with ``--ensemble``, also the mean logits of
 all of them, a :class:`~torchrl_grpo.modules.PolicyEnsemble`; with ``--live``, also
 the policy the optimiser trained, where the run saved a weight average; with
-``--aversions``, also the crash head acting with other weights; with ``--versus``, each
-policy's paired verdict against that checkpoint). Each row prints its crash
-rate beside the planner's and always-SLOWER's. With ``--anatomy``, the last five
+``--aversions``, also the crash head acting with other weights, the ensemble's too;
+with ``--versus``, each policy's paired verdict against that checkpoint). Each row
+prints its crash rate beside the planner's and always-SLOWER's. With ``--anatomy``, the last five
 (``--look-back``) decisions before each crash of a checkpoint's policy are scored by the
 planner (``--sequences`` prints them crash by crash): a choice is costly when the
 planner's best action earns at least 0.5 more over its branch.
@@ -208,7 +208,12 @@ def main() -> None:
             raise SystemExit("--ensemble needs at least 2 --checkpoint")
         members = [policy for _, policy, _ in policies[:: 1 + len(args.aversions) + args.live]]
         name = f"mean logits of the {len(members)} checkpoints"
-        policies.append((name, ensemble_of(members, env_cfg), False))
+        ensemble = ensemble_of(members, env_cfg)
+        policies.append((name, ensemble, False))
+        for aversion in args.aversions:
+            policies.append(
+                (f"{name} (aversion {aversion:g})", with_aversion(ensemble, name, aversion), False)
+            )
     if args.versus is not None:
         _, policy = trained(args.versus)
         policies.append((args.versus, policy, False))
