@@ -17,6 +17,7 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.envs import EnvBase
 
+from torchrl_grpo.modules import PolicyEnsemble
 from torchrl_grpo.training.checkpoint import load_checkpoint
 from torchrl_grpo.training.env_builder import env_overrides
 from torchrl_grpo.training.model_builder import make_policy
@@ -25,41 +26,44 @@ __all__ = ["Teachers", "load_teachers"]
 
 
 class Teachers(TensorDictModuleBase):
-    """Frozen logits modules that write their mean logits, without gradients.
+    """Frozen logits networks that write their mean logits, without gradients.
+
+    The mean is :class:`~torchrl_grpo.modules.PolicyEnsemble`'s, the mean logits a
+    ``model.ensemble`` and ``bench_crash_rates.py --ensemble`` act with.
 
     Args:
-        members: modules that each write ``"logits"`` (a trained actor's first module).
+        nets: networks that each map the observation to logits (a trained actor's
+            ``policy.module[0].module``).
+        in_key: the observation key.
         out_key: where the mean logits are written.
 
     Example:
         >>> from tensordict import TensorDict
-        >>> from tensordict.nn import TensorDictModule
-        >>> nets = [TensorDictModule(nn.Linear(3, 2), ["observation"], ["logits"])
-        ...         for _ in range(2)]
+        >>> nets = [nn.Linear(3, 2) for _ in range(2)]
         >>> td = Teachers(nets)(TensorDict(observation=torch.ones(4, 3), batch_size=[4]))
-        >>> mean = (nets[0].module(torch.ones(4, 3)) + nets[1].module(torch.ones(4, 3))) / 2
+        >>> mean = (nets[0](torch.ones(4, 3)) + nets[1](torch.ones(4, 3))) / 2
         >>> torch.allclose(td["teacher_logits"], mean), td["teacher_logits"].requires_grad
         (True, False)
     """
 
     def __init__(
-        self, members: Sequence[TensorDictModuleBase], out_key: NestedKey = "teacher_logits"
+        self,
+        nets: Sequence[nn.Module],
+        in_key: NestedKey = "observation",
+        out_key: NestedKey = "teacher_logits",
     ) -> None:
         super().__init__()
-        if not members:
+        if not nets:
             raise ValueError("Teachers needs at least one teacher")
-        self.members = nn.ModuleList(members).requires_grad_(False).eval()
-        self.in_keys = list(dict.fromkeys(k for m in members for k in m.in_keys))
+        net = nets[0] if len(nets) == 1 else PolicyEnsemble(list(nets))
+        self.net = net.requires_grad_(False).eval()
+        self.in_keys = [in_key]
         self.out_keys = [out_key]
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Writes the members' mean logits of ``tensordict``'s states."""
-        logits = [
-            member(tensordict.select(*member.in_keys).copy()).get("logits")
-            for member in self.members
-        ]
-        tensordict.set(self.out_keys[0], torch.stack(logits).mean(0))
+        """Writes the networks' mean logits of ``tensordict``'s states."""
+        tensordict.set(self.out_keys[0], self.net(tensordict.get(self.in_keys[0])))
         return tensordict
 
 
@@ -110,5 +114,5 @@ def load_teachers(paths: Sequence[str], env_cfg: DictConfig, env: EnvBase) -> Te
             )
         policy = make_policy(run_cfg.model, env)
         policy.load_state_dict(ckpt["policy"])
-        members.append(policy.module[0])
+        members.append(policy.module[0].module)
     return Teachers(members)

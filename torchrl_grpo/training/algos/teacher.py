@@ -83,8 +83,6 @@ class TeacherDistill(TrunkEpisodes):
     def __init__(self, cfg: DictConfig, policy: ProbabilisticActor, env: EnvBase) -> None:
         super().__init__(cfg, policy, env)
         self.teachers = load_teachers(list(cfg.algo.teachers), cfg.env, env).to(cfg.device)
-        keys = [*policy.in_keys, *self.teachers.out_keys]
-        self.keys = list(dict.fromkeys(keys))
         self.replay = LabelledStates(int(cfg.algo.replay_frames))
 
     @classmethod
@@ -114,7 +112,7 @@ class TeacherDistill(TrunkEpisodes):
         """Label the batch's states, keep them, then train on minibatches of all kept."""
         with timer("teacher"):
             data = self.teachers(batch.reshape(-1).select(*self.policy.in_keys))
-        self.replay.extend(data.select(*self.keys))
+        self.replay.extend(data)
         kept = len(self.replay)
         algo = self.cfg.algo
         rows = self.replay.rows
