@@ -54,6 +54,7 @@ from torchrl_grpo.training.metrics import PhaseTimer
 from torchrl_grpo.training.model_builder import make_net, make_policy, make_value
 from torchrl_grpo.training.optim_builder import make_optimizer
 from torchrl_grpo.training.plots import plot_comparison, plot_learning_curve, save_gif
+from torchrl_grpo.training.pretrained import check_same_env, init_policy, load_run_policy
 from torchrl_grpo.training.results import (
     EvalResult,
     compare_paired,
@@ -94,6 +95,7 @@ __all__ = [
     "algorithm_for",
     "baseline_policy",
     "check_config",
+    "check_same_env",
     "collector_state",
     "compare_paired",
     "compose_config",
@@ -101,9 +103,11 @@ __all__ = [
     "evaluate",
     "evaluate_baselines",
     "evaluate_on_tensor",
+    "init_policy",
     "format_table",
     "is_grpo",
     "load_checkpoint",
+    "load_run_policy",
     "load_teachers",
     "load_collector_state",
     "log_metrics",

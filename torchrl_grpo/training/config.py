@@ -311,6 +311,7 @@ class Config:
     seed: int = 0
     device: str = "cpu"
     resume: str | None = None
+    init_from: str | None = None
 
 
 @dataclass

@@ -11,16 +11,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from tensordict import NestedKey, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.envs import EnvBase
 
 from torchrl_grpo.modules import PolicyEnsemble
-from torchrl_grpo.training.checkpoint import load_checkpoint
-from torchrl_grpo.training.env_builder import env_overrides
-from torchrl_grpo.training.model_builder import make_policy
+from torchrl_grpo.training.pretrained import load_run_policy
 
 __all__ = ["Teachers", "load_teachers"]
 
@@ -87,7 +85,7 @@ def load_teachers(paths: Sequence[str], env_cfg: DictConfig, env: EnvBase) -> Te
     Example:
         >>> import tempfile
         >>> from torchrl_grpo.training import compose_config, make_env, save_checkpoint
-        >>> from torchrl_grpo.training import to_container
+        >>> from torchrl_grpo.training import make_policy, to_container
         >>> cfg = compose_config(["experiment=smoke"])
         >>> env = make_env(cfg.env, seed=0)
         >>> policy = make_policy(cfg.model, env)
@@ -100,19 +98,5 @@ def load_teachers(paths: Sequence[str], env_cfg: DictConfig, env: EnvBase) -> Te
     """
     if not paths:
         raise ValueError("algo.teachers is empty: give the checkpoints to distil")
-    want = (str(env_cfg.scenario), env_overrides(env_cfg))
-    members = []
-    for path in paths:
-        ckpt = load_checkpoint(path)
-        # Untyped: the algo's schema is not needed, and typing it would import the algos.
-        run_cfg = OmegaConf.create(ckpt["config"])
-        got = (str(run_cfg.env.scenario), env_overrides(run_cfg.env))
-        if got != want:
-            raise ValueError(
-                f"teacher {path} was trained on {got[0]} with env.config {got[1]}; this run "
-                f"is on {want[0]} with {want[1]}: its observations would mean other things"
-            )
-        policy = make_policy(run_cfg.model, env)
-        policy.load_state_dict(ckpt["policy"])
-        members.append(policy.module[0].module)
+    members = [load_run_policy(path, env_cfg, env).module[0].module for path in paths]
     return Teachers(members)

@@ -52,6 +52,7 @@ from torchrl_grpo.training.metrics import PhaseTimer, progress_bar, progress_pos
 from torchrl_grpo.training.model_builder import make_policy
 from torchrl_grpo.training.optim_builder import anneal_lr
 from torchrl_grpo.training.plots import plot_learning_curve
+from torchrl_grpo.training.pretrained import init_policy
 
 # PhaseTimer and plot_learning_curve lived here before metrics.py and plots.py: still
 # importable from here.
@@ -144,6 +145,9 @@ class Trainer:
         check_device(str(cfg.get("device", "cpu")))
         self.eval_env = make_env(cfg.env, seed=self.seed)
         self.policy = make_policy(cfg.model, self.eval_env)
+        if cfg.get("init_from") and not cfg.get("resume"):
+            # Before the algorithm: a reference policy and the weight average copy these.
+            init_policy(str(cfg.init_from), self.policy, cfg)
         self.algo = algorithm_for(cfg.algo)(cfg, self.policy, self.eval_env)
         decay = cfg.optim.get("ema_decay")
         self.average = None if decay is None else PolicyAverage(self.policy, float(decay))
