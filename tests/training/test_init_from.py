@@ -66,6 +66,10 @@ def test_weights_of_another_network_or_env_and_a_missing_file_are_refused(traine
         Trainer(compose_config([*TINY, *TENSOR, f"init_from={mlp_path}"]), run_dir=tmp_path)
     with pytest.raises(ValueError, match=r"model.crash_head=True, not False"):
         Trainer(compose_config([*TINY, *TENSOR, f"init_from={trained}"]), run_dir=tmp_path)
+    # Same parameters, another prior: refused as a resume refuses it.
+    prior = [*TINY, *TENSOR, *CRASH_HEAD, "model.prior=rule", f"init_from={trained}"]
+    with pytest.raises(ValueError, match=r"model.prior=None, not 'rule'"):
+        Trainer(compose_config(prior), run_dir=tmp_path)
 
     ckpt = load_checkpoint(trained)
     ckpt["config"]["env"]["config"] = {"lanes_count": 3}

@@ -78,7 +78,7 @@ def test_a_teacher_of_another_env_config_or_no_file_is_refused(teachers, tmp_pat
     ckpt["config"]["env"]["config"] = {"lanes_count": 3}
     other = save_checkpoint(ckpt, tmp_path / "other.pt")
     with pytest.raises(
-        ValueError, match=r"other.pt was trained on highway-fast-v0 with env.config"
+        ValueError, match=r"teacher .*other.pt was trained on highway-fast-v0 with env.config"
     ):
         load_teachers([teachers[1], str(other)], cfg.env, env)
     with pytest.raises(FileNotFoundError, match="no checkpoint at .*missing.pt"):

@@ -19,9 +19,14 @@ from torchrl_grpo.training.checkpoint import changed_keys, load_checkpoint
 from torchrl_grpo.training.env_builder import env_overrides
 from torchrl_grpo.training.model_builder import make_policy
 
-__all__ = ["check_same_env", "init_policy", "load_run_policy"]
+__all__ = ["FREE_MODEL_KEYS", "check_same_env", "init_policy", "load_run_policy"]
 
 log = logging.getLogger(__name__)
+
+#: ``model`` keys that may differ from the saved run's under ``init_from``: they weigh
+#: or train the same parameters (a crash head's weight on the logits, a prior's bonus,
+#: which data an ensemble's members fit).
+FREE_MODEL_KEYS = frozenset({"crash_aversion", "prior_weight", "bagging"})
 
 
 def check_same_env(role: str, saved_env: DictConfig, env_cfg: DictConfig) -> None:
@@ -55,13 +60,16 @@ def check_same_env(role: str, saved_env: DictConfig, env_cfg: DictConfig) -> Non
         )
 
 
-def load_run_policy(path: str, env_cfg: DictConfig, env: EnvBase) -> ProbabilisticActor:
+def load_run_policy(
+    path: str, env_cfg: DictConfig, env: EnvBase, role: str | None = None
+) -> ProbabilisticActor:
     """The saved policy of the run at ``path``, built from that run's own ``model`` config.
 
     Args:
         path: a checkpoint written by a training run (``last.pt``).
         env_cfg: this run's ``env`` config (checked against the saved run's).
         env: an env of that config, for the specs.
+        role: how an error names the saved run (default: its path).
 
     Raises:
         FileNotFoundError: no file at ``path`` (naming it).
@@ -84,7 +92,7 @@ def load_run_policy(path: str, env_cfg: DictConfig, env: EnvBase) -> Probabilist
     ckpt = load_checkpoint(path)
     # Untyped: the algo's schema is not needed, and typing it would import the algos.
     run_cfg = OmegaConf.create(ckpt["config"])
-    check_same_env(path, run_cfg.env, env_cfg)
+    check_same_env(role or path, run_cfg.env, env_cfg)
     policy = make_policy(run_cfg.model, env)
     policy.load_state_dict(ckpt["policy"])
     return policy
@@ -93,8 +101,10 @@ def load_run_policy(path: str, env_cfg: DictConfig, env: EnvBase) -> Probabilist
 def init_policy(path: str, policy: ProbabilisticActor, cfg: DictConfig) -> None:
     """Loads the saved policy of the run at ``path`` into this run's ``policy``.
 
-    The weights must fit this run's network: the same ``model`` config up to what
-    does not change the parameters (``model.crash_aversion``, ``model.prior_weight``).
+    The weights must fit this run's network: the same ``model`` config, up to the keys
+    that only weigh or train the same parameters (:data:`FREE_MODEL_KEYS`). As for a
+    resume, another ``model.prior`` is refused: the weights would load silently into a
+    policy that adds another scripted policy's bonus to them.
     Only the policy is loaded: a value network, an optimiser, a reference policy and a
     weight average start from scratch (the reference and the average from these
     weights, as they do from fresh ones).
@@ -126,16 +136,18 @@ def init_policy(path: str, policy: ProbabilisticActor, cfg: DictConfig) -> None:
     ckpt = load_checkpoint(path)
     saved = OmegaConf.create(ckpt["config"])
     check_same_env(f"init_from={path}", saved.env, cfg.env)
+    current = OmegaConf.to_container(cfg.model, enum_to_str=True)
+    changed = changed_keys(ckpt["config"]["model"], current)
+    named = ", ".join(
+        f"model.{k}={a!r}, not {b!r}" for k, (a, b) in changed.items() if k not in FREE_MODEL_KEYS
+    )
+    if named:
+        raise ValueError(f"init_from={path}: its policy does not fit this run's network ({named})")
     try:
         policy.load_state_dict(ckpt["policy"])
-    except RuntimeError as err:
-        changed = changed_keys(
-            ckpt["config"]["model"], OmegaConf.to_container(cfg.model, enum_to_str=True)
-        )
-        named = ", ".join(f"model.{k}={a!r}, not {b!r}" for k, (a, b) in changed.items())
+    except RuntimeError as err:  # a model the config does not describe (a custom build)
         raise ValueError(
-            f"init_from={path}: its policy does not fit this run's network"
-            + (f" ({named})" if named else "")
-            + f": {str(err).splitlines()[0]}"
+            f"init_from={path}: its policy does not fit this run's network: "
+            + str(err).splitlines()[0]
         ) from err
     log.info("init_from=%s: the policy starts from that run's saved weights", path)

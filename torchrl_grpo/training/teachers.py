@@ -98,5 +98,8 @@ def load_teachers(paths: Sequence[str], env_cfg: DictConfig, env: EnvBase) -> Te
     """
     if not paths:
         raise ValueError("algo.teachers is empty: give the checkpoints to distil")
-    members = [load_run_policy(path, env_cfg, env).module[0].module for path in paths]
+    members = [
+        load_run_policy(path, env_cfg, env, role=f"teacher {path}").module[0].module
+        for path in paths
+    ]
     return Teachers(members)
