@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import random
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,6 +35,7 @@ __all__ = [
     "check_resumable",
     "get_rng_state",
     "load_checkpoint",
+    "model_changes",
     "save_checkpoint",
     "set_rng_state",
 ]
@@ -218,6 +220,32 @@ def changed_keys(saved: Any, current: Any, prefix: str = "") -> dict[str, tuple[
     return {} if saved == current else {prefix.rstrip("."): (saved, current)}
 
 
+def model_changes(
+    saved: dict[str, Any], current: dict[str, Any], free: Collection[str] = ()
+) -> str:
+    """The ``model`` keys whose saved weights would not fit: ``model.k=a, not b``, or ``""``.
+
+    The one check of a saved policy against this run's network, for ``resume`` and
+    ``init_from`` alike. A changed ``model.prior`` counts, though the parameters keep
+    their shapes: they would load silently into a policy with another prior's bonus.
+
+    Args:
+        saved: the saved run's ``model`` config (plain).
+        current: this run's ``model`` config (plain).
+        free: keys that may differ (they weigh or train the same parameters).
+
+    Example:
+        >>> model_changes({"kind": "mlp", "crash_aversion": 3.0}, {"kind": "scene",
+        ...                "crash_aversion": 5.0}, free={"crash_aversion"})
+        "model.kind='mlp', not 'scene'"
+    """
+    return ", ".join(
+        f"model.{k}={a!r}, not {b!r}"
+        for k, (a, b) in changed_keys(saved, current).items()
+        if k not in free
+    )
+
+
 def check_resumable(path: str | Path, saved: dict[str, Any], current: dict[str, Any]) -> None:
     """Refuses to resume a run whose algorithm or network differs from the checkpoint's.
 
@@ -251,11 +279,6 @@ def check_resumable(path: str | Path, saved: dict[str, Any], current: dict[str, 
                 f"resume={path} was written on another env: env.{key}="
                 f"{saved['env'].get(key)!r}, not {current['env'].get(key)!r}"
             )
-    # The parameters fit only the network they were trained in; a prior that changed
-    # would load them silently into another policy.
-    changed = changed_keys(saved["model"], current["model"])
+    changed = model_changes(saved["model"], current["model"])
     if changed:
-        raise ValueError(
-            f"resume={path} was written with another model: "
-            + ", ".join(f"model.{k}={a!r}, not {b!r}" for k, (a, b) in changed.items())
-        )
+        raise ValueError(f"resume={path} was written with another model: {changed}")

@@ -15,7 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor
 
-from torchrl_grpo.training.checkpoint import changed_keys, load_checkpoint
+from torchrl_grpo.training.checkpoint import load_checkpoint, model_changes
 from torchrl_grpo.training.env_builder import env_overrides
 from torchrl_grpo.training.model_builder import make_policy
 
@@ -103,8 +103,7 @@ def init_policy(path: str, policy: ProbabilisticActor, cfg: DictConfig) -> None:
 
     The weights must fit this run's network: the same ``model`` config, up to the keys
     that only weigh or train the same parameters (:data:`FREE_MODEL_KEYS`). As for a
-    resume, another ``model.prior`` is refused: the weights would load silently into a
-    policy that adds another scripted policy's bonus to them.
+    resume, another ``model.prior`` is refused (:func:`~.checkpoint.model_changes`).
     Only the policy is loaded: a value network, an optimiser, a reference policy and a
     weight average start from scratch (the reference and the average from these
     weights, as they do from fresh ones).
@@ -137,12 +136,11 @@ def init_policy(path: str, policy: ProbabilisticActor, cfg: DictConfig) -> None:
     saved = OmegaConf.create(ckpt["config"])
     check_same_env(f"init_from={path}", saved.env, cfg.env)
     current = OmegaConf.to_container(cfg.model, enum_to_str=True)
-    changed = changed_keys(ckpt["config"]["model"], current)
-    named = ", ".join(
-        f"model.{k}={a!r}, not {b!r}" for k, (a, b) in changed.items() if k not in FREE_MODEL_KEYS
-    )
-    if named:
-        raise ValueError(f"init_from={path}: its policy does not fit this run's network ({named})")
+    changed = model_changes(ckpt["config"]["model"], current, free=FREE_MODEL_KEYS)
+    if changed:
+        raise ValueError(
+            f"init_from={path}: its policy does not fit this run's network ({changed})"
+        )
     try:
         policy.load_state_dict(ckpt["policy"])
     except RuntimeError as err:  # a model the config does not describe (a custom build)
