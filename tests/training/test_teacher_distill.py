@@ -85,13 +85,18 @@ def test_a_teacher_of_another_env_config_or_no_file_is_refused(teachers, tmp_pat
         load_teachers([str(tmp_path / "missing.pt")], cfg.env, env)
 
 
-def test_the_config_needs_teachers_a_minibatch_of_kept_states_and_no_crash_head(teachers):
+def test_the_config_needs_teachers_a_minibatch_of_kept_states_and_a_crash_coeff(teachers):
     with pytest.raises(ValueError, match="algo=distill needs algo.teachers"):
         check_config(compose_config([*TINY, "algo=distill"]))
     with pytest.raises(ValueError, match=r"algo.replay_frames \(32\) must hold at least one"):
         check_config(distill_config(teachers, ["algo.replay_frames=32"]))
+    crash = ["model.crash_head=true", "algo.crash_head_coeff=0"]
+    with pytest.raises(ValueError, match="algo.crash_head_coeff must be a finite number > 0"):
+        check_config(distill_config(teachers, crash))
+    check_config(distill_config(teachers, crash[:1]))  # a student with a crash head
+    # The algos with neither branch groups nor teachers still refuse one.
     with pytest.raises(ValueError, match="model.crash_head is trained on the crashes"):
-        check_config(distill_config(teachers, ["model.crash_head=true"]))
+        check_config(compose_config([*TINY, "algo=ppo", "model.crash_head=true"]))
 
 
 def _actor(logits: torch.Tensor) -> ProbabilisticActor:

@@ -3,7 +3,8 @@
 Also the distillation of enumerated groups' action comparisons (``GroupDistillLoss``,
 ``AdvantageRegressionLoss``), the loss of a crash head (``CrashHeadLoss``) and what it
 tells the horizon bootstrap and its own labels (``TailSurvival``, ``crash_label``), and
-the distillation of trained teachers into one policy (``TeacherDistillLoss``).
+the distillation of trained teachers into one policy (``TeacherDistillLoss``, and
+``TeacherCrashLoss`` for their crash heads).
 """
 
 from torchrl_grpo.objectives.advantage import GroupRelativeAdvantage
@@ -15,7 +16,7 @@ from torchrl_grpo.objectives.kl import KLEstimator, analytic_kl, kl_estimate
 from torchrl_grpo.objectives.reference import ReferenceSync
 from torchrl_grpo.objectives.regression import AdvantageRegressionLoss
 from torchrl_grpo.objectives.survival import CrashLabel, TailSurvival, crash_label
-from torchrl_grpo.objectives.teacher import TeacherDistillLoss
+from torchrl_grpo.objectives.teacher import TeacherCrashLoss, TeacherDistillLoss
 
 __all__ = [
     "AdvantageRegressionLoss",
@@ -30,6 +31,7 @@ __all__ = [
     "KLEstimator",
     "ReferenceSync",
     "TailSurvival",
+    "TeacherCrashLoss",
     "TeacherDistillLoss",
     "analytic_kl",
     "crash_label",

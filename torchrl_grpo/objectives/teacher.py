@@ -4,6 +4,8 @@ A teacher here is a trained policy, or the mean logits of several, that labels e
 state the student visits with its whole distribution over actions (DAgger's labels,
 soft). Each state then teaches every action's probability at once, at the cost of one
 forward of the teacher, where a branch group needs a simulated branch per action.
+Teachers with crash heads also label each action's crash probability, which a student
+with a crash head fits (:class:`TeacherCrashLoss`).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from torchrl.objectives import LossModule
 
 from torchrl_grpo.objectives.checks import check_finite, require
 
-__all__ = ["TeacherDistillLoss"]
+__all__ = ["TeacherCrashLoss", "TeacherDistillLoss"]
 
 
 class TeacherDistillLoss(LossModule):
@@ -94,5 +96,102 @@ class TeacherDistillLoss(LossModule):
             loss_distill=kl.mean(),
             distill_agreement=agreement.detach(),
             teacher_entropy=entropy.detach(),
+            batch_size=[],
+        )
+
+
+class TeacherCrashLoss(LossModule):
+    r"""``coeff`` times the mean cross-entropy of a crash head to the teachers' crash odds.
+
+    The teachers' crash heads give every action of every state a crash probability
+    ``q_a = sigmoid(c_a)``. A student with a crash head
+    (:class:`~torchrl_grpo.modules.CrashHead`) fits its own ``p_a`` to those soft labels,
+    every action at once: ``-mean_a [q_a log p_a + (1 - q_a) log(1 - p_a)]``, averaged
+    over rows. Its minimum is the labels' own entropy, reached exactly at ``p = q``; the
+    diagnostic ``teacher_crash_excess`` is the loss less that minimum (a KL divergence,
+    0 at the fit). A student that keeps the crash head can act with another
+    ``crash_aversion`` than its teachers', and train on with ``algo.bootstrap=survival``.
+
+    Args:
+        head: a module whose ``crash_logits(observation)`` gives ``[*batch, n_actions]``
+            logits (a :class:`~torchrl_grpo.modules.CrashHead`, or an ensemble of them);
+            used as it is, not copied.
+
+    Keyword Args:
+        coeff: the weight of the term (``> 0``).
+
+    Keys (change them with :meth:`set_keys`): ``observation`` (``"observation"``) and
+    ``teacher_crash_logits`` (``"teacher_crash_logits"``).
+
+    Outputs: ``loss_teacher_crash``, and the diagnostics ``teacher_crash_excess``
+    (without ``coeff``) and ``teacher_crash_agreement`` (the share of states where the
+    student's least likely action to crash is the teachers').
+
+    Example:
+        >>> from torchrl_grpo.modules import CrashHead
+        >>> net = torch.nn.Linear(3, 4)
+        >>> _ = torch.nn.init.zeros_(net.weight), torch.nn.init.zeros_(net.bias)
+        >>> teacher = torch.zeros(1, 2)  # q = 1/2 for both actions: the student's own p
+        >>> data = TensorDict(observation=torch.ones(1, 3), teacher_crash_logits=teacher,
+        ...                   batch_size=[1])
+        >>> out = TeacherCrashLoss(CrashHead(net, 2), coeff=1.0)(data)
+        >>> round(float(out["loss_teacher_crash"]), 4), float(out["teacher_crash_excess"])
+        (0.6931, 0.0)
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Tensordict keys read by :class:`TeacherCrashLoss`, set with ``set_keys``.
+
+        Attributes:
+            observation: the head's input.
+            teacher_crash_logits: the teachers' crash logits of the row's state,
+                ``[N, n_actions]``.
+        """
+
+        observation: NestedKey = "observation"
+        teacher_crash_logits: NestedKey = "teacher_crash_logits"
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    out_keys = ["loss_teacher_crash", "teacher_crash_excess", "teacher_crash_agreement"]
+
+    def __init__(self, head: torch.nn.Module, *, coeff: float) -> None:
+        if not callable(getattr(head, "crash_logits", None)):
+            raise TypeError(
+                f"{type(head).__name__} has no crash_logits(observation): the student "
+                "needs model.crash_head=true"
+            )
+        if not (coeff > 0 and coeff < float("inf")):
+            raise ValueError(f"coeff must be a finite number > 0, got {coeff}")
+        super().__init__()
+        self.head = head
+        self.coeff = coeff
+
+    @property
+    def in_keys(self) -> list[NestedKey]:  # noqa: D102
+        return [self.tensor_keys.observation, self.tensor_keys.teacher_crash_logits]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """The mean cross-entropy over ``tensordict``'s rows and actions (a flat batch)."""
+        keys = self.tensor_keys
+        observation = require(tensordict, keys.observation, "observation")
+        teacher = require(tensordict, keys.teacher_crash_logits, "teacher_crash_logits")
+        student = self.head.crash_logits(observation)
+        if teacher.shape != student.shape:
+            raise ValueError(
+                f"the teachers have {tuple(teacher.shape)} crash logits, the student "
+                f"{tuple(student.shape)}: were they trained with the same actions?"
+            )
+        check_finite({"the teachers' crash logits": teacher, "the student's": student})
+        target = torch.sigmoid(teacher)
+        bce = torch.nn.functional.binary_cross_entropy_with_logits(student, target)
+        # The labels' own entropy: what no student can go under.
+        floor = torch.nn.functional.binary_cross_entropy_with_logits(teacher, target)
+        agreement = (student.argmin(-1) == teacher.argmin(-1)).float().mean()
+        return TensorDict(
+            loss_teacher_crash=self.coeff * bce,
+            teacher_crash_excess=(bce - floor).detach(),
+            teacher_crash_agreement=agreement.detach(),
             batch_size=[],
         )

@@ -20,7 +20,7 @@ from torchrl.envs import EnvBase
 from torchrl_grpo.modules import PolicyEnsemble
 from torchrl_grpo.training.pretrained import load_run_policy
 
-__all__ = ["Teachers", "load_teachers"]
+__all__ = ["Teachers", "has_crash_head", "load_teachers"]
 
 
 class Teachers(TensorDictModuleBase):
@@ -29,11 +29,22 @@ class Teachers(TensorDictModuleBase):
     The mean is :class:`~torchrl_grpo.modules.PolicyEnsemble`'s, the mean logits a
     ``model.ensemble`` and ``bench_crash_rates.py --ensemble`` act with.
 
+    With ``crash_key``, the teachers' crash heads also label each action's crash
+    probability: their mean crash logits
+    (:meth:`~torchrl_grpo.modules.PolicyEnsemble.crash_logits`), for a student with a
+    crash head (:class:`~torchrl_grpo.objectives.TeacherCrashLoss`).
+
     Args:
         nets: networks that each map the observation to logits (a trained actor's
             ``policy.module[0].module``).
         in_key: the observation key.
         out_key: where the mean logits are written.
+        crash_key: where the mean crash logits are written (``None``: not written).
+        names: what the errors call each net (its checkpoint); by default its index.
+
+    Raises:
+        ValueError: no nets, or ``crash_key`` with a net that has no crash head (naming
+            it).
 
     Example:
         >>> from tensordict import TensorDict
@@ -49,23 +60,46 @@ class Teachers(TensorDictModuleBase):
         nets: Sequence[nn.Module],
         in_key: NestedKey = "observation",
         out_key: NestedKey = "teacher_logits",
+        crash_key: NestedKey | None = None,
+        names: Sequence[str] | None = None,
     ) -> None:
         super().__init__()
         if not nets:
             raise ValueError("Teachers needs at least one teacher")
+        if crash_key is not None:
+            names = list(names) if names is not None else [str(i) for i in range(len(nets))]
+            headless = [n for n, net in zip(names, nets, strict=True) if not has_crash_head(net)]
+            if headless:
+                raise ValueError(
+                    f"a student with a crash head learns its teachers' crash heads, and "
+                    f"teacher {', '.join(headless)} has none (trained with "
+                    "model.crash_head=false): distil it into a student without one"
+                )
         net = nets[0] if len(nets) == 1 else PolicyEnsemble(list(nets))
         self.net = net.requires_grad_(False).eval()
         self.in_keys = [in_key]
-        self.out_keys = [out_key]
+        self.out_keys = [out_key] if crash_key is None else [out_key, crash_key]
 
     @torch.no_grad()
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Writes the networks' mean logits of ``tensordict``'s states."""
-        tensordict.set(self.out_keys[0], self.net(tensordict.get(self.in_keys[0])))
+        """Writes the networks' mean logits (and crash logits) of ``tensordict``'s states."""
+        observation = tensordict.get(self.in_keys[0])
+        tensordict.set(self.out_keys[0], self.net(observation))
+        if len(self.out_keys) > 1:
+            tensordict.set(self.out_keys[1], self.net.crash_logits(observation))
         return tensordict
 
 
-def load_teachers(paths: Sequence[str], env_cfg: DictConfig, env: EnvBase) -> Teachers:
+def has_crash_head(net: nn.Module) -> bool:
+    """Whether ``net`` gives crash logits: a crash head, or an ensemble of them only."""
+    if isinstance(net, PolicyEnsemble):
+        return all(has_crash_head(member) for member in net.members)
+    return callable(getattr(net, "crash_logits", None))
+
+
+def load_teachers(
+    paths: Sequence[str], env_cfg: DictConfig, env: EnvBase, crash_key: NestedKey | None = None
+) -> Teachers:
     """The saved policies of the checkpoints at ``paths``, as one :class:`Teachers`.
 
     Each teacher keeps its own ``model`` config (networks, crash head, ensemble), so
@@ -76,11 +110,14 @@ def load_teachers(paths: Sequence[str], env_cfg: DictConfig, env: EnvBase) -> Te
         paths: checkpoints written by training runs (``last.pt``).
         env_cfg: the student's ``env`` config.
         env: an env of that config, for the specs.
+        crash_key: also label the teachers' mean crash logits there (see
+            :class:`Teachers`).
 
     Raises:
         FileNotFoundError: a path holds no file (naming it).
-        ValueError: no path, a file that is not a checkpoint, or a teacher trained on
-            another scenario or env config (naming its path and both configs).
+        ValueError: no path, a file that is not a checkpoint, a teacher trained on
+            another scenario or env config (naming its path and both configs), or,
+            with ``crash_key``, a teacher without a crash head (naming its path).
 
     Example:
         >>> import tempfile
@@ -102,4 +139,4 @@ def load_teachers(paths: Sequence[str], env_cfg: DictConfig, env: EnvBase) -> Te
         load_run_policy(path, env_cfg, env, role=f"teacher {path}").module[0].module
         for path in paths
     ]
-    return Teachers(members)
+    return Teachers(members, crash_key=crash_key, names=list(paths))

@@ -165,8 +165,9 @@ class Algorithm:
                 )
         if model is not None and model.get("crash_head", False) and not cls.trains_crash_head:
             raise ValueError(
-                f"model.crash_head is trained on the crashes of enumerated branch groups; "
-                f"algo={cfg.algo.name} has none (use algo=grpo_branch)"
+                f"model.crash_head is trained on the crashes of enumerated branch groups, or "
+                f"on teachers' crash heads; algo={cfg.algo.name} has neither (use "
+                "algo=grpo_branch, or algo=distill)"
             )
 
     def make_collector(self, seed: int) -> BaseCollector:

@@ -6,7 +6,9 @@ DAgger with soft labels. The labelled states are kept, up to ``algo.replay_frame
 them, and each batch trains ``algo.max_minibatches`` minibatches drawn from all of them
 through :class:`~torchrl_grpo.objectives.TeacherDistillLoss`. A frame is a step of the
 student's worlds, as for the other algorithms; the teachers' own frames are not counted
-here, and a result should add them.
+here, and a result should add them. With ``model.crash_head``, the student also fits
+its teachers' crash heads (:class:`~torchrl_grpo.objectives.TeacherCrashLoss`, weighted
+by ``algo.crash_head_coeff``); every teacher must then have one.
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, ValueOperator
 
-from torchrl_grpo.objectives import TeacherDistillLoss
+from torchrl_grpo.modules import CrashHead
+from torchrl_grpo.objectives import TeacherCrashLoss, TeacherDistillLoss
 from torchrl_grpo.training.algos.base import AlgoConfig, register_algorithm
 from torchrl_grpo.training.algos.episodes import TrunkEpisodes
 from torchrl_grpo.training.algos.labelled import LabelledStates
@@ -28,7 +31,10 @@ from torchrl_grpo.training.choices import choice_enum
 from torchrl_grpo.training.metrics import PhaseTimer
 from torchrl_grpo.training.teachers import load_teachers
 
-__all__ = ["DistillConfig", "DistillVariant", "TeacherDistill"]
+__all__ = ["TEACHER_CRASH_LOGITS", "DistillConfig", "DistillVariant", "TeacherDistill"]
+
+#: Where the teachers' mean crash logits are kept beside each state (``model.crash_head``).
+TEACHER_CRASH_LOGITS = "teacher_crash_logits"
 
 #: Teacher distillation's name (``algo.name``).
 DistillVariant = Literal["distill"]
@@ -43,7 +49,9 @@ class DistillConfig(AlgoConfig):
     ``teachers`` are checkpoints of runs on the same scenario and env config;
     ``replay_frames`` is how many labelled states are kept (the oldest go first);
     ``max_minibatches`` of ``minibatch_size`` states are drawn from them per batch
-    (``null``: ``epochs`` passes over all of them, a cost that grows with what is kept).
+    (``null``: ``epochs`` passes over all of them, a cost that grows with what is kept);
+    ``crash_head_coeff`` weighs the fit of the teachers' crash heads (with
+    ``model.crash_head``).
 
     Example:
         >>> from omegaconf import OmegaConf
@@ -60,6 +68,7 @@ class DistillConfig(AlgoConfig):
     epochs: int = 1
     minibatch_size: int = 1024
     max_minibatches: int | None = 200
+    crash_head_coeff: float = 1.0
 
 
 @register_algorithm
@@ -79,10 +88,20 @@ class TeacherDistill(TrunkEpisodes):
     names = get_args(DistillVariant)
     config_class = DistillConfig
     config_name = "base_distill"
+    trains_crash_head = True
 
     def __init__(self, cfg: DictConfig, policy: ProbabilisticActor, env: EnvBase) -> None:
         super().__init__(cfg, policy, env)
-        self.teachers = load_teachers(list(cfg.algo.teachers), cfg.env, env).to(cfg.device)
+        head = next((m for m in policy.modules() if isinstance(m, CrashHead)), None)
+        if head is not None and self.ensemble is not None:
+            head = self.ensemble  # it answers for its active member (member_terms)
+        self.crash_head = (
+            None if head is None else TeacherCrashLoss(head, coeff=float(cfg.algo.crash_head_coeff))
+        )
+        crash_key = None if head is None else TEACHER_CRASH_LOGITS
+        self.teachers = load_teachers(
+            list(cfg.algo.teachers), cfg.env, env, crash_key=crash_key
+        ).to(cfg.device)
         self.replay = LabelledStates(int(cfg.algo.replay_frames))
 
     @classmethod
@@ -94,6 +113,10 @@ class TeacherDistill(TrunkEpisodes):
             raise ValueError(
                 "algo=distill needs algo.teachers: the checkpoints whose policies it "
                 "distils, e.g. algo.teachers=[runs/a/last.pt,runs/b/last.pt]"
+            )
+        if not (algo.crash_head_coeff > 0 and algo.crash_head_coeff < float("inf")):
+            raise ValueError(
+                f"algo.crash_head_coeff must be a finite number > 0, got {algo.crash_head_coeff}"
             )
         if algo.replay_frames < algo.minibatch_size:
             raise ValueError(
@@ -107,6 +130,13 @@ class TeacherDistill(TrunkEpisodes):
     ) -> TeacherDistillLoss:
         """The KL divergence from the teachers' mean logits to the policy."""
         return TeacherDistillLoss(policy)
+
+    def loss_terms(self, minibatch: TensorDictBase) -> TensorDictBase:
+        """The KL divergence to the teachers, and the crash heads' fit when on."""
+        out = self.loss(minibatch)
+        if self.crash_head is not None:
+            out.update(self.crash_head(minibatch))
+        return out
 
     def update(self, batch: TensorDictBase, timer: PhaseTimer) -> dict[str, float]:
         """Label the batch's states, keep them, then train on minibatches of all kept."""
