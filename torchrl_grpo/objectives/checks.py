@@ -4,7 +4,8 @@ The loss input is a tensordict of batch size ``[*batch]`` (``[R, G, T]``, ``[N, 
 or flat ``[B]``) with one value per step: these helpers read an entry with an error
 that names its key, flatten it to ``[numel(batch)]`` and sum a distribution's event
 dimensions. :func:`check_loss_args` checks the loss's arguments and
-:func:`check_finite` its per-step values.
+:func:`check_finite` its per-step values; :func:`check_crash_head_args` those of the
+losses of a crash head.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from torchrl_grpo.objectives.aggregation import check_aggregation
 
 __all__ = [
     "behaviour_log_prob",
+    "check_crash_head_args",
     "check_finite",
     "check_loss_args",
     "per_step",
@@ -132,6 +134,26 @@ def check_finite(values: dict[str, torch.Tensor | None]) -> None:
                 f"{name} is NaN or infinite on {bad} of {value.numel()} valid steps: the loss "
                 "and its gradients would be NaN. (GRPOLoss(check_values=False) skips this check.)"
             )
+
+
+def check_crash_head_args(head: torch.nn.Module, coeff: float, hint: str) -> None:
+    """Checks the arguments of a crash head's loss: a head with crash logits, its weight.
+
+    Args:
+        head: must have ``crash_logits(observation)``.
+        coeff: the loss's weight, a finite number ``> 0``.
+        hint: what the ``TypeError`` tells the user to do when ``head`` has none.
+
+    Example:
+        >>> check_crash_head_args(torch.nn.Linear(2, 2), 1.0, "wrap it in a CrashHead")
+        Traceback (most recent call last):
+        ...
+        TypeError: Linear has no crash_logits(observation): wrap it in a CrashHead
+    """
+    if not callable(getattr(head, "crash_logits", None)):
+        raise TypeError(f"{type(head).__name__} has no crash_logits(observation): {hint}")
+    if not (coeff > 0 and coeff < math.inf):
+        raise ValueError(f"coeff must be a finite number > 0, got {coeff}")
 
 
 def check_loss_args(

@@ -15,7 +15,7 @@ from tensordict import NestedKey, TensorDict, TensorDictBase
 from torch import nn
 from torchrl.objectives import LossModule
 
-from torchrl_grpo.objectives.checks import check_finite, require
+from torchrl_grpo.objectives.checks import check_crash_head_args, check_finite, require
 
 __all__ = ["CrashHeadLoss"]
 
@@ -71,13 +71,7 @@ class CrashHeadLoss(LossModule):
     out_keys = ["loss_crash_head", "crash_head_bce", "crash_head_accuracy"]
 
     def __init__(self, head: nn.Module, *, coeff: float) -> None:
-        if not callable(getattr(head, "crash_logits", None)):
-            raise TypeError(
-                f"{type(head).__name__} has no crash_logits(observation): wrap the policy "
-                "network in a CrashHead"
-            )
-        if not (coeff > 0 and coeff < float("inf")):
-            raise ValueError(f"coeff must be a finite number > 0, got {coeff}")
+        check_crash_head_args(head, coeff, "wrap the policy network in a CrashHead")
         super().__init__()
         self.head = head
         self.coeff = coeff

@@ -17,7 +17,7 @@ from tensordict import NestedKey, TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential
 from torchrl.objectives import LossModule
 
-from torchrl_grpo.objectives.checks import check_finite, require
+from torchrl_grpo.objectives.checks import check_crash_head_args, check_finite, require
 
 __all__ = ["TeacherCrashLoss", "TeacherDistillLoss"]
 
@@ -157,13 +157,7 @@ class TeacherCrashLoss(LossModule):
     out_keys = ["loss_teacher_crash", "teacher_crash_excess", "teacher_crash_agreement"]
 
     def __init__(self, head: torch.nn.Module, *, coeff: float) -> None:
-        if not callable(getattr(head, "crash_logits", None)):
-            raise TypeError(
-                f"{type(head).__name__} has no crash_logits(observation): the student "
-                "needs model.crash_head=true"
-            )
-        if not (coeff > 0 and coeff < float("inf")):
-            raise ValueError(f"coeff must be a finite number > 0, got {coeff}")
+        check_crash_head_args(head, coeff, "the student needs model.crash_head=true")
         super().__init__()
         self.head = head
         self.coeff = coeff
