@@ -27,7 +27,7 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import LossModule
 
 from torchrl_grpo.branching import GROUP_ID
-from torchrl_grpo.modules import PolicyEnsemble, member_halves, shared_forward
+from torchrl_grpo.modules import CrashHead, PolicyEnsemble, member_halves, shared_forward
 from torchrl_grpo.training.collect import make_collector
 from torchrl_grpo.training.env_builder import make_rollout_env
 from torchrl_grpo.training.metrics import PhaseTimer, metric_name
@@ -109,6 +109,14 @@ class Algorithm:
         self.env = env
         #: The policy's ``PolicyEnsemble`` (``model.ensemble > 1``), else ``None``.
         self.ensemble = next((m for m in policy.modules() if isinstance(m, PolicyEnsemble)), None)
+        #: What a crash head's loss trains (``model.crash_head``), else ``None``: the
+        #: policy's ``CrashHead``, or its ensemble, which answers for its active member
+        #: (:meth:`member_terms`).
+        self.trained_head: torch.nn.Module | None = next(
+            (m for m in policy.modules() if isinstance(m, CrashHead)), None
+        )
+        if self.trained_head is not None and self.ensemble is not None:
+            self.trained_head = self.ensemble
         # The value network draws its initial weights right after the policy's.
         self.value = self.make_value(cfg.model, env)
         self.loss = self.make_loss(cfg.algo, policy, self.value)

@@ -19,7 +19,7 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import LossModule
 
 from torchrl_grpo.branching import GROUP_ID, MASK
-from torchrl_grpo.modules import EXPLORED, CrashHead
+from torchrl_grpo.modules import EXPLORED
 from torchrl_grpo.objectives import (
     CrashHeadLoss,
     GroupRelativeAdvantage,
@@ -176,10 +176,7 @@ class GRPO(Algorithm):
         self.tail_policy = make_tail_policy(algo, policy, env)
         self.replay = make_replay(algo)
         self.distill = make_distill_loss(algo, policy)
-        head = next((m for m in policy.modules() if isinstance(m, CrashHead)), None)
-        if head is not None and self.ensemble is not None:
-            # The ensemble answers for its active member (Algorithm.member_terms).
-            head = self.ensemble
+        head = self.trained_head
         self.crash_head = (
             None if head is None else CrashHeadLoss(head, coeff=float(algo.crash_head_coeff))
         )

@@ -22,7 +22,6 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, ValueOperator
 
-from torchrl_grpo.modules import CrashHead
 from torchrl_grpo.objectives import TeacherCrashLoss, TeacherDistillLoss
 from torchrl_grpo.training.algos.base import AlgoConfig, register_algorithm
 from torchrl_grpo.training.algos.episodes import TrunkEpisodes
@@ -92,9 +91,7 @@ class TeacherDistill(TrunkEpisodes):
 
     def __init__(self, cfg: DictConfig, policy: ProbabilisticActor, env: EnvBase) -> None:
         super().__init__(cfg, policy, env)
-        head = next((m for m in policy.modules() if isinstance(m, CrashHead)), None)
-        if head is not None and self.ensemble is not None:
-            head = self.ensemble  # it answers for its active member (member_terms)
+        head = self.trained_head
         self.crash_head = (
             None if head is None else TeacherCrashLoss(head, coeff=float(cfg.algo.crash_head_coeff))
         )
