@@ -70,10 +70,11 @@ class Teachers(TensorDictModuleBase):
             names = list(names) if names is not None else [str(i) for i in range(len(nets))]
             headless = [n for n, net in zip(names, nets, strict=True) if not has_crash_head(net)]
             if headless:
+                which = "teacher {} has" if len(headless) == 1 else "teachers {} have"
                 raise ValueError(
                     f"a student with a crash head learns its teachers' crash heads, and "
-                    f"teacher {', '.join(headless)} has none (trained with "
-                    "model.crash_head=false): distil it into a student without one"
+                    f"{which.format(', '.join(headless))} none (trained with "
+                    "model.crash_head=false): distil into a student without one"
                 )
         net = nets[0] if len(nets) == 1 else PolicyEnsemble(list(nets))
         self.net = net.requires_grad_(False).eval()
@@ -91,7 +92,14 @@ class Teachers(TensorDictModuleBase):
 
 
 def has_crash_head(net: nn.Module) -> bool:
-    """Whether ``net`` gives crash logits: a crash head, or an ensemble of them only."""
+    """Whether ``net`` gives crash logits: a crash head, or an ensemble of them only.
+
+    Example:
+        >>> from torchrl_grpo.modules import CrashHead
+        >>> head = CrashHead(nn.Linear(3, 4), 2)
+        >>> has_crash_head(head), has_crash_head(PolicyEnsemble([head, nn.Linear(3, 2)]))
+        (True, False)
+    """
     if isinstance(net, PolicyEnsemble):
         return all(has_crash_head(member) for member in net.members)
     return callable(getattr(net, "crash_logits", None))
