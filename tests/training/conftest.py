@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 from omegaconf import DictConfig
+from tensordict import TensorDict
 
 from torchrl_grpo.training import compose_config as library_compose
 
@@ -31,6 +32,14 @@ def compose_config(
 ) -> DictConfig:
     """Compose ``conf/<config_name>.yaml`` as the scripts do (a resume on its checkpoint's)."""
     return library_compose(overrides, config_name=config_name, conf_dir=conf)
+
+
+def visited_states(n: int, seed: int = 7) -> TensorDict:
+    """Observations of ``n`` fresh tensor worlds over 5 random steps: states to label."""
+    from torchrl_grpo.envs import TensorHighwayEnv
+
+    env = TensorHighwayEnv("highway-fast-v0", num_envs=n, seed=seed)
+    return env.rollout(5, break_when_any_done=False).reshape(-1).select("observation")
 
 
 def run_script(

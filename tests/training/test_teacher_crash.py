@@ -6,10 +6,9 @@ import math
 
 import pytest
 import torch
-from conftest import TINY, compose_config
+from conftest import TINY, compose_config, visited_states
 from tensordict import TensorDict
 
-from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.modules import CrashHead
 from torchrl_grpo.objectives import TeacherCrashLoss
 from torchrl_grpo.training import (
@@ -53,12 +52,6 @@ def teachers(tmp_path_factory):
 def student_config(paths: list[str], extra: list[str] = ()):
     teachers = f"algo.teachers=[{','.join(paths)}]"
     return compose_config([*TINY, *TENSOR, *CRASH_HEAD, "algo=distill", teachers, *extra])
-
-
-def observations(n: int, seed: int) -> TensorDict:
-    """States of ``n`` fresh worlds stepped a few times with random actions."""
-    env = TensorHighwayEnv("highway-fast-v0", num_envs=n, seed=seed)
-    return env.rollout(5, break_when_any_done=False).reshape(-1).select("observation")
 
 
 def head_with_logits(crash: torch.Tensor) -> CrashHead:
@@ -111,7 +104,7 @@ def test_teachers_label_their_mean_crash_logits_and_a_headless_teacher_is_named(
     paths = [teachers["crash3"], teachers["crash1"]]
     cfg = student_config(paths)
     env = make_env(cfg.env)
-    states = observations(16, seed=7)
+    states = visited_states(16, seed=7)
     expected = []
     for path in paths:  # each checkpoint's own crash head
         ckpt = load_checkpoint(path)
@@ -135,7 +128,7 @@ def test_a_student_learns_its_teachers_crash_odds_and_grpo_continues_from_it(tea
         [teachers["crash3"], teachers["crash1"]], [*extra, "algo.max_minibatches=40"]
     )
     trainer = Trainer(cfg, run_dir=tmp_path / "student")
-    held_out = observations(32, seed=123)
+    held_out = visited_states(32, seed=123)
     labelled = trainer.algo.teachers(held_out.clone())
     loss = TeacherCrashLoss(trainer.algo.crash_head.head, coeff=1.0)
 

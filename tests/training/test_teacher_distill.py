@@ -6,13 +6,12 @@ import math
 
 import pytest
 import torch
-from conftest import TINY, compose_config
+from conftest import TINY, compose_config, visited_states
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
 
-from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.objectives import TeacherDistillLoss
 from torchrl_grpo.training import (
     Trainer,
@@ -48,17 +47,10 @@ def distill_config(teachers: list[str], extra: list[str] = ()):
     )
 
 
-def observations(n: int, seed: int = 7) -> TensorDict:
-    """States of ``n`` fresh worlds stepped a few times with random actions."""
-    env = TensorHighwayEnv("highway-fast-v0", num_envs=n, seed=seed)
-    data = env.rollout(5, break_when_any_done=False)
-    return data.reshape(-1).select("observation")
-
-
 def test_teachers_act_with_the_mean_logits_of_each_checkpoints_own_policy(teachers):
     cfg = distill_config(teachers)
     env = make_env(cfg.env)
-    states = observations(16)
+    states = visited_states(16)
     expected = []
     for path in teachers:  # each checkpoint's policy, built from its own config
         ckpt = load_checkpoint(path)
@@ -158,7 +150,7 @@ def test_the_student_learns_the_teachers_distribution_on_states_it_did_not_see(t
         ["experiment.total_frames=640", "rollout.frames_per_batch=64", "algo.max_minibatches=40"],
     )
     trainer = Trainer(cfg, run_dir=tmp_path / "student")
-    held_out = observations(32, seed=123)
+    held_out = visited_states(32, seed=123)
     target = trainer.algo.teachers(held_out.clone())["teacher_logits"]
 
     def kl_to_teacher() -> float:
