@@ -171,12 +171,19 @@ class Algorithm:
                     f"needs model.ensemble >= 2 (got {model.get('ensemble', 1)}) and an algo "
                     f"with branch groups (got algo={cfg.algo.name})"
                 )
-        if model is not None and model.get("crash_head", False) and not cls.trains_crash_head:
-            raise ValueError(
-                f"model.crash_head is trained on the crashes of enumerated branch groups, or "
-                f"on teachers' crash heads; algo={cfg.algo.name} has neither (use "
-                "algo=grpo_branch, or algo=distill)"
-            )
+        if model is not None and model.get("crash_head", False):
+            if not cls.trains_crash_head:
+                raise ValueError(
+                    f"model.crash_head is trained on the crashes of enumerated branch groups, "
+                    f"or on teachers' crash heads; algo={cfg.algo.name} has neither (use "
+                    "algo=grpo_branch, or algo=distill)"
+                )
+            coeff = cfg.algo.crash_head_coeff
+            if not (coeff > 0 and coeff < math.inf):
+                raise ValueError(
+                    f"algo.crash_head_coeff must be a finite number > 0 to train "
+                    f"model.crash_head, got {coeff}"
+                )
 
     def make_collector(self, seed: int) -> BaseCollector:
         """TorchRL's ``Collector`` of ``rollout.frames_per_batch`` steps over the workers.

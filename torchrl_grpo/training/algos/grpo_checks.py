@@ -92,11 +92,6 @@ def check_grpo_config(cfg: DictConfig) -> None:
     has_head = model is not None and bool(model.get("crash_head", False))
     check_crash_head_needed(algo, has_head)
     if has_head:
-        if not (algo.crash_head_coeff > 0 and algo.crash_head_coeff < float("inf")):
-            raise ValueError(
-                f"algo.crash_head_coeff must be a finite number > 0 to train model.crash_head, "
-                f"got {algo.crash_head_coeff}"
-            )
         if first_action != "enumerate" or explore != 1:
             raise ValueError(
                 "model.crash_head learns whether each action, then the tail, crashes: set "

@@ -111,10 +111,6 @@ class TeacherDistill(TrunkEpisodes):
                 "algo=distill needs algo.teachers: the checkpoints whose policies it "
                 "distils, e.g. algo.teachers=[runs/a/last.pt,runs/b/last.pt]"
             )
-        if not (algo.crash_head_coeff > 0 and algo.crash_head_coeff < float("inf")):
-            raise ValueError(
-                f"algo.crash_head_coeff must be a finite number > 0, got {algo.crash_head_coeff}"
-            )
         if algo.replay_frames < algo.minibatch_size:
             raise ValueError(
                 f"algo.replay_frames ({algo.replay_frames}) must hold at least one "
