@@ -9,9 +9,11 @@ return and 0 in crash rate, so these are highway-env's figures). Policies: alway
 the rule policy, the lookahead planner over the rule policy (every action tried from
 every state, then ``--horizon`` steps of the rule policy: what the groups of
 ``algo=grpo_branch`` score; the planner's branches are rows of one batched rollout) and
-the greedy policy of each ``--checkpoint`` (with ``--ensemble``, also the mean logits of
-all of them, a :class:`~torchrl_grpo.modules.PolicyEnsemble`; with ``--live``, also
-the policy the optimiser trained, where the run saved a weight average; with
+the greedy policy of each ``--checkpoint`` (with ``--planner-over``, also the planner
+with a checkpoint's greedy policy as its base in place of the rule policy; with
+``--ensemble``, also the mean logits of all of them, a
+:class:`~torchrl_grpo.modules.PolicyEnsemble`; with ``--live``, also the policy the
+optimiser trained, where the run saved a weight average; with
 ``--aversions``, also the crash head acting with other weights, the ensemble's too;
 with ``--versus``, each policy's paired verdict against that checkpoint). Each row
 prints its crash rate beside the planner's and always-SLOWER's. With ``--anatomy``, the last five
@@ -30,6 +32,8 @@ planner's best action earns at least 0.5 more over its branch.
         --live --aversions 5 8
     python benchmarks/bench_crash_rates.py --checkpoint grpo/last.pt --versus ppo/last.pt \
         --no-planner
+    python benchmarks/bench_crash_rates.py --checkpoint student/last.pt --no-planner \
+        --planner-over student/last.pt --horizon 4 --versus student/last.pt
 """
 
 from __future__ import annotations
@@ -49,6 +53,7 @@ from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.modules import (
     CrashHead,
+    DeterministicActor,
     PolicyEnsemble,
     make_discrete_actor,
     make_scripted_policy,
@@ -184,6 +189,13 @@ def main() -> None:
         "(the issue's 'beats': a return higher by > 2 standard errors, crashes no more)",
     )
     p.add_argument(
+        "--planner-over",
+        action="append",
+        default=[],
+        help="also the lookahead planner with this checkpoint's greedy policy as its base "
+        "(in place of the rule policy): what a trained policy gains from search",
+    )
+    p.add_argument(
         "--ensemble",
         action="store_true",
         help="also evaluate the mean logits of all the checkpoints' networks (one policy)",
@@ -226,8 +238,14 @@ def main() -> None:
         str(env_cfg.scenario), env_overrides(env_cfg), num_envs=5 * args.episodes, seed=1
     )
     planner = LookaheadPolicy(plan_env, rule, horizon=args.horizon)
+    planner_name = f"lookahead H={args.horizon} over the rule policy"
     if not args.no_planner:
-        baselines.append((f"lookahead H={args.horizon} over the rule policy", planner, True))
+        baselines.append((planner_name, planner, True))
+    for path in args.planner_over:
+        # The base's branches follow its greedy action, as the rule policy's would.
+        base = DeterministicActor(trained(path)[1])
+        searched = LookaheadPolicy(plan_env, base, horizon=args.horizon)
+        policies.append((f"lookahead H={args.horizon} over {path}", searched, True))
 
     rows = {}
     for name, policy, needs_state in baselines + policies:
@@ -248,8 +266,7 @@ def main() -> None:
         return p_, math.sqrt(max(p_ * (1 - p_), 1e-12) / len(res.crashed))
 
     slower = rate(rows["always-SLOWER"])[0]
-    planner_name = next((n for n in rows if n.startswith("lookahead")), None)
-    ref = rate(rows[planner_name])[0] if planner_name else None
+    ref = rate(rows[planner_name])[0] if planner_name in rows else None
     print(
         f"highway-fast-v0, {args.episodes} episodes from seeds {args.seed}.. on the tensor "
         "simulator (greedy policies)"

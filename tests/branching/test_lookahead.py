@@ -93,3 +93,24 @@ def test_a_stale_tensor_state_carried_from_the_reset_is_refused():
     planner.returns(data[:, 0])  # the reset's own state: fresh
     with pytest.raises(ValueError, match="return_state=True"):
         planner.returns(data[:, 1])  # the reset's state, carried to the next step
+
+
+def test_planning_on_the_tensor_simulator_for_highway_env_scores_as_its_snapshots():
+    # The driven env is highway-env; one planner branches on its snapshots, the other on
+    # the tensor simulator from the same states imported through the bridge.
+    env = plain_env(SCENARIO, seed=7, return_state=True)
+    rows = env.rollout(6, make_scripted_policy("rule"))["next"]
+    before = env.get_state()
+    rule = make_scripted_policy("rule")
+    on_highway = LookaheadPolicy(plain_env(SCENARIO), rule, horizon=3)
+    sim = TensorHighwayEnv(SCENARIO, num_envs=5, dtype=torch.float64)
+    on_tensor = LookaheadPolicy(sim, rule, horizon=3, import_state=sim.state_from_highway)
+    expected = torch.stack([on_highway.returns(rows[i]) for i in range(6)])
+    scores = torch.stack([on_tensor.returns(rows[i]) for i in range(6)])
+    # Equal up to the rounding of highway-env's float32 rewards.
+    torch.testing.assert_close(scores, expected, rtol=0, atol=1e-5)
+    assert len(set(expected.flatten().tolist())) > 1  # the control: the actions differ
+    assert on_tensor.frames == on_highway.frames
+    for i in range(6):
+        assert int(on_tensor(rows[i].clone())["action"]) == int(expected[i].argmax())
+    assert states_equal(env.get_state(), before)

@@ -9,9 +9,11 @@ import torch
 from conftest import compose_config, run_script
 from tensordict import TensorDict
 
+from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.envs import HighwayEnv
-from torchrl_grpo.modules import ConstantActionPolicy
-from torchrl_grpo.training import evaluate, format_table
+from torchrl_grpo.modules import ConstantActionPolicy, DeterministicActor
+from torchrl_grpo.training import evaluate, format_table, load_checkpoint, make_env, make_policy
+from torchrl_grpo.training.config import typed_config
 from torchrl_grpo.training.evaluation import evaluate_checkpoint
 
 
@@ -82,3 +84,41 @@ def test_evaluate_script_on_a_checkpoint(smoke_run):
     assert "(paired, 1 episodes)" in verdict and verdict.endswith("does not beat always-SLOWER")
     assert (run / "eval" / "eval_episode.gif").stat().st_size > 0
     assert (run / "eval" / "results.md").exists()
+
+
+def test_search_over_a_checkpoint_scores_as_the_planner_on_highway_env(smoke_run, tmp_path):
+    train, run, _ = smoke_run
+    assert train.returncode == 0, train.stderr[-3000:]
+    cfg = compose_config(
+        [f"checkpoint={run / 'last.pt'}", "episodes=2", "baselines=[]", "video=false"]
+        + ["search_horizon=2"],
+        config_name="evaluate",
+    )
+    report = evaluate_checkpoint(cfg, tmp_path)
+    trained, searched = report.results
+    assert searched.name == "lookahead H=2 over the policy"
+    # The reference: the same planner branching on highway-env's own snapshots.
+    ckpt = load_checkpoint(run / "last.pt")
+    run_cfg = typed_config(ckpt["config"])
+    env = make_env(run_cfg.env, return_state=True)
+    policy = make_policy(run_cfg.model, env)
+    policy.load_state_dict(ckpt["policy"])
+    planner = LookaheadPolicy(make_env(run_cfg.env), DeterministicActor(policy), horizon=2)
+    seed = int(run_cfg.experiment.final_eval_seed)
+    max_steps = int(run_cfg.env.max_episode_steps)
+    reference, _ = evaluate(env, planner, episodes=2, seed=seed, max_steps=max_steps)
+    assert searched.seeds == reference.seeds == trained.seeds
+    assert searched.returns == pytest.approx(reference.returns, abs=1e-4)
+    assert (searched.crashed, searched.lengths) == (reference.crashed, reference.lengths)
+    assert "lookahead H=2 over the policy" in (tmp_path / "results.md").read_text()
+
+
+@pytest.mark.parametrize(
+    ("overrides", "match"),
+    [(["search_horizon=-1", "checkpoint=x.pt"], ">= 0"), (["search_horizon=3"], "checkpoint")],
+)
+def test_search_horizon_refusals_name_the_problem(overrides, match, tmp_path):
+    cfg = compose_config(["env=highway_fast", "video=false", *overrides], config_name="evaluate")
+    with pytest.raises(ValueError, match=match):
+        evaluate_checkpoint(cfg, tmp_path / "out")
+    assert not (tmp_path / "out").exists()

@@ -10,6 +10,8 @@ shows how far a learner trained on those groups could go.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
@@ -40,6 +42,12 @@ class LookaheadPolicy(TensorDictModuleBase):
             scripted policy from :func:`~torchrl_grpo.modules.make_scripted_policy`).
         horizon: steps per branch (>= 1; 1 compares the immediate rewards only).
         n_actions: actions to try, ``0 .. n_actions - 1``; default: ``env.action_spec.n``.
+        import_state: maps the driven env's states (``[N]``, or one) to ``env``'s
+            states ``[N]``, when they are of another kind: with a
+            :class:`~torchrl_grpo.envs.TensorHighwayEnv` planning for a driven
+            :class:`~torchrl_grpo.envs.HighwayEnv`, its ``state_from_highway``. The
+            branches then run as rows of one batched rollout of the tensor simulator,
+            which steps as highway-env does.
 
     Attributes:
         frames: env steps simulated for planning so far.
@@ -53,10 +61,25 @@ class LookaheadPolicy(TensorDictModuleBase):
         >>> data = env.rollout(3, planner)
         >>> data["action"].shape, planner.frames <= 3 * 5 * 2
         (torch.Size([3]), True)
+
+        Planning on the tensor simulator for highway-env, with the same scores up to
+        the float32 rewards' rounding:
+
+        >>> from torchrl_grpo.envs import TensorHighwayEnv
+        >>> sim = TensorHighwayEnv("highway-fast-v0", num_envs=5)
+        >>> fast = LookaheadPolicy(sim, make_scripted_policy("slower"), horizon=2,
+        ...                        import_state=sim.state_from_highway)
+        >>> torch.allclose(fast.returns(data[-1]), planner.returns(data[-1]), atol=1e-5)
+        True
     """
 
     def __init__(
-        self, env: EnvBase, base: TensorDictModuleBase, horizon: int, n_actions: int | None = None
+        self,
+        env: EnvBase,
+        base: TensorDictModuleBase,
+        horizon: int,
+        n_actions: int | None = None,
+        import_state: Callable[[TensorDictBase], TensorDictBase] | None = None,
     ) -> None:
         super().__init__()
         if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
@@ -75,6 +98,7 @@ class LookaheadPolicy(TensorDictModuleBase):
         self.horizon = horizon
         self.n_actions = int(n_actions)
         self.frames = 0
+        self.import_state = import_state
         self._branch_policy = ActionThenBase(base)
         self.in_keys = [STATE, *base.in_keys]
         self.out_keys = ["action"]
@@ -104,6 +128,8 @@ class LookaheadPolicy(TensorDictModuleBase):
         """
         state = tensordict.get(STATE)
         _check_fresh(tensordict, state)
+        if self.import_state is not None:
+            state = self.import_state(state)
         data = branch_rollout(
             self.env, self._branch_policy, as_roots(state), self.n_actions, self.horizon
         )

@@ -325,6 +325,7 @@ class EvalConfig:
     baselines: list[str] = field(default_factory=lambda: ["random", "idle", "slower", "rule"])
     video: bool = True
     out_dir: str | None = None
+    search_horizon: int = 0
 
 
 _SHARED_SCHEMAS: tuple[tuple[str, str, type], ...] = (
