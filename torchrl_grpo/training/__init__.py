@@ -41,7 +41,12 @@ from torchrl_grpo.training.config import (
     typed_config,
 )
 from torchrl_grpo.training.env_builder import make_env, make_layout, make_rollout_env
-from torchrl_grpo.training.evaluation import BASELINE_LABELS, baseline_policy, evaluate
+from torchrl_grpo.training.evaluation import (
+    BASELINE_LABELS,
+    baseline_policy,
+    evaluate,
+    search_policy,
+)
 from torchrl_grpo.training.hooks import CheckpointHook, EvaluationHook, GroupPlotHook, Hook
 from torchrl_grpo.training.logging_builder import log_metrics, log_video, make_logger
 from torchrl_grpo.training.loss_builder import (
@@ -133,6 +138,7 @@ __all__ = [
     "resume_config",
     "save_checkpoint",
     "save_gif",
+    "search_policy",
     "tensor_episodes",
     "to_container",
     "typed_config",
