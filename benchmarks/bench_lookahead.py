@@ -3,19 +3,35 @@
 Each decision tries every action from the current state, follows the base policy for
 the rest of the horizon and keeps the best branch: the exact version of the groups of
 ``algo.first_action=enumerate algo.tail_policy=<base>``. Evaluation protocol of
-``scripts/evaluate.py``: greedy, episodes from seeds 10000, 10001, ...
+``scripts/evaluate.py``: greedy, episodes from seeds 10000, 10001, ... The base is a
+scripted policy, or with ``--checkpoint`` a trained policy's greedy actions. The same
+planner also runs with its branches on the tensor simulator, from the highway-env
+states imported through the bridge (``search_policy``, what ``scripts/evaluate.py
+search_horizon=H`` drives), and its time and returns are printed beside.
 
     python benchmarks/bench_lookahead.py --base rule --horizon 4 --episodes 30
+    python benchmarks/bench_lookahead.py --checkpoint runs/x/last.pt --horizon 8 --episodes 5
 """
 
 import argparse
 import logging
 import time
 
+from claims import claim
+from omegaconf import OmegaConf
+
 from torchrl_grpo.branching import LookaheadPolicy
-from torchrl_grpo.envs import HighwayEnv
-from torchrl_grpo.modules import KinematicsLayout, make_scripted_policy
-from torchrl_grpo.training import evaluate, format_table
+from torchrl_grpo.modules import DeterministicActor, KinematicsLayout, make_scripted_policy
+from torchrl_grpo.training import (
+    evaluate,
+    format_table,
+    load_checkpoint,
+    make_env,
+    make_policy,
+    search_policy,
+    typed_config,
+)
+from torchrl_grpo.training.env_builder import tensor_covers
 
 logging.basicConfig(level=logging.INFO, format="%(message)s")
 log = logging.getLogger("bench_lookahead")
@@ -23,21 +39,35 @@ log = logging.getLogger("bench_lookahead")
 p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 p.add_argument("--scenario", default="highway-fast-v0")
 p.add_argument("--base", default="rule", help="a scripted policy (SCRIPTED_POLICIES)")
+p.add_argument("--checkpoint", default=None, help="a run's last.pt: its greedy policy is the base")
 p.add_argument("--horizon", type=int, default=4)
 p.add_argument("--episodes", type=int, default=30)
 p.add_argument("--seed", type=int, default=10_000)
 args = p.parse_args()
 
-env = HighwayEnv(args.scenario, return_state=True)
-layout = KinematicsLayout.from_highway_config(env.config)
-base = make_scripted_policy(args.base, layout)
-planner = LookaheadPolicy(HighwayEnv(args.scenario), base, horizon=args.horizon)
-results = []
-for name, policy in ((args.base, base), (f"lookahead H={args.horizon} over {args.base}", planner)):
+env_cfg = OmegaConf.create({"scenario": args.scenario, "config": {}})
+if args.checkpoint:
+    ckpt = load_checkpoint(args.checkpoint)
+    env_cfg = typed_config(ckpt["config"]).env
+    base = make_policy(typed_config(ckpt["config"]).model, make_env(env_cfg))
+    base.load_state_dict(ckpt["policy"])
+    base, label = DeterministicActor(base), args.checkpoint
+else:
+    layout = KinematicsLayout.from_highway_config(make_env(env_cfg).config)
+    base, label = make_scripted_policy(args.base, layout), args.base
+env = make_env(env_cfg, return_state=True)
+planner = LookaheadPolicy(make_env(env_cfg), base, args.horizon)
+policies = [(label, base), (f"lookahead H={args.horizon} over {label}", planner)]
+if tensor_covers(env_cfg):
+    on_tensor = search_policy(env_cfg, base, args.horizon)
+    policies.append(("the same, branching on the tensor simulator", on_tensor))
+results, seconds = [], []
+for name, policy in policies:
     t0 = time.perf_counter()
     res, _ = evaluate(env, policy, episodes=args.episodes, seed=args.seed, name=name)
     results.append(res)
-    log.info("%s: %.0f s", name, time.perf_counter() - t0)
+    seconds.append(time.perf_counter() - t0)
+    log.info("%s: %.0f s", name, seconds[-1])
 log.info("%s", format_table(results))
 steps = sum(results[1].lengths)
 log.info(
@@ -45,3 +75,12 @@ log.info(
     round(planner.frames / max(steps, 1)),
     steps,
 )
+if len(results) == 3:
+    gap = max(abs(a - b) for a, b in zip(results[1].returns, results[2].returns, strict=True))
+    note = f"H={args.horizon}, {args.episodes} episodes, {seconds[2] / args.episodes:.1f} s each"
+    claim(
+        "lookahead on highway-env snapshots / on the tensor simulator, time",
+        seconds[1] / seconds[2],
+        note=note,
+    )
+    claim("lookahead: max |episode return difference|, tensor vs highway-env", gap, "<=1e-4")

@@ -90,12 +90,13 @@ def test_search_over_a_checkpoint_scores_as_the_planner_on_highway_env(smoke_run
     train, run, _ = smoke_run
     assert train.returncode == 0, train.stderr[-3000:]
     cfg = compose_config(
-        [f"checkpoint={run / 'last.pt'}", "episodes=2", "baselines=[]", "video=false"]
+        [f"checkpoint={run / 'last.pt'}", "episodes=2", "baselines=[slower]", "video=false"]
         + ["search_horizon=2"],
         config_name="evaluate",
     )
     report = evaluate_checkpoint(cfg, tmp_path)
-    trained, searched = report.results
+    trained, searched, slower = report.results
+    assert slower.name == "always-SLOWER"
     assert searched.name == "lookahead H=2 over the policy"
     # The reference: the same planner branching on highway-env's own snapshots.
     ckpt = load_checkpoint(run / "last.pt")
@@ -110,7 +111,11 @@ def test_search_over_a_checkpoint_scores_as_the_planner_on_highway_env(smoke_run
     assert searched.seeds == reference.seeds == trained.seeds
     assert searched.returns == pytest.approx(reference.returns, abs=1e-4)
     assert (searched.crashed, searched.lengths) == (reference.crashed, reference.lengths)
-    assert "lookahead H=2 over the policy" in (tmp_path / "results.md").read_text()
+    # Paired verdicts: the policy against the search and the baseline, the search
+    # against the baseline.
+    table = (tmp_path / "results.md").read_text()
+    assert " vs lookahead H=2 over the policy: " in table
+    assert "\nlookahead H=2 over the policy vs always-SLOWER: " in table
 
 
 @pytest.mark.parametrize(

@@ -322,6 +322,9 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
     if ckpt is not None and len(results) > 1:
         # "Beats" is paired on these episodes (the training issue's definition).
         verdicts = f"\n{paired_verdicts(results[0], results[1:])}\n"
+        if horizon > 0 and len(results) > 2:
+            # The search against each baseline too (results[1] is the search).
+            verdicts += f"{paired_verdicts(results[1], results[2:])}\n"
     files["table"] = out_dir / "results.md"
     files["table"].write_text(f"{header}\n\n{table}\n{verdicts}")
     files["json"] = out_dir / "results.json"
