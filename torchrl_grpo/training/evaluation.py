@@ -86,9 +86,10 @@ def search_policy(
     (:class:`~torchrl_grpo.branching.LookaheadPolicy`, the ``lookahead`` baseline's
     planner with the trained policy in place of the rule policy). Where the tensor
     simulator covers the scenario, the branches are rows of one of its rollouts, from
-    the driven highway-env state imported through the bridge, which is about 20 times
-    faster than highway-env's own snapshots and scores the same; elsewhere they run on
-    highway-env snapshots. The env it drives must be built with ``return_state=True``.
+    the driven highway-env state imported through the bridge: five times faster than
+    highway-env's own snapshots at H = 8, with the same returns
+    (``benchmarks/bench_lookahead.py --checkpoint``); elsewhere they run on highway-env
+    snapshots. The env it drives must be built with ``return_state=True``.
 
     Args:
         env_cfg: the ``env`` config group the policy was trained on.
