@@ -24,12 +24,11 @@ import logging
 from dataclasses import dataclass
 
 import torch
+from bench_crash_rates import trained
 from omegaconf import OmegaConf
 
 from torchrl_grpo.modules import PolicyEnsemble
-from torchrl_grpo.training import load_checkpoint, make_env, tensor_episodes
-from torchrl_grpo.training.config import typed_config
-from torchrl_grpo.training.model_builder import make_policy
+from torchrl_grpo.training import tensor_episodes
 from torchrl_grpo.training.teachers import has_crash_head
 
 logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -109,10 +108,7 @@ def crash_net(paths: list[str]) -> torch.nn.Module:
     """The crash logits of ``paths``' networks: one network's, or their mean."""
     nets = []
     for path in paths:
-        cfg = typed_config(load_checkpoint(path)["config"])
-        policy = make_policy(cfg.model, make_env(cfg.env))
-        policy.load_state_dict(load_checkpoint(path)["policy"])
-        net = policy.module[0].module
+        net = trained(path)[1].module[0].module
         if not has_crash_head(net):
             raise SystemExit(f"{path} has no crash head (trained with model.crash_head=false)")
         nets.append(net)
@@ -131,10 +127,7 @@ def main() -> None:
     args = p.parse_args()
     torch.set_num_threads(args.threads)
 
-    ckpt = load_checkpoint(args.checkpoint)
-    env_cfg = typed_config(ckpt["config"]).env
-    policy = make_policy(typed_config(ckpt["config"]).model, make_env(env_cfg))
-    policy.load_state_dict(ckpt["policy"])
+    env_cfg, policy = trained(args.checkpoint)
     env_cfg = OmegaConf.merge(env_cfg, {"max_episode_steps": env_cfg.get("max_episode_steps", 40)})
     heads = args.head or [args.checkpoint]
     data, steps = tensor_episodes(env_cfg, policy, episodes=args.episodes, seed=args.seed)
