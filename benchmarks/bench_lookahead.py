@@ -17,20 +17,13 @@ import argparse
 import logging
 import time
 
+from bench_crash_rates import trained
 from claims import claim
 from omegaconf import OmegaConf
 
 from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.modules import DeterministicActor, KinematicsLayout, make_scripted_policy
-from torchrl_grpo.training import (
-    evaluate,
-    format_table,
-    load_checkpoint,
-    make_env,
-    make_policy,
-    search_policy,
-    typed_config,
-)
+from torchrl_grpo.training import evaluate, format_table, make_env, search_policy
 from torchrl_grpo.training.env_builder import tensor_covers
 
 logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -47,10 +40,7 @@ args = p.parse_args()
 
 env_cfg = OmegaConf.create({"scenario": args.scenario, "config": {}})
 if args.checkpoint:
-    ckpt = load_checkpoint(args.checkpoint)
-    env_cfg = typed_config(ckpt["config"]).env
-    base = make_policy(typed_config(ckpt["config"]).model, make_env(env_cfg))
-    base.load_state_dict(ckpt["policy"])
+    env_cfg, base = trained(args.checkpoint)
     base, label = DeterministicActor(base), args.checkpoint
 else:
     layout = KinematicsLayout.from_highway_config(make_env(env_cfg).config)

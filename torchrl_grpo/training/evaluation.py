@@ -108,12 +108,12 @@ def search_policy(
     """
     if isinstance(policy, TensorDictModuleBase) and _is_stochastic(policy):
         policy = DeterministicActor(policy)
-    n_actions = int(make_env(env_cfg).action_spec.n)
+    highway = make_env(env_cfg)
     if not tensor_covers(env_cfg):
-        return LookaheadPolicy(make_env(env_cfg), policy, horizon=horizon)
-    sim = TensorHighwayEnv(
-        str(env_cfg.scenario), env_overrides(env_cfg), num_envs=n_actions, seed=0
-    )
+        return LookaheadPolicy(highway, policy, horizon=horizon)
+    # One row per action of the one state planned at a time.
+    rows = int(highway.action_spec.n)
+    sim = TensorHighwayEnv(str(env_cfg.scenario), env_overrides(env_cfg), num_envs=rows, seed=0)
     return LookaheadPolicy(sim, policy, horizon=horizon, import_state=sim.state_from_highway)
 
 
