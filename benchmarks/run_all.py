@@ -93,8 +93,8 @@ def page(rows: list[dict], runs: list[dict], started: str) -> str:
         lines += [
             "",
             "The training claim (how soon GRPO beats always-SLOWER on highway-fast-v0) was not",
-            "measured in this run: it needs finished training runs (`--training-runs`, see",
-            "[results](results.md)).",
+            "measured in this run: it needs finished training runs (`--training-runs`, see the",
+            '[lab notes](lab/highway_workers.md), "How soon a learner beats always-SLOWER").',
         ]
     lines += [
         "",
