@@ -10,8 +10,9 @@ whether it is met, and the command that measured it.
     python benchmarks/run_all.py --only env loss       # some of them
     python benchmarks/run_all.py --training-runs multirun/<day>/<time>/*   # + training
 
-The training claim needs finished training runs (see docs/results.md for the
-commands that make them); without ``--training-runs`` it is not measured.
+The training claim needs finished training runs (docs/lab/highway_workers.md, "How soon
+a learner beats always-SLOWER", gives the commands that make them); without
+``--training-runs`` it is not measured.
 """
 
 from __future__ import annotations
@@ -93,8 +94,8 @@ def page(rows: list[dict], runs: list[dict], started: str) -> str:
         lines += [
             "",
             "The training claim (how soon GRPO beats always-SLOWER on highway-fast-v0) was not",
-            "measured in this run: it needs finished training runs (`--training-runs`, see",
-            "[results](results.md)).",
+            "measured in this run: it needs finished training runs (`--training-runs`, see the",
+            '[lab notes](lab/highway_workers.md), "How soon a learner beats always-SLOWER").',
         ]
     lines += [
         "",
