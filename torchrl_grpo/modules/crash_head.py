@@ -5,7 +5,7 @@ fixed policy, tells exactly which actions of that root end in a crash within the
 horizon. :class:`CrashHead` gives the policy network a second output per action, the
 logit of that probability, trained by a binary cross-entropy on those labels
 (:class:`~torchrl_grpo.objectives.CrashHeadLoss`). Measured on the planner's labels
-(``benchmarks/bench_offline_fit.py``), the second task alone makes the network's
+(``benchmarks/lab/bench_offline_fit.py``), the second task alone makes the network's
 greedy choices crash less: binary labels give the features of a coming crash a gradient
 of their own, where a regression of returns mixes them with small differences of speed.
 With ``aversion > 0`` the probability also enters the policy: its logits become

@@ -7,7 +7,7 @@ fast it closes, whether a neighbouring lane has room) is a small, nonlinear func
 a few of its entries, and an MLP over the table learns it slowly: cloned from 5,000
 states of the rule policy it matches 85% of the actions of held-out states, where the
 same MLP over :class:`SceneFeatures` matches 95% and drives as the rule policy does
-(``benchmarks/bench_features.py``, docs/results.md). :class:`SceneFeatures` decodes the
+(``benchmarks/lab/bench_features.py``, docs/results.md). :class:`SceneFeatures` decodes the
 table with the scene reader of the scripted drivers (:class:`~torchrl_grpo.modules.Driver`)
 into 18 numbers per observation; :class:`SceneMLP` is an MLP over them.
 """

@@ -33,6 +33,7 @@ import logging
 import math
 import time
 
+import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict

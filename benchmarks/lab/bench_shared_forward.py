@@ -35,6 +35,7 @@ import tempfile
 import time
 import warnings
 
+import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
 from claims import claim
 from tensordict import TensorDictBase

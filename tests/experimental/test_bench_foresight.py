@@ -7,9 +7,11 @@ from pathlib import Path
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks" / "lab"))
 
 import bench_crash_foresight as bench  # noqa: E402
+
+pytestmark = pytest.mark.experimental
 
 
 def test_the_docstring_example_runs():

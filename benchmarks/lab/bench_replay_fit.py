@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 
+import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
 from bench_crash_rates import trained
 from tensordict import TensorDict

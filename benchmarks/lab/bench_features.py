@@ -9,6 +9,7 @@ greedy evaluation protocol of ``scripts/evaluate.py`` (episodes from seeds 10000
 10001, ...).
 
 The teacher is the rule policy (``--teacher rule``): a network that cannot imitate it
+import _path  # noqa: F401  (benchmarks/ on sys.path)
 from these labels cannot learn its safety margins from the far noisier signal of RL
 either. Or the lookahead planner over the rule policy (``--teacher lookahead``), whose
 scores are exactly what the groups of ``algo.first_action=enumerate

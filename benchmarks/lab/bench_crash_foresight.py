@@ -23,6 +23,7 @@ import argparse
 import logging
 from dataclasses import dataclass
 
+import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
 from bench_crash_rates import trained
 from omegaconf import OmegaConf

@@ -20,6 +20,7 @@ import argparse
 import logging
 from collections import Counter
 
+import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
 from bench_crash_rates import ACTIONS, trained
 
