@@ -12,8 +12,8 @@ decisions and at each of the ``--look-back`` decisions before every crash: the m
 crash probability of the chosen action, that of the action the heads call safest, and
 the share of decisions where the safest is lower by at least ``--margin``.
 
-    python benchmarks/bench_crash_foresight.py --checkpoint runs/crash7_s0/last.pt
-    python benchmarks/bench_crash_foresight.py --checkpoint runs/distill9h_s0/last.pt \
+    python benchmarks/lab/bench_crash_foresight.py --checkpoint runs/crash7_s0/last.pt
+    python benchmarks/lab/bench_crash_foresight.py --checkpoint runs/distill9h_s0/last.pt \
         --head runs/h8_s0/last.pt --head runs/h8_s1/last.pt
 """
 

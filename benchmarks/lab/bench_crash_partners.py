@@ -10,8 +10,8 @@ Kinematics: the nearest ``vehicles_count - 1`` vehicles, those more than two len
 behind left out unless ``see_behind``). A crash by a vehicle the policy could not see is
 a crash no network over that observation can learn to avoid from the state alone.
 
-    python benchmarks/bench_crash_partners.py --checkpoint outputs/.../last.pt --episodes 1000
-    python benchmarks/bench_crash_partners.py --policy rule --episodes 1000
+    python benchmarks/lab/bench_crash_partners.py --checkpoint outputs/.../last.pt --episodes 1000
+    python benchmarks/lab/bench_crash_partners.py --policy rule --episodes 1000
 """
 
 from __future__ import annotations

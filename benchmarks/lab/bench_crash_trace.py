@@ -10,7 +10,7 @@ a validation set of that size could pick a run's good checkpoints. The evaluatio
 seeded and draw nothing from the training's generators, so the run trains exactly as
 it would without them.
 
-    python benchmarks/bench_crash_trace.py --out runs/trace_s0 -- seed=0 \
+    python benchmarks/lab/bench_crash_trace.py --out runs/trace_s0 -- seed=0 \
         algo=grpo_branch algo.distill_coeff=1 algo.distill_loss=regression \
         algo.distill_temperature=1 model.crash_head=true model.crash_aversion=3 \
         optim.ema_decay=0.9 experiment.total_frames=1000000

@@ -20,8 +20,8 @@ simulated frames) that takes. The planner's label is the set of its best actions
 copy); a clone agrees where its action is one of them, and its regret is the planner's
 best branch return minus that of the clone's action.
 
-    python benchmarks/bench_features.py --frames 5000 --steps 3000 --episodes 10
-    python benchmarks/bench_features.py --teacher lookahead --frames 1000 --episodes 30
+    python benchmarks/lab/bench_features.py --frames 5000 --steps 3000 --episodes 10
+    python benchmarks/lab/bench_features.py --teacher lookahead --frames 1000 --episodes 30
 """
 
 import argparse

@@ -22,8 +22,8 @@ highway-env's figures):
 - ``reg``: the centred logits times ``tau`` regress the centred ``Q``
   (``algo.distill_loss=regression``).
 
-    python benchmarks/bench_offline_fit.py collect --episodes 2000 --out /tmp/labels.pt
-    python benchmarks/bench_offline_fit.py fit --data /tmp/labels.pt --model scene --loss ce
+    python benchmarks/lab/bench_offline_fit.py collect --episodes 2000 --out /tmp/labels.pt
+    python benchmarks/lab/bench_offline_fit.py fit --data /tmp/labels.pt --model scene --loss ce
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ crashes). Roots with a spread of 10 or more are the danger states, where an acti
 crashes; the share of them where the policy picks a crashing action, times the danger
 decisions of an episode, is the crash rate that imitation errors alone would give.
 
-    python benchmarks/bench_replay_fit.py --checkpoint outputs/.../last.pt [--checkpoint ...]
+    python benchmarks/lab/bench_replay_fit.py --checkpoint outputs/.../last.pt [--checkpoint ...]
 """
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ all of them:
 "Separate" replaces ``shared_forward`` by a context that does nothing: the network
 then runs once per call, as before the change.
 
-Run: ``python benchmarks/bench_shared_forward.py [--frames 150000] [--repeats 2]``.
+Run: ``python benchmarks/lab/bench_shared_forward.py [--frames 150000] [--repeats 2]``.
 """
 
 from __future__ import annotations

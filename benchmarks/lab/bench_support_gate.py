@@ -1,6 +1,6 @@
 """Would a support gate (SPIBB) make a trained learner safer? An offline check.
 
-Usage: ``python benchmarks/bench_support_gate.py <run> [--gates 0.3:1 1.0:5] [--episodes 10]``
+Usage: ``python benchmarks/lab/bench_support_gate.py <run> [--gates 0.3:1 1.0:5] [--episodes 10]``
 
 Safe policy improvement with baseline bootstrapping (SPIBB, Laroche et al. 2019) keeps
 the base policy's action wherever the data compared actions too rarely. This script
