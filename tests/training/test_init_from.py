@@ -65,7 +65,8 @@ def test_weights_of_another_network_or_env_and_a_missing_file_are_refused(traine
     with pytest.raises(ValueError, match=r"does not fit .*model.kind='mlp', not 'scene'"):
         Trainer(compose_config([*TINY, *TENSOR, f"init_from={mlp_path}"]), run_dir=tmp_path)
     with pytest.raises(ValueError, match=r"model.crash_head=True, not False"):
-        Trainer(compose_config([*TINY, *TENSOR, f"init_from={trained}"]), run_dir=tmp_path)
+        no_head = [*TINY, *TENSOR, "model.crash_head=false", f"init_from={trained}"]
+        Trainer(compose_config(no_head), run_dir=tmp_path)
     # Same parameters, another prior: refused as a resume refuses it.
     prior = [*TINY, *TENSOR, *CRASH_HEAD, "model.prior=rule", f"init_from={trained}"]
     with pytest.raises(ValueError, match=r"model.prior=None, not 'rule'"):

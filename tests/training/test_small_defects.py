@@ -33,14 +33,14 @@ def test_a_scripted_tail_on_ray_is_refused_when_the_config_loads(tail):
     )
     with pytest.raises(ValueError, match=f"algo.tail_policy={tail} is not supported"):
         check_config(cfg)
-    learner = ["algo.tail_policy=learner", "algo.replay_groups=null"]
+    learner = ["algo.tail_policy=learner", "algo.tail_learner_steps=0", "algo.replay_groups=null"]
     check_config(compose_config([*TINY, "rollout.backend=ray", *learner]))
 
 
 def test_replayed_groups_on_ray_are_refused_naming_them_when_the_config_loads():
     # replay needs a scripted tail, which Ray actors do not run: the error says so
     scripted = ["algo.explore_steps=1", "algo.first_action=enumerate", "algo.tail_policy=rule"]
-    for tail in (scripted, ["algo.tail_policy=learner"]):
+    for tail in (scripted, ["algo.tail_policy=learner", "algo.tail_learner_steps=0"]):
         cfg = compose_config([*TINY, "rollout.backend=ray", *tail, "algo.replay_groups=8"])
         with pytest.raises(ValueError, match="algo.replay_groups=8 is not supported with rollout"):
             check_config(cfg)

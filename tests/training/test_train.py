@@ -117,6 +117,7 @@ def test_resume_restores_the_lagging_tail_policy(tmp_path):
         "algo.trunk=greedy",
         "algo.tail_sync_batches=2",
         "algo.tail_policy=learner",
+        "algo.tail_learner_steps=0",
         "algo.replay_groups=null",
     ]
     stopped = train_run(tmp_path, "stopped", [*common, "experiment.total_frames=70"])
@@ -144,6 +145,7 @@ def test_a_scripted_tail_scores_every_first_action_from_the_learners_trunks(tmp_
         "algo.first_action=enumerate",
         "algo.trunk=greedy",
         "algo.tail_policy=slower",
+        "algo.tail_learner_steps=0",  # the base policy right after the first action
     ]
     trainer = train_run(tmp_path, "base_tail", [*overrides, "experiment.total_frames=40"])
     assert trainer.iteration >= 1

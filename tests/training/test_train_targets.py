@@ -24,7 +24,8 @@ from torchrl_grpo.training.algos.tails import crash_labels
 
 
 def test_distillation_stores_each_groups_target_and_trains_on_it(tmp_path):
-    overrides = [*REPLAY, "algo.distill_coeff=2.0", "algo.distill_temperature=0.0", "logger=csv"]
+    overrides = [*REPLAY, "algo.distill_coeff=2.0", "algo.distill_loss=cross_entropy"]
+    overrides += ["algo.distill_temperature=0.0", "logger=csv"]
     trainer = train_run(tmp_path, "distill", [*overrides, "experiment.total_frames=60"])
     stored = trainer.algo.replay[:]
     weight, advantage = stored["distill_weight"].squeeze(-1), stored["advantage"].squeeze(-1)
@@ -98,7 +99,10 @@ def test_a_crash_head_learns_from_each_branchs_crash(tmp_path):
     assert ratios == pytest.approx([0.5] * trainer.iteration)
     for refused, match in (
         (["algo=ppo"], "model.crash_head is trained.*algo=ppo"),
-        (["algo.explore_steps=2"], "model.crash_head learns.*explore_steps=1"),
+        (
+            ["algo.explore_steps=2", "algo.distill_coeff=0"],
+            "model.crash_head learns.*explore_steps=1",
+        ),
     ):
         cfg = compose_config([*TINY, "model.crash_head=true", *refused])
         with pytest.raises(ValueError, match=match):
@@ -113,7 +117,7 @@ def test_a_survival_bootstrap_asks_the_crash_head_at_each_branchs_end(tmp_path):
     assert len(survival) == trainer.iteration
     assert all(0 < p < 1 for p in survival)
     assert trainer.algo.tail_survival.head is trainer.algo.crash_head.head
-    cfg = compose_config([*TINY, *REPLAY, "algo.bootstrap=survival"])
+    cfg = compose_config([*TINY, *REPLAY, "algo.bootstrap=survival", "model.crash_head=false"])
     with pytest.raises(ValueError, match="algo.bootstrap=survival.*model.crash_head=true"):
         Trainer(cfg, run_dir=tmp_path / "refused")
 
@@ -150,7 +154,7 @@ def test_bootstrapped_crash_labels_are_the_heads_estimate_where_the_horizon_cut(
     scalars = csv_scalars(tmp_path / "labels")
     assert len(scalars["train/crash_head_bce"]) == trainer.iteration
     assert len(scalars["train/tail_survival_mean"]) == trainer.iteration
-    cfg = compose_config([*TINY, *REPLAY, "algo.crash_label=bootstrap"])
+    cfg = compose_config([*TINY, *REPLAY, "algo.crash_label=bootstrap", "model.crash_head=false"])
     with pytest.raises(ValueError, match="algo.crash_label=bootstrap.*model.crash_head=true"):
         Trainer(cfg, run_dir=tmp_path / "refused")
 
