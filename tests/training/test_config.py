@@ -312,3 +312,30 @@ def test_the_choices_are_the_librarys_literals():
     assert {m.value for m in config.TailPolicyName} == {"learner"} | {
         m.value for m in config.PriorName
     }
+
+
+def test_no_overrides_run_the_recommended_recipe():
+    # The recipe as measured in docs/results.md (formerly `experiment=drive`).
+    cfg = compose_config([])
+    recipe = {
+        "algo.name": "grpo_branch",
+        "algo.tail_policy": "rule",
+        "algo.tail_learner_steps": 7,
+        "algo.replay_groups": 4096,
+        "algo.distill_coeff": 1.0,
+        "algo.distill_loss": "regression",
+        "algo.distill_temperature": 1.0,
+        "model.kind": "scene",
+        "model.crash_head": True,
+        "model.crash_aversion": 3.0,
+        "rollout.stagger_trunks": True,
+        "optim.anneal_lr": True,
+        "optim.ema_decay": 0.995,
+        "experiment.total_frames": 2_000_000,
+    }
+    assert {key: OmegaConf.select(cfg, key) for key in recipe} == recipe
+    drive = to_container(compose_config(["experiment=drive"]))
+    drive["experiment"]["name"] = "default"  # the former name composes the same run
+    assert to_container(cfg) == drive
+    # Other algorithms keep the model group's own settings: no crash head.
+    assert compose_config(["algo=ppo"]).model.crash_head is False
