@@ -90,6 +90,8 @@ def evaluate_baselines(
     seed: int,
     cache_dir: str | Path | None = None,
     policy_seed: int = 0,
+    workers: int = 1,
+    progress: bool = False,
 ) -> list[EvalResult]:
     """Each baseline of ``names`` on ``episodes`` episodes from ``seed`` on, cached.
 
@@ -100,6 +102,8 @@ def evaluate_baselines(
         seed: the first episode's seed.
         cache_dir: the cache folder; ``None``: evaluate, cache nothing.
         policy_seed: seed of the random baseline's draws.
+        workers: processes driving the episodes of one baseline (the same results).
+        progress: a tqdm bar over each baseline's episodes (cached ones are not run).
 
     Returns:
         One result per baseline that applies to the scenario, in the order of ``names``.
@@ -139,6 +143,8 @@ def evaluate_baselines(
             seed=seed,
             max_steps=int(env_cfg.get("max_episode_steps", 1000)),
             name=label,
+            workers=workers,
+            progress=progress,
         )
         results.append(res)
         if path is not None:

@@ -24,6 +24,7 @@ from torchrl_grpo.branching import BRANCH_RETURN, plot_group
 from torchrl_grpo.training.baselines import evaluate_baselines
 from torchrl_grpo.training.checkpoint import Progress, save_checkpoint
 from torchrl_grpo.training.env_builder import make_env, tensor_covers
+from torchrl_grpo.training.episodes import eval_workers
 from torchrl_grpo.training.evaluation import evaluate
 from torchrl_grpo.training.logging_builder import log_metrics
 from torchrl_grpo.training.plots import plot_learning_curve, save_gif
@@ -109,6 +110,15 @@ class Hook:
 
     def on_train_end(self, trainer: TrainerView, result: Any) -> None:
         """Training is done, not interrupted; the collector is shut down."""
+
+
+def _parallel(cfg: DictConfig) -> dict[str, Any]:
+    # Forked workers give the serial numbers, episode for episode (training/episodes.py).
+    exp = cfg.experiment
+    return {
+        "workers": eval_workers(exp.get("eval_workers")),
+        "progress": bool(exp.get("progress_bar", True)),
+    }
 
 
 def _every(trainer: TrainerView, every: int) -> bool:
@@ -240,6 +250,7 @@ class EvaluationHook(Hook):
             max_steps=int(cfg.env.max_episode_steps),
             name=str(cfg.algo.name),
             record=self._render if record else None,
+            **_parallel(cfg),
         )
         summary = res.summary()
         if bool(cfg.experiment.get("transfer_gap", True)) and tensor_covers(cfg.env):
@@ -276,6 +287,7 @@ class EvaluationHook(Hook):
                 seed=seed,
                 cache_dir=None if cache is None else Path(str(cache)),
                 policy_seed=trainer.seed,
+                **_parallel(cfg),
             )
             results = [trained, *baselines]
             table = format_table(results)
