@@ -92,6 +92,7 @@ def evaluate_baselines(
     policy_seed: int = 0,
     workers: int = 1,
     progress: bool = False,
+    cached_only: bool = False,
 ) -> list[EvalResult]:
     """Each baseline of ``names`` on ``episodes`` episodes from ``seed`` on, cached.
 
@@ -104,6 +105,7 @@ def evaluate_baselines(
         policy_seed: seed of the random baseline's draws.
         workers: processes driving the episodes of one baseline (the same results).
         progress: a tqdm bar over each baseline's episodes (cached ones are not run).
+        cached_only: return only what the cache holds; evaluate nothing.
 
     Returns:
         One result per baseline that applies to the scenario, in the order of ``names``.
@@ -131,6 +133,8 @@ def evaluate_baselines(
                 results.append(EvalResult(**stored))
                 log.info("baseline %s: cached in %s", label, path)
                 continue
+        if cached_only:
+            continue
         built = _policy(env_cfg, name, policy_seed)
         if built is None:
             log.warning("baseline %r does not apply to %s: skipped", name, env_cfg.scenario)

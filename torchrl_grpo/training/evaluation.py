@@ -29,7 +29,7 @@ from torchrl_grpo.training.config import typed_config
 from torchrl_grpo.training.env_builder import env_overrides, make_env, make_layout, tensor_covers
 from torchrl_grpo.training.episodes import eval_workers, run_episodes
 from torchrl_grpo.training.model_builder import make_policy
-from torchrl_grpo.training.plots import plot_comparison, plot_learning_curve, save_gif
+from torchrl_grpo.training.plots import plot_comparison, plot_run_curve, save_gif
 from torchrl_grpo.training.results import EvalResult, format_table, paired_verdicts
 
 __all__ = [
@@ -223,6 +223,39 @@ class EvalReport:
     files: dict[str, Path] = field(default_factory=dict)
 
 
+def _curve(
+    run_cfg: DictConfig, history: list[dict], results: list[EvalResult], frames: int, out: Path
+) -> Path:
+    # This evaluation is the final point (its seeds); the periodic rows and the baselines
+    # the run cached on their seeds draw the curve (nothing more is evaluated for it).
+    # baselines.py builds on this module: imported here, not at the top.
+    from torchrl_grpo.training.baselines import evaluate_baselines
+
+    exp = run_cfg.experiment
+    periodic = [r for r in history if r.get("seed", exp.eval_seed) == exp.eval_seed]
+    cache = exp.get("baseline_cache")
+    baselines = []
+    if periodic and cache is not None:
+        baselines = evaluate_baselines(
+            run_cfg.env,
+            list(exp.baselines),
+            episodes=int(exp.eval_episodes),
+            seed=int(exp.eval_seed),
+            cache_dir=Path(str(cache)),
+            policy_seed=int(run_cfg.seed),
+            cached_only=True,
+        )
+    return plot_run_curve(
+        periodic,
+        out / "learning_curve.png",
+        label=str(run_cfg.algo.name),
+        baselines=baselines,
+        final=results,
+        final_frames=frames,
+        title=f"{run_cfg.env.scenario}: deterministic evaluation",
+    )
+
+
 def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
     """``scripts/evaluate.py``: the trained policy of ``cfg.checkpoint`` and the baselines.
 
@@ -342,11 +375,5 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
     if results:
         files["bars"] = plot_comparison(results, out_dir / "comparison.png", title=header)
     if history:
-        hlines = {r.name: r.summary()["return"] for r in results[1:]}
-        files["curve"] = plot_learning_curve(
-            {str(run_cfg.algo.name): [history]},
-            out_dir / "learning_curve.png",
-            title=f"{env_cfg.scenario}: deterministic evaluation",
-            hlines=hlines,
-        )
+        files["curve"] = _curve(run_cfg, history, results, int(ckpt["frames"]), out_dir)
     return EvalReport(results=results, table=table, out_dir=out_dir, files=files)
