@@ -33,7 +33,7 @@ from pathlib import Path
 from claims import claim
 
 from torchrl_grpo.training import compose_config
-from torchrl_grpo.training.episodes import eval_workers
+from torchrl_grpo.training.eval_episodes import eval_workers
 from torchrl_grpo.training.evaluation import evaluate_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -12,7 +12,7 @@ from conftest import compose_config
 from torchrl_grpo.modules import ConstantActionPolicy, make_scripted_policy
 from torchrl_grpo.training import evaluate, make_env, make_policy
 from torchrl_grpo.training.checkpoint import get_rng_state
-from torchrl_grpo.training.episodes import eval_workers
+from torchrl_grpo.training.eval_episodes import eval_workers
 from torchrl_grpo.training.evaluation import evaluate_checkpoint
 
 

@@ -194,3 +194,27 @@ def test_a_frame_zero_evaluation_leaves_the_weights_and_the_table_as_they_were(
     assert (tmp_path / "True" / "results.md").read_text() == (
         tmp_path / "False" / "results.md"
     ).read_text()
+
+
+def test_evaluate_py_draws_the_baselines_the_run_cached_on_its_periodic_seeds(tmp_path):
+    from torchrl_grpo.training.baseline_cache import cache_key, write_cached
+    from torchrl_grpo.training.evaluation import _curve
+    from torchrl_grpo.training.results import EvalResult
+
+    run_cfg = compose_config(["experiment=smoke", f"experiment.baseline_cache={tmp_path}"])
+    exp = run_cfg.experiment
+    seeds = list(range(exp.eval_seed, exp.eval_seed + exp.eval_episodes))
+    n = len(seeds)
+    slower = EvalResult("always-SLOWER", [9.0] * n, [True] * n, [5] * n, [20.0] * n, seeds)
+    key = cache_key(run_cfg.env, "slower", exp.eval_seed, exp.eval_episodes, run_cfg.seed)
+    write_cached(tmp_path / key, slower)
+    history = [
+        {"frames": f, "return": r, "crash_rate": 0.0, "seed": exp.eval_seed, "episodes": n}
+        for f, r in ((0, 10.0), (100, 14.0))
+    ]
+    trained = EvalResult("grpo", [15.0, 16.0], [False] * 2, [20] * 2, [21.0] * 2, [20000, 20001])
+    path = _curve(run_cfg, history, [trained], 150, tmp_path / "eval")
+    # The cached baseline: a line across each panel (its return, its 100% crash rate).
+    assert len(_long_lines(_mask(path, "orange"))) == 2
+    stars = [b for b in _blobs(_mask(path, "blue")) if b[0] >= 10 and 10 <= b[1] <= 30]
+    assert len(stars) == 3, stars  # this evaluation: a star in each panel and the legend

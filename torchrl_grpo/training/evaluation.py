@@ -24,10 +24,11 @@ from torchrl.envs import EnvBase
 from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.modules import DeterministicActor, KinematicsLayout, make_scripted_policy
+from torchrl_grpo.training.baseline_cache import cache_key, read_cached
 from torchrl_grpo.training.checkpoint import load_checkpoint
 from torchrl_grpo.training.config import typed_config
 from torchrl_grpo.training.env_builder import env_overrides, make_env, make_layout, tensor_covers
-from torchrl_grpo.training.episodes import eval_workers, run_episodes
+from torchrl_grpo.training.eval_episodes import eval_workers, run_episodes
 from torchrl_grpo.training.model_builder import make_policy
 from torchrl_grpo.training.plots import plot_comparison, plot_run_curve, save_gif
 from torchrl_grpo.training.results import EvalResult, format_table, paired_verdicts
@@ -144,7 +145,7 @@ def evaluate(
         record: an env built with ``render_mode="rgb_array"``: the first episode is
             replayed there (same seed, same actions) and returned as a video.
         workers: processes driving the episodes (forked; the same results as one,
-            episode for episode: :func:`~torchrl_grpo.training.episodes.run_episodes`).
+            episode for episode: :func:`~torchrl_grpo.training.eval_episodes.run_episodes`).
         progress: a tqdm bar over the episodes.
 
     Returns:
@@ -228,23 +229,18 @@ def _curve(
 ) -> Path:
     # This evaluation is the final point (its seeds); the periodic rows and the baselines
     # the run cached on their seeds draw the curve (nothing more is evaluated for it).
-    # baselines.py builds on this module: imported here, not at the top.
-    from torchrl_grpo.training.baselines import evaluate_baselines
-
     exp = run_cfg.experiment
     periodic = [r for r in history if r.get("seed", exp.eval_seed) == exp.eval_seed]
     cache = exp.get("baseline_cache")
     baselines = []
     if periodic and cache is not None:
-        baselines = evaluate_baselines(
-            run_cfg.env,
-            list(exp.baselines),
-            episodes=int(exp.eval_episodes),
-            seed=int(exp.eval_seed),
-            cache_dir=Path(str(cache)),
-            policy_seed=int(run_cfg.seed),
-            cached_only=True,
-        )
+        for name in exp.baselines:
+            key = cache_key(
+                run_cfg.env, name, int(exp.eval_seed), int(exp.eval_episodes), int(run_cfg.seed)
+            )
+            cached = read_cached(Path(str(cache)) / key)
+            if cached is not None:
+                baselines.append(cached)
     return plot_run_curve(
         periodic,
         out / "learning_curve.png",

@@ -30,7 +30,7 @@ from torchrl_grpo.training.checkpoint import (
     set_rng_state,
 )
 from torchrl_grpo.training.env_builder import make_env, tensor_covers
-from torchrl_grpo.training.episodes import eval_workers
+from torchrl_grpo.training.eval_episodes import eval_workers
 from torchrl_grpo.training.evaluation import evaluate
 from torchrl_grpo.training.logging_builder import log_metrics
 from torchrl_grpo.training.plots import plot_run_curve, save_gif
@@ -122,7 +122,7 @@ class Hook:
 
 
 def _parallel(cfg: DictConfig) -> dict[str, Any]:
-    # Forked workers give the serial numbers, episode for episode (training/episodes.py).
+    # Forked workers give the serial numbers, episode for episode (training/eval_episodes.py).
     exp = cfg.experiment
     return {
         "workers": eval_workers(exp.get("eval_workers")),

@@ -209,7 +209,8 @@ def plot_run_curve(
             )
     # Crash rates start at 0 (all zero: a 0..10% panel, not matplotlib's 1e-17 scale).
     tops = [max(line.get_ydata(), default=0.0) for line in ax_crash.get_lines()]
-    ax_crash.set_ylim(-2.0, max(10.0, 1.15 * max(tops, default=0.0)))
+    top = max(10.0, 1.15 * max(tops, default=0.0))
+    ax_crash.set_ylim(-0.08 * top, top)  # room below 0 for a whole star
     ax_ret.set_ylabel("evaluation return")
     ax_crash.set_ylabel("crash rate (%)")
     ax_crash.set_xlabel("env frames (every branch and trunk step)")
