@@ -179,6 +179,7 @@ def plot_run_curve(
                 markersize=14,
                 color=_RUN_COLOR,
                 markeredgecolor="black",
+                zorder=4,  # above the baselines' diamonds at the same frames
                 label=f"{label}, final: {span}",
             )
         end = row["frames"] if final_frames is None else end
@@ -205,6 +206,7 @@ def plot_run_curve(
                 markersize=14 if trained else 7,
                 color=color,
                 markeredgecolor="black",
+                zorder=4 if trained else 3,
                 label=what,
             )
     # Crash rates start at 0 (all zero: a 0..10% panel, not matplotlib's 1e-17 scale).
@@ -223,7 +225,7 @@ def plot_run_curve(
         # Below the panels: it hides no point.
         fig.legend(handles, labels, loc="lower center", ncol=2, fontsize=8, frameon=False)
     rows = (len(handles) + 1) // 2
-    fig.tight_layout(rect=(0, min(0.06 * rows, 0.45), 1, 1))
+    fig.tight_layout(rect=(0, min(0.035 * rows + 0.03, 0.45), 1, 1))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
