@@ -62,8 +62,9 @@ def timed(checkpoint: Path, episodes: int, baselines: list[str], workers: int, o
     evaluate_checkpoint(cfg, out)
     seconds, end = time.perf_counter() - start, os.times()
     # This process's CPU and its workers' (reaped children), to tell work from waiting.
-    cpu_seconds = sum(b - a for a, b in zip(cpu[:4], end[:4], strict=True))
-    return seconds, cpu_seconds, json.loads((out / "results.json").read_text())
+    here = sum(b - a for a, b in zip(cpu[:2], end[:2], strict=True))
+    workers = sum(b - a for a, b in zip(cpu[2:4], end[2:4], strict=True))
+    return seconds, (here, workers), json.loads((out / "results.json").read_text())
 
 
 def main() -> None:
@@ -82,7 +83,7 @@ def main() -> None:
         tmp = Path(tmp)
         checkpoint = args.checkpoint or smoke_checkpoint(tmp / "run")
         times: dict[int, float] = {1: 0.0, workers: 0.0}
-        cpu: dict[int, float] = {1: 0.0, workers: 0.0}
+        cpu: dict[int, list[float]] = {1: [0.0, 0.0], workers: [0.0, 0.0]}
         tables: dict[int, list] = {}
         for r in range(args.repeats):
             # Alternately: what slows the machine down slows both sides.
@@ -91,8 +92,11 @@ def main() -> None:
                     checkpoint, args.episodes, args.baselines, n, tmp / f"eval_{n}_{r}"
                 )
                 times[n] += seconds
-                cpu[n] += cpu_seconds
-                print(f"eval_workers={n}: {seconds:.1f} s wall, {cpu_seconds:.1f} s of CPU")
+                cpu[n] = [c + d for c, d in zip(cpu[n], cpu_seconds, strict=True)]
+                print(
+                    f"eval_workers={n}: {seconds:.1f} s wall, CPU {cpu_seconds[0]:.1f} s here "
+                    f"+ {cpu_seconds[1]:.1f} s in workers"
+                )
     policies = 1 + len(args.baselines)
     print(
         f"{policies} policies x {args.episodes} episodes, {args.repeats} repeat(s): "
@@ -106,10 +110,18 @@ def main() -> None:
         "<=0.55",
         note=f"{args.episodes} episodes per policy",
     )
+    serial_cpu = sum(cpu[1])
     claim(
         f"evaluate.py: CPU seconds, {workers} workers / 1 worker",
-        cpu[workers] / cpu[1],
+        sum(cpu[workers]) / serial_cpu,
         note="above 1: work the workers add",
+    )
+    # On idle cores, this process's part plus the workers' shared evenly, against one
+    # process's CPU: what the wall-clock ratio would be with nothing else running.
+    claim(
+        f"evaluate.py: {workers} workers / 1 worker, CPU-bound estimate on idle cores",
+        (cpu[workers][0] + cpu[workers][1] / workers) / serial_cpu,
+        note="an estimate from CPU seconds, not a timing",
     )
     claim("evaluate.py: tables of 1 and N workers identical (1 = yes)", float(same), ">=1")
     if not same:
