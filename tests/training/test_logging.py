@@ -130,6 +130,9 @@ def test_the_episode_video_reaches_the_offline_wandb_run_without_moviepy(tmp_pat
         log_metrics(logger, {"eval/final_return": 1.0, "eval/final_episode": video}, step=5)
     finally:
         logger.experiment.finish()
+    import wandb
+
+    wandb.teardown()  # the service writes the run's log asynchronously: flushed once it ends
     (run,) = (tmp_path / "wandb").glob("offline-run-*")
     (gif,) = (run / "files" / "media" / "videos").rglob("*.gif")
     with Image.open(gif) as image:
