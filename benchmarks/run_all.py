@@ -44,6 +44,11 @@ SCRIPTS: dict[str, tuple[str, list[str], str]] = {
     "loss": ("bench_loss.py", [], "GRPOLoss against ClipPPOLoss"),
     "loss_checks": ("bench_loss_checks.py", [], "GRPOLoss's value checks on against off"),
     "ray": ("bench_ray.py", [], "groups/s on Ray against the local collector"),
+    "evaluation": (
+        "bench_evaluation.py",
+        ["--episodes", "20"],
+        "evaluate.py on worker processes against one, the same table",
+    ),
 }
 
 

@@ -14,11 +14,8 @@ decision, so it is worth caching.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
 from collections.abc import Sequence
-from importlib.metadata import version
 from pathlib import Path
 from typing import Any
 
@@ -26,46 +23,19 @@ from omegaconf import DictConfig
 
 from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.modules import make_scripted_policy
-from torchrl_grpo.training.env_builder import env_overrides, make_env, make_layout
+from torchrl_grpo.training.baseline_cache import (
+    LOOKAHEAD_HORIZON,
+    cache_key,
+    read_cached,
+    write_cached,
+)
+from torchrl_grpo.training.env_builder import make_env, make_layout
 from torchrl_grpo.training.evaluation import BASELINE_LABELS, baseline_policy, evaluate
 from torchrl_grpo.training.results import EvalResult
 
 __all__ = ["LOOKAHEAD_HORIZON", "cache_key", "evaluate_baselines"]
 
 log = logging.getLogger(__name__)
-
-#: Steps per branch of the ``lookahead`` baseline.
-LOOKAHEAD_HORIZON = 8
-# Bump when what a cached file means changes.
-_CACHE_VERSION = 1
-
-
-def cache_key(env_cfg: DictConfig, name: str, seed: int, episodes: int, policy_seed: int) -> str:
-    """The file name a baseline's episodes are cached under.
-
-    Example:
-        >>> from omegaconf import OmegaConf
-        >>> cfg = OmegaConf.create({"scenario": "highway-fast-v0", "config": {},
-        ...                         "max_episode_steps": 40})
-        >>> key = cache_key(cfg, "slower", 10_000, 30, 0)
-        >>> key.startswith("highway-fast-v0_slower_10000x30_"), key == cache_key(
-        ...     cfg, "slower", 10_000, 30, 0), key == cache_key(cfg, "slower", 10_001, 30, 0)
-        (True, True, False)
-    """
-    what = {
-        "scenario": str(env_cfg.scenario),
-        "config": env_overrides(env_cfg),
-        "max_steps": int(env_cfg.get("max_episode_steps", 1000)),
-        "name": name,
-        "seed": seed,
-        "episodes": episodes,
-        # Only the random baseline draws from its seed.
-        "policy_seed": policy_seed if name == "random" else 0,
-        "lookahead_horizon": LOOKAHEAD_HORIZON if name == "lookahead" else 0,
-        "versions": [_CACHE_VERSION, version("torchrl_grpo"), version("highway-env")],
-    }
-    digest = hashlib.sha256(json.dumps(what, sort_keys=True, default=str).encode()).hexdigest()
-    return f"{env_cfg.scenario}_{name}_{seed}x{episodes}_{digest[:16]}.json"
 
 
 def _policy(env_cfg: DictConfig, name: str, policy_seed: int) -> tuple[Any, Any] | None:
@@ -90,6 +60,8 @@ def evaluate_baselines(
     seed: int,
     cache_dir: str | Path | None = None,
     policy_seed: int = 0,
+    workers: int = 1,
+    progress: bool = False,
 ) -> list[EvalResult]:
     """Each baseline of ``names`` on ``episodes`` episodes from ``seed`` on, cached.
 
@@ -100,6 +72,8 @@ def evaluate_baselines(
         seed: the first episode's seed.
         cache_dir: the cache folder; ``None``: evaluate, cache nothing.
         policy_seed: seed of the random baseline's draws.
+        workers: processes driving the episodes of one baseline (the same results).
+        progress: a tqdm bar over each baseline's episodes (cached ones are not run).
 
     Returns:
         One result per baseline that applies to the scenario, in the order of ``names``.
@@ -121,10 +95,9 @@ def evaluate_baselines(
         path = None
         if cache_dir is not None:
             path = Path(cache_dir) / cache_key(env_cfg, name, seed, episodes, policy_seed)
-            if path.is_file():
-                stored = json.loads(path.read_text())
-                stored.pop("summary", None)
-                results.append(EvalResult(**stored))
+            cached = read_cached(path)
+            if cached is not None:
+                results.append(cached)
                 log.info("baseline %s: cached in %s", label, path)
                 continue
         built = _policy(env_cfg, name, policy_seed)
@@ -139,11 +112,10 @@ def evaluate_baselines(
             seed=seed,
             max_steps=int(env_cfg.get("max_episode_steps", 1000)),
             name=label,
+            workers=workers,
+            progress=progress,
         )
         results.append(res)
         if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(".tmp")
-            tmp.write_text(json.dumps(res.to_dict()))
-            tmp.replace(path)
+            write_cached(path, res)
     return results

@@ -280,6 +280,7 @@ class ExperimentConfig:
     checkpoint_every: int = 10
     plot_every: int = 10
     progress_bar: bool = True
+    eval_workers: int | None = None
     out_dir: str | None = None
 
 
@@ -326,6 +327,7 @@ class EvalConfig:
     video: bool = True
     out_dir: str | None = None
     search_horizon: int = 0
+    eval_workers: int | None = None
 
 
 _SHARED_SCHEMAS: tuple[tuple[str, str, type], ...] = (

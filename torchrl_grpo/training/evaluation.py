@@ -20,16 +20,17 @@ from omegaconf import DictConfig
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.modules import DeterministicActor, KinematicsLayout, make_scripted_policy
+from torchrl_grpo.training.baseline_cache import cache_key, read_cached
 from torchrl_grpo.training.checkpoint import load_checkpoint
 from torchrl_grpo.training.config import typed_config
 from torchrl_grpo.training.env_builder import env_overrides, make_env, make_layout, tensor_covers
+from torchrl_grpo.training.eval_episodes import eval_workers, run_episodes
 from torchrl_grpo.training.model_builder import make_policy
-from torchrl_grpo.training.plots import plot_comparison, plot_learning_curve, save_gif
+from torchrl_grpo.training.plots import plot_comparison, plot_run_curve, save_gif
 from torchrl_grpo.training.results import EvalResult, format_table, paired_verdicts
 
 __all__ = [
@@ -127,6 +128,8 @@ def evaluate(
     name: str = "policy",
     deterministic: bool = True,
     record: EnvBase | None = None,
+    workers: int = 1,
+    progress: bool = False,
 ) -> tuple[EvalResult, torch.Tensor | None]:
     """Run ``episodes`` episodes from seeds ``seed, seed + 1, ...``.
 
@@ -141,6 +144,9 @@ def evaluate(
         deterministic: act greedily.
         record: an env built with ``render_mode="rgb_array"``: the first episode is
             replayed there (same seed, same actions) and returned as a video.
+        workers: processes driving the episodes (forked; the same results as one,
+            episode for episode: :func:`~torchrl_grpo.training.eval_episodes.run_episodes`).
+        progress: a tqdm bar over the episodes.
 
     Returns:
         The results and, with ``record``, a ``(1, T, 3, H, W)`` uint8 video.
@@ -155,19 +161,27 @@ def evaluate(
     """
     if deterministic and isinstance(policy, TensorDictModuleBase) and _is_stochastic(policy):
         policy = DeterministicActor(policy)
+    outcomes = run_episodes(
+        env,
+        policy,
+        episodes=episodes,
+        seed=seed,
+        max_steps=max_steps,
+        workers=workers,
+        keep_first_actions=record is not None,
+        progress=progress,
+        name=name,
+    )
     result = EvalResult(name)
+    for out in outcomes:
+        result.returns.append(out.ret)
+        result.crashed.append(out.crashed)
+        result.lengths.append(out.length)
+        result.speeds.append(out.speed)
+        result.seeds.append(out.seed)
     video = None
-    for i in range(episodes):
-        ep_seed = seed + i
-        data = _episode(env, policy, ep_seed, max_steps)
-        reward = data.get(("next", "reward")).reshape(-1)
-        result.returns.append(float(reward.sum()))
-        result.crashed.append(bool(data.get(("next", "crashed")).any()))
-        result.lengths.append(int(reward.numel()))
-        result.speeds.append(float(data.get(("next", "speed")).float().mean()))
-        result.seeds.append(ep_seed)
-        if record is not None and i == 0:
-            video = _replay_video(record, data, ep_seed)
+    if record is not None and outcomes:
+        video = _replay_video(record, outcomes[0].actions, outcomes[0].seed)
     return result, video
 
 
@@ -178,23 +192,13 @@ def _is_stochastic(policy: TensorDictModuleBase) -> bool:
 
 
 @torch.no_grad()
-def _episode(env: EnvBase, policy: Callable, seed: int, max_steps: int) -> TensorDictBase:
-    env.set_seed(seed)
-    td = env.reset()
-    with set_exploration_type(ExplorationType.DETERMINISTIC):
-        return env.rollout(
-            max_steps, policy, auto_reset=False, tensordict=td, break_when_any_done=True
-        )
-
-
-@torch.no_grad()
-def _replay_video(env: EnvBase, data: TensorDictBase, seed: int) -> torch.Tensor:
+def _replay_video(env: EnvBase, actions: torch.Tensor, seed: int) -> torch.Tensor:
     # Replaying the recorded actions from the same seed keeps rendering out of the
     # timed evaluation and gives the same episode bit for bit.
     env.set_seed(seed)
     env.reset()
     frames = [env.render()]
-    for action in data.get("action"):
+    for action in actions:
         step = env.step(TensorDict(action=action.clone()))
         frames.append(env.render())
         if bool(step.get(("next", "done"))):
@@ -220,6 +224,34 @@ class EvalReport:
     files: dict[str, Path] = field(default_factory=dict)
 
 
+def _curve(
+    run_cfg: DictConfig, history: list[dict], results: list[EvalResult], frames: int, out: Path
+) -> Path:
+    # This evaluation is the final point (its seeds); the periodic rows and the baselines
+    # the run cached on their seeds draw the curve (nothing more is evaluated for it).
+    exp = run_cfg.experiment
+    periodic = [r for r in history if r.get("seed", exp.eval_seed) == exp.eval_seed]
+    cache = exp.get("baseline_cache")
+    baselines = []
+    if periodic and cache is not None:
+        for name in exp.baselines:
+            key = cache_key(
+                run_cfg.env, name, int(exp.eval_seed), int(exp.eval_episodes), int(run_cfg.seed)
+            )
+            cached = read_cached(Path(str(cache)) / key)
+            if cached is not None:
+                baselines.append(cached)
+    return plot_run_curve(
+        periodic,
+        out / "learning_curve.png",
+        label=str(run_cfg.algo.name),
+        baselines=baselines,
+        final=results,
+        final_frames=frames,
+        title=f"{run_cfg.env.scenario}: deterministic evaluation",
+    )
+
+
 def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
     """``scripts/evaluate.py``: the trained policy of ``cfg.checkpoint`` and the baselines.
 
@@ -228,7 +260,8 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
             the network come from the checkpoint's own config; without, only the
             baselines run on ``cfg.env``. With ``search_horizon=H > 0``, the lookahead
             planner over the trained policy (:func:`search_policy`) is evaluated too,
-            in the row after it.
+            in the row after it. Episodes run on ``eval_workers`` forked processes
+            (``None``: the cores), each policy with a progress bar.
         out_dir: where the table, JSON, plots and video go.
 
     Raises:
@@ -272,6 +305,8 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
     results: list[EvalResult] = []
     files: dict[str, Path] = {}
     episodes = int(cfg.episodes)
+    # Forked workers: the same table as one process, episode for episode, sooner.
+    par = {"workers": eval_workers(cfg.get("eval_workers")), "progress": True}
     if ckpt is not None:
         policy = make_policy(run_cfg.model, env)
         policy.load_state_dict(ckpt["policy"])
@@ -282,6 +317,7 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
             episodes=episodes,
             seed=seed,
             max_steps=max_steps,
+            **par,
             name=f"{run_cfg.algo.name} ({ckpt['frames']} frames)",
             record=record,
         )
@@ -295,6 +331,7 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
                 episodes=episodes,
                 seed=seed,
                 max_steps=max_steps,
+                **par,
                 name=f"lookahead H={horizon} over the policy",
             )
             results.append(res)
@@ -311,6 +348,7 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
             episodes=episodes,
             seed=seed,
             max_steps=max_steps,
+            **par,
             name=BASELINE_LABELS.get(name, name),
         )
         results.append(res)
@@ -333,11 +371,5 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
     if results:
         files["bars"] = plot_comparison(results, out_dir / "comparison.png", title=header)
     if history:
-        hlines = {r.name: r.summary()["return"] for r in results[1:]}
-        files["curve"] = plot_learning_curve(
-            {str(run_cfg.algo.name): [history]},
-            out_dir / "learning_curve.png",
-            title=f"{env_cfg.scenario}: deterministic evaluation",
-            hlines=hlines,
-        )
+        files["curve"] = _curve(run_cfg, history, results, int(ckpt["frames"]), out_dir)
     return EvalReport(results=results, table=table, out_dir=out_dir, files=files)

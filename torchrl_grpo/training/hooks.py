@@ -1,7 +1,8 @@
 """The side jobs of the training loop, as hooks: evaluation, plots, checkpoints.
 
-A :class:`Hook` is called by the :class:`~torchrl_grpo.training.Trainer` at three
-points: after each iteration's update when it is :meth:`~Hook.due` (timed as its
+A :class:`Hook` is called by the :class:`~torchrl_grpo.training.Trainer` at four
+points: before the first batch (:meth:`~Hook.on_train_start`), after each iteration's
+update when it is :meth:`~Hook.due` (timed as its
 ``phase``, its metrics logged with the iteration's), once the loop has ended while the
 collector still runs (:meth:`~Hook.on_loop_end`), and when training is done and not
 interrupted (:meth:`~Hook.on_train_end`). :func:`default_hooks` are the trainer's;
@@ -22,11 +23,17 @@ from torchrl.record.loggers import Logger
 
 from torchrl_grpo.branching import BRANCH_RETURN, plot_group
 from torchrl_grpo.training.baselines import evaluate_baselines
-from torchrl_grpo.training.checkpoint import Progress, save_checkpoint
+from torchrl_grpo.training.checkpoint import (
+    Progress,
+    get_rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
 from torchrl_grpo.training.env_builder import make_env, tensor_covers
+from torchrl_grpo.training.eval_episodes import eval_workers
 from torchrl_grpo.training.evaluation import evaluate
 from torchrl_grpo.training.logging_builder import log_metrics
-from torchrl_grpo.training.plots import plot_learning_curve, save_gif
+from torchrl_grpo.training.plots import plot_run_curve, save_gif
 from torchrl_grpo.training.results import EvalResult, format_table, paired_verdicts
 from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
 
@@ -104,11 +111,23 @@ class Hook:
         """The job of an iteration; metrics to log in the iteration's row (scalars, videos)."""
         return {}
 
+    def on_train_start(self, trainer: TrainerView, result: Any) -> None:
+        """Before the first batch is collected (and before the collector is built)."""
+
     def on_loop_end(self, trainer: TrainerView, result: Any) -> None:
         """The loop has ended (budget or Ctrl-C); the collector still runs."""
 
     def on_train_end(self, trainer: TrainerView, result: Any) -> None:
         """Training is done, not interrupted; the collector is shut down."""
+
+
+def _parallel(cfg: DictConfig) -> dict[str, Any]:
+    # Forked workers give the serial numbers, episode for episode (training/eval_episodes.py).
+    exp = cfg.experiment
+    return {
+        "workers": eval_workers(exp.get("eval_workers")),
+        "progress": bool(exp.get("progress_bar", True)),
+    }
 
 
 def _every(trainer: TrainerView, every: int) -> bool:
@@ -189,14 +208,17 @@ class CheckpointHook(Hook):
 class EvaluationHook(Hook):
     """Deterministic evaluations during training, and the final one beside the baselines.
 
-    Every ``experiment.eval_every`` iterations: ``eval_episodes`` episodes from
+    Every ``experiment.eval_every`` iterations, and before the first batch of a run that
+    starts from frame 0: ``eval_episodes`` episodes from
     ``eval_seed`` (``eval/`` metrics, a row of ``eval_history.jsonl`` that names its
     first seed). At the end:
     ``final_eval_episodes`` episodes from ``final_eval_seed`` (a disjoint seed set) of
     the policy and of every baseline of ``experiment.baselines``, the baselines from
     their cache (:func:`~torchrl_grpo.training.evaluate_baselines`; ``results.md``,
     ``results.json``), the first episode as a GIF (with ``logger.video``), and the
-    learning curve of the evaluation history. Where the tensor simulator covers the env,
+    learning curve (:func:`~torchrl_grpo.training.plots.plot_run_curve`: the evaluation
+    history, the final evaluation as a star, the baselines on the periodic seeds as
+    lines, cached like the final ones). Where the tensor simulator covers the env,
     each evaluation also logs the paired transfer gap (``eval/transfer_*`` metrics).
 
     Example:
@@ -209,6 +231,7 @@ class EvaluationHook(Hook):
 
     def __init__(self) -> None:
         self._render: EnvBase | None = None
+        self._final_baselines: list[EvalResult] = []
 
     def due(self, trainer: TrainerView, batch: TensorDictBase) -> bool:  # noqa: D102
         exp = trainer.cfg.experiment
@@ -219,6 +242,19 @@ class EvaluationHook(Hook):
     ) -> dict[str, float]:
         exp = trainer.cfg.experiment
         return self.evaluate(trainer, int(exp.eval_episodes), int(exp.eval_seed))[0]
+
+    def on_train_start(self, trainer: TrainerView, result: Any) -> None:  # noqa: D102
+        exp = trainer.cfg.experiment
+        if trainer.progress.frames > 0 or int(exp.eval_every) <= 0 or exp.eval_episodes <= 0:
+            return
+        # The random streams are put back: with or without this evaluation, the run
+        # trains the same weights.
+        rng = get_rng_state()
+        try:
+            metrics = self.evaluate(trainer, int(exp.eval_episodes), int(exp.eval_seed))[0]
+        finally:
+            set_rng_state(rng)
+        log_metrics(trainer.logger, metrics, step=0)
 
     def evaluate(
         self, trainer: TrainerView, episodes: int, seed: int, record: bool = False
@@ -240,6 +276,7 @@ class EvaluationHook(Hook):
             max_steps=int(cfg.env.max_episode_steps),
             name=str(cfg.algo.name),
             record=self._render if record else None,
+            **_parallel(cfg),
         )
         summary = res.summary()
         if bool(cfg.experiment.get("transfer_gap", True)) and tensor_covers(cfg.env):
@@ -276,7 +313,9 @@ class EvaluationHook(Hook):
                 seed=seed,
                 cache_dir=None if cache is None else Path(str(cache)),
                 policy_seed=trainer.seed,
+                **_parallel(cfg),
             )
+            self._final_baselines = baselines
             results = [trained, *baselines]
             table = format_table(results)
             verdicts = paired_verdicts(trained, baselines)
@@ -292,11 +331,33 @@ class EvaluationHook(Hook):
         if video is not None:
             result.video = save_gif(video, trainer.run_dir / "eval_episode.gif")
         if trainer.progress.eval_history:
-            result.curve = plot_learning_curve(
-                {str(cfg.algo.name): [trainer.progress.eval_history]},
-                trainer.run_dir / "learning_curve.png",
-                title=f"{cfg.env.scenario}: deterministic evaluation",
+            result.curve = self._curve(trainer)
+
+    def _curve(self, trainer: TrainerView) -> Path:
+        # The baselines on the periodic seed set, cached: lines comparable with the curve.
+        cfg, exp = trainer.cfg, trainer.cfg.experiment
+        history = trainer.progress.eval_history
+        baselines = []
+        if any(r.get("seed") == int(exp.eval_seed) for r in history) and exp.eval_episodes > 0:
+            cache = exp.get("baseline_cache")
+            baselines = evaluate_baselines(
+                cfg.env,
+                list(exp.baselines),
+                episodes=int(exp.eval_episodes),
+                seed=int(exp.eval_seed),
+                cache_dir=None if cache is None else Path(str(cache)),
+                policy_seed=trainer.seed,
+                **_parallel(cfg),
             )
+        return plot_run_curve(
+            history,
+            trainer.run_dir / "learning_curve.png",
+            label=str(cfg.algo.name),
+            final_seed=int(exp.final_eval_seed),
+            baselines=baselines,
+            final=self._final_baselines,
+            title=f"{cfg.env.scenario}: deterministic evaluation",
+        )
 
 
 def default_hooks() -> list[Hook]:

@@ -11,15 +11,17 @@ keyed by the number of env frames simulated so far, branch and trunk steps inclu
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 import os
+import tempfile
 from pathlib import Path
 from typing import Any, Literal, get_args
 
 import torch
 from omegaconf import DictConfig
 from torchrl.record.loggers import CSVLogger, Logger, WandbLogger
+
+from torchrl_grpo.training.plots import save_gif
 
 __all__ = [
     "LoggerKind",
@@ -141,21 +143,33 @@ def log_metrics(logger: Logger | None, metrics: dict[str, Any], step: int) -> No
             log_video(logger, name, video, step=step)
         return
     row: dict[str, Any] = dict(scalars)
-    if videos and importlib.util.find_spec("moviepy") is None:
-        log.warning("moviepy is not installed: videos %s not sent to wandb", sorted(videos))
-    elif videos:
-        import wandb
-
+    # wandb copies a video file into the run's media folder when it is logged: the
+    # GIFs may go with the temporary folder.
+    with tempfile.TemporaryDirectory() as tmp:
         for name, video in videos.items():
-            row[name] = wandb.Video(video.cpu().numpy(), fps=logger.video_fps, format="mp4")
-    logger.log_metrics(row, step=step)
+            media = _wandb_video(video, Path(tmp) / f"{name.replace('/', '_')}.gif", logger)
+            if media is not None:
+                row[name] = media
+        logger.log_metrics(row, step=step)
+
+
+def _wandb_video(video: torch.Tensor, path: Path, logger: WandbLogger) -> Any:
+    """A ``wandb.Video`` of a GIF written with Pillow: wandb needs moviepy only for arrays."""
+    import wandb
+
+    try:
+        save_gif(video.cpu(), path, fps=int(logger.video_fps))
+        return wandb.Video(str(path))
+    except Exception:  # media are a convenience: never lose a run over them
+        log.warning("could not write video %s for wandb", path.stem, exc_info=True)
+        return None
 
 
 def log_video(logger: Logger | None, name: str, video: torch.Tensor, step: int) -> None:
-    """Log a ``(1, T, 3, H, W)`` uint8 video; skipped when the backend cannot encode it.
+    """Log a ``(1, T, 3, H, W)`` uint8 video.
 
-    wandb encodes videos with moviepy (the ``dev`` extra); without it the video is
-    skipped with a warning (the GIF in the run folder is always written).
+    wandb gets a GIF written with Pillow (a default dependency, no moviepy needed), in
+    its own row at ``step``; the CSV logger a ``.pt`` file.
 
     Example:
         >>> import os, tempfile
@@ -170,8 +184,8 @@ def log_video(logger: Logger | None, name: str, video: torch.Tensor, step: int) 
     """
     if logger is None:
         return
-    if isinstance(logger, WandbLogger) and importlib.util.find_spec("moviepy") is None:
-        log.warning("moviepy is not installed: video %s not sent to wandb", name)
+    if isinstance(logger, WandbLogger):
+        log_metrics(logger, {name: video}, step=step)
         return
     try:
         logger.log_video(name, video, step=step)

@@ -7,7 +7,7 @@ plots are :func:`torchrl_grpo.branching.plot_group`.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +15,7 @@ import torch
 
 from torchrl_grpo.training.results import EvalResult
 
-__all__ = ["plot_comparison", "plot_learning_curve", "save_gif"]
+__all__ = ["plot_comparison", "plot_learning_curve", "plot_run_curve", "save_gif"]
 
 
 def plot_learning_curve(
@@ -77,6 +77,155 @@ def plot_learning_curve(
     ax.legend(loc="best", fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    return path
+
+
+#: Colours of the run's curve and of the baselines (in order); gray is left to text and grid.
+_RUN_COLOR = "tab:blue"
+_BASELINE_COLORS = ("tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive")
+
+
+def seed_span(seed: int, episodes: int) -> str:
+    """The seed set of ``episodes`` episodes from ``seed``, as a legend names it.
+
+    Example:
+        >>> seed_span(10_000, 30)
+        'seeds 10000..10029'
+    """
+    return f"seeds {seed}..{seed + episodes - 1}" if episodes > 1 else f"seed {seed}"
+
+
+def plot_run_curve(
+    history: Sequence[Mapping[str, float]],
+    path: str | Path,
+    *,
+    label: str,
+    final_seed: int | None = None,
+    baselines: Sequence[EvalResult] = (),
+    final: Sequence[EvalResult] = (),
+    final_frames: int | None = None,
+    title: str | None = None,
+) -> Path:
+    """One run's learning curve: return and crash rate against frames, baselines beside it.
+
+    Two panels share the frames axis: evaluation return on top, crash rate below. The
+    periodic evaluations (rows of ``eval_history.jsonl`` whose seed is not
+    ``final_seed``) are one line; the final evaluation is a star, its seed set in the
+    legend. Each baseline of ``baselines`` (evaluated on the periodic seed set) is a
+    labelled horizontal line; each of ``final`` (the final seed set; the trained policy
+    first, when no history row is final) a marker at ``final_frames``. A curve without
+    a frame-0 evaluation says where it starts.
+
+    Args:
+        history: evaluation rows: ``frames``, ``return``, ``crash_rate``, ``seed``,
+            ``episodes``.
+        path: PNG to write.
+        label: the trained policy's name.
+        final_seed: the first seed of the final evaluation (its rows become the star).
+        baselines: baseline results on the periodic seed set.
+        final: results on the final seed set drawn at ``final_frames`` (the trained
+            policy's first if no history row is final, then the baselines').
+        final_frames: where ``final`` is drawn (default: the last row's frames).
+        title: figure title.
+
+    Example:
+        >>> import tempfile
+        >>> h = [{"frames": 0, "return": 9.0, "crash_rate": 0.5, "seed": 10, "episodes": 2},
+        ...      {"frames": 50, "return": 12.0, "crash_rate": 0.0, "seed": 20, "episodes": 4}]
+        >>> slower = EvalResult("always-SLOWER", [10.0, 11.0], [False] * 2, [9, 9], [20.0] * 2,
+        ...                     [10, 11])
+        >>> plot_run_curve(h, tempfile.mkdtemp() + "/c.png", label="grpo", final_seed=20,
+        ...                baselines=[slower]).suffix
+        '.png'
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8, 6.5), dpi=100)
+    FigureCanvasAgg(fig)
+    ax_ret, ax_crash = fig.subplots(2, 1, sharex=True, height_ratios=(3, 2))
+    panels = ((ax_ret, "return", 1.0), (ax_crash, "crash_rate", 100.0))
+    periodic = [r for r in history if final_seed is None or r.get("seed") != final_seed]
+    finals = [r for r in history if final_seed is not None and r.get("seed") == final_seed]
+    if periodic:
+        first = periodic[0]
+        seeds = (
+            f", {seed_span(int(first['seed']), int(first['episodes']))}" if "seed" in first else ""
+        )
+        xs = [r["frames"] for r in periodic]
+        for ax, key, scale in panels:
+            ys = [scale * r[key] for r in periodic]
+            ax.plot(xs, ys, color=_RUN_COLOR, marker="o", markersize=4, label=f"{label}{seeds}")
+        if xs[0] > 0:
+            ax_ret.annotate(
+                f"no frame-0 evaluation: the curve starts at {xs[0]:,} frames",
+                (0.01, 0.02),
+                xycoords="axes fraction",
+                fontsize=8,
+                color="gray",
+            )
+    end = final_frames if final_frames is not None else (history[-1]["frames"] if history else 0)
+    for row in finals[-1:]:
+        span = seed_span(int(row["seed"]), int(row["episodes"]))
+        for ax, key, scale in panels:
+            ax.plot(
+                [row["frames"]],
+                [scale * row[key]],
+                ls="",
+                marker="*",
+                markersize=14,
+                color=_RUN_COLOR,
+                markeredgecolor="black",
+                zorder=4,  # above the baselines' diamonds at the same frames
+                label=f"{label}, final: {span}",
+            )
+        end = row["frames"] if final_frames is None else end
+    colors = iter(_BASELINE_COLORS * 4)
+    color_of = {}
+    for res in baselines:
+        color = color_of.setdefault(res.name, next(colors))
+        s = res.summary()
+        span = seed_span(min(res.seeds), len(res.seeds)) if res.seeds else ""
+        for ax, key, scale in panels:
+            ax.axhline(scale * s[key], ls="--", lw=1.5, color=color, label=f"{res.name}, {span}")
+    for i, res in enumerate(final):
+        trained = i == 0 and not finals
+        color = _RUN_COLOR if trained else color_of.setdefault(res.name, next(colors))
+        s = res.summary()
+        span = seed_span(min(res.seeds), len(res.seeds)) if res.seeds else ""
+        what = f"{label}, final: {span}" if trained else f"{res.name}, final: {span}"
+        for ax, key, scale in panels:
+            ax.plot(
+                [end],
+                [scale * s[key]],
+                ls="",
+                marker="*" if trained else "D",
+                markersize=14 if trained else 7,
+                color=color,
+                markeredgecolor="black",
+                zorder=4 if trained else 3,
+                label=what,
+            )
+    # Crash rates start at 0 (all zero: a 0..10% panel, not matplotlib's 1e-17 scale).
+    tops = [max(line.get_ydata(), default=0.0) for line in ax_crash.get_lines()]
+    top = max(10.0, 1.15 * max(tops, default=0.0))
+    ax_crash.set_ylim(-0.08 * top, top)  # room below 0 for a whole star
+    ax_ret.set_ylabel("evaluation return")
+    ax_crash.set_ylabel("crash rate (%)")
+    ax_crash.set_xlabel("env frames (every branch and trunk step)")
+    for ax in (ax_ret, ax_crash):
+        ax.grid(alpha=0.3)
+    if title:
+        ax_ret.set_title(title)
+    handles, labels = ax_ret.get_legend_handles_labels()
+    if handles:
+        # Below the panels: it hides no point.
+        fig.legend(handles, labels, loc="lower center", ncol=2, fontsize=8, frameon=False)
+    rows = (len(handles) + 1) // 2
+    fig.tight_layout(rect=(0, min(0.035 * rows + 0.03, 0.45), 1, 1))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)

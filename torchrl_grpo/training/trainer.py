@@ -233,6 +233,9 @@ class Trainer:
         pbar = progress_bar(exp.progress_bar, total, self.frames)
         self.collector = None
         try:
+            # Before the collector: building it runs the policy once (a random draw).
+            for hook in self.hooks:
+                hook.on_train_start(self, result)
             self.collector = collector = self.algo.make_collector(self.seed)
             if self._collector_state is not None:
                 load_collector_state(collector, self._collector_state)
