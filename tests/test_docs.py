@@ -21,7 +21,7 @@ def python_blocks(path: Path) -> list[str]:
 
 # The longest example files (20 s each, worker processes and Ray) run with -m slow, to keep
 # the default suite within its 10-minute budget.
-SLOW_DOCUMENTS = {"distributed.md", "envs.md", "branching.md"}
+SLOW_DOCUMENTS = {"distributed.md", "envs.md", "branching.md", "sim.md"}
 
 
 @pytest.mark.parametrize(

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import matplotlib.image as mpimg
 import numpy as np
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "tutorials" / "cartpole_grpo.py"
@@ -26,6 +27,7 @@ def table_rows(stdout: str) -> dict[str, list[float]]:
     return rows
 
 
+@pytest.mark.slow  # the default suite's 10-minute budget
 def test_cartpole_tutorial_quick(tmp_path):
     result = subprocess.run(
         [sys.executable, str(SCRIPT), "--quick", "--out", str(tmp_path), "--seed", "0"],

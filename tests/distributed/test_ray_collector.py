@@ -78,6 +78,7 @@ def test_one_actor_matches_local_collector():
     check_structure(got, 2, 2)
 
 
+@pytest.mark.slow  # the default suite's 10-minute budget
 def test_actors_match_local_runs_of_their_seeds():
     policy = make_policy()
     kwargs = dict(SMALL, roots="reset", rng="per_branch")
@@ -99,6 +100,7 @@ def test_actors_match_local_runs_of_their_seeds():
     assert collector.frames == sum(int(b[MASK].sum()) for b in got)
 
 
+@pytest.mark.slow  # the default suite's 10-minute budget
 def test_killed_actor_is_replaced_and_its_batch_redone():
     policy = SlowPolicy(make_policy(), delay=0.1)
     kwargs = dict(SMALL, roots="trunk", decision_interval=2)

@@ -70,6 +70,7 @@ def test_evaluation_is_repeatable_and_seed_dependent():
     assert "| policy |" in format_table([a])
 
 
+@pytest.mark.slow  # the default suite's 10-minute budget
 def test_evaluate_script_on_a_checkpoint(smoke_run):
     train, run, _ = smoke_run
     assert train.returncode == 0, train.stderr[-3000:]

@@ -37,6 +37,7 @@ def assert_same_weights(a: dict, b: dict) -> None:
         assert torch.equal(a[key], b[key]), key
 
 
+@pytest.mark.slow  # the default suite's 10-minute budget
 def test_a_run_starts_from_the_saved_policy_and_so_do_its_reference_and_average(trained, tmp_path):
     saved = load_checkpoint(trained)["policy"]
     # Another crash aversion weighs the same parameters: it is not refused.
@@ -83,6 +84,7 @@ def test_weights_of_another_network_or_env_and_a_missing_file_are_refused(traine
         Trainer(compose_config([*TINY, *TENSOR, *CRASH_HEAD, f"init_from={missing}"]), tmp_path)
 
 
+@pytest.mark.slow  # the default suite's 10-minute budget
 def test_a_resumed_run_continues_from_its_own_weights_without_the_init_file(trained, tmp_path):
     start = tmp_path / "start.pt"
     shutil.copy(trained, start)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 
+import pytest
 from conftest import ROOT, TINY, compose_config, run_script
 
 from torchrl_grpo.training import load_checkpoint
@@ -13,6 +14,7 @@ def _script(script: str, args: list[str], cwd, timeout: float = 180):
     return run_script(script, args, timeout=timeout, cwd=cwd)
 
 
+@pytest.mark.slow  # the default suite's 10-minute budget
 def test_out_dir_holds_hydras_files_and_a_resume_writes_into_its_own_folder(tmp_path):
     tiny = [*TINY, "experiment.checkpoint_every=1"]
     first = _script(
