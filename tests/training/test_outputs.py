@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-from conftest import ROOT, TINY, compose_config, run_script
+from train_setup import ROOT, TINY, compose_config, run_script
 
 from torchrl_grpo.training import load_checkpoint
 

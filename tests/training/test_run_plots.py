@@ -5,8 +5,8 @@ from __future__ import annotations
 import json
 
 import numpy as np
-from conftest import compose_config
 from PIL import Image
+from train_setup import compose_config
 
 from torchrl_grpo.training import Trainer, load_checkpoint, plot_learning_curve
 from torchrl_grpo.training.evaluation import evaluate_checkpoint
