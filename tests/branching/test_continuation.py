@@ -129,6 +129,28 @@ def test_the_trunk_starts_at_the_root_observation():
         assert trunk["step_count"][:, 0].tolist() == list(range(6))
 
 
+def test_the_trunks_first_observation_is_the_envs_own_reset_observation():
+    # Independent of the root's stored state: a fresh env, seeded as reset_roots seeds
+    # each reset, gives the observation the trunk must start from.
+    roots = reset_roots(plain_env("merge-v0"), 2, seed=3)
+    out = multi_turn_rollout(plain_env("merge-v0"), RandomPolicy(seed=0), roots, 2, 2)
+    seed = 3
+    for e in range(2):
+        fresh = plain_env("merge-v0")
+        seed = fresh.set_seed(seed)  # the seed chain: root e is the reset after e seedings
+        reset = fresh.reset()
+        trunk = out.trunk(e)
+        assert torch.equal(trunk["observation"][0], reset["observation"])
+        assert torch.equal(trunk["ego_position"][0], reset["ego_position"])
+        # the trunk's T + 1 observations: the reset's, then each step's next one
+        observations = torch.cat([trunk["observation"][:1], trunk["next", "observation"]])
+        assert observations.shape[0] == trunk.shape[0] + 1
+        assert torch.equal(observations[1:-1], trunk["observation"][1:])
+    other = plain_env("merge-v0")
+    other.set_seed(4)  # a control: another seed's reset differs
+    assert not torch.equal(out.trunk(0)["observation"][0], other.reset()["observation"])
+
+
 def test_trunk_selection_follows_branch_zero():
     roots = reset_roots(plain_env("merge-v0", seed=0), 1)
     out = multi_turn_rollout(

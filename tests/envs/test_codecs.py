@@ -26,6 +26,7 @@ from torchrl_grpo.envs import (
     HighwayEnv,
     SnapshotEnv,
     SnapshotError,
+    StateCapacityError,
     StateCodec,
     StateCorruptedError,
     StateMismatchError,
@@ -264,6 +265,23 @@ def test_registered_class_without_its_field_names_the_field_when_the_env_is_buil
     register_vehicle_class(PatientIDM)
     with pytest.raises(UnknownFieldError, match=r"PatientIDM\.patience is not a field"):
         _patient_env(seed=0)
+
+
+def test_a_road_larger_than_the_padding_still_names_the_field_when_the_env_is_built(
+    isolated_registry,
+):
+    # The road cannot be packed (that stays a capacity error at the snapshot), but its
+    # objects' classes and attribute names are checked at the build all the same.
+    register_vehicle_class(PatientIDM)
+    with pytest.raises(UnknownFieldError, match=r"PatientIDM\.patience is not a field"):
+        HighwayEnv("highway-fast-v0", config=PATIENT_CONFIG, seed=0, max_vehicles=2)
+    schema.VEHICLE_CLASSES.remove(PatientIDM)
+    with pytest.raises(UnknownFieldError, match="PatientIDM is not registered"):
+        HighwayEnv("highway-fast-v0", config=PATIENT_CONFIG, seed=0, max_vehicles=2)
+    # a known road too large for its padding builds, and fails at the snapshot as before
+    env = HighwayEnv("highway-fast-v0", seed=0, max_vehicles=2)
+    with pytest.raises(StateCapacityError, match="pads to 2"):
+        env.get_state()
 
 
 def test_an_attribute_added_after_the_build_is_caught_at_the_snapshot(isolated_registry):

@@ -10,6 +10,7 @@ with finite outputs. The default suite runs a sample; ``-m slow`` runs the full 
 from __future__ import annotations
 
 import random
+from collections import Counter
 
 import pytest
 import torch
@@ -36,10 +37,12 @@ def worker():
     w.close()
 
 
-def _failures(worker: WarmWorker, todo) -> list[str]:
+def _failures(worker: WarmWorker, todo, tally: Counter | None = None) -> list[str]:
     failures = []
     for case in todo:
         outcome, message = worker.run(case)
+        if tally is not None:
+            tally[outcome] += 1
         if outcome == "refused":
             # The error names the entry (a packed column by its field): truncations name
             # the missing or malformed entry itself.
@@ -74,8 +77,13 @@ def test_a_sample_of_corrupted_states_is_refused_or_steps(worker, scenario):
 @pytest.mark.slow
 @pytest.mark.parametrize("scenario", ALL_SCENARIOS)
 def test_every_corrupted_column_is_refused_or_steps(worker, scenario):
-    failures = _failures(worker, cases(make_env(scenario), scenario))
+    todo = cases(make_env(scenario), scenario)
+    tally = Counter()
+    failures = _failures(worker, todo, tally)
+    # the figures docs/envs.md quotes (shown with -s or -rP)
+    print(f"{scenario}: {len(todo)} cases, {tally['refused']} refused, {tally['ok']} stepped")
     assert not failures, "\n".join(failures[:40]) + f"\n({len(failures)} in all)"
+    assert sum(tally.values()) == len(todo)
 
 
 # ------------------------------------------------------------------ the cases

@@ -7,10 +7,10 @@ from dataclasses import dataclass
 
 import pytest
 import torch
-from conftest import CONF, TINY, compose_config
 from omegaconf import OmegaConf
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value.functional import reward2go
+from train_setup import CONF, TINY, compose_config
 
 from torchrl_grpo.training import (
     ALGORITHMS,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import TINY, compose_config
+from train_setup import TINY, compose_config
 
 from torchrl_grpo.training import Trainer, load_checkpoint
 from torchrl_grpo.training import hooks as hooks_module

@@ -6,10 +6,10 @@ import shutil
 from typing import get_args
 
 import pytest
-from conftest import CONF, compose_config
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 from omegaconf.errors import ValidationError
+from train_setup import CONF, compose_config
 
 from torchrl_grpo.training import DistillConfig
 from torchrl_grpo.training.config import (

@@ -6,8 +6,8 @@ import json
 
 import pytest
 import torch
-from conftest import compose_config, run_script
 from tensordict import TensorDict
+from train_setup import compose_config, run_script
 
 from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.envs import HighwayEnv

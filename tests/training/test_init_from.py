@@ -6,8 +6,8 @@ import shutil
 
 import pytest
 import torch
-from conftest import TINY, compose_config
 from tensordict import TensorDict
+from train_setup import TINY, compose_config
 
 from torchrl_grpo.training import (
     Trainer,

@@ -53,7 +53,7 @@ def test_csv_logger_writes_every_metric_at_its_step(tmp_path):
 
 def test_each_iteration_is_one_wandb_row_keyed_by_frames(tmp_path, monkeypatch):
     pytest.importorskip("wandb")
-    from conftest import TINY, compose_config
+    from train_setup import TINY, compose_config
 
     from torchrl_grpo.training import Trainer
 

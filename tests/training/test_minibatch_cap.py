@@ -6,10 +6,10 @@ from collections import Counter
 
 import pytest
 import torch
-from conftest import TINY, compose_config
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torch import nn
+from train_setup import TINY, compose_config
 
 from torchrl_grpo.training import Algorithm
 

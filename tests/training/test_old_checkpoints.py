@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import ROOT, TINY, compose_config
 from omegaconf import OmegaConf
+from train_setup import ROOT, TINY, compose_config
 
 from torchrl_grpo.training import (
     Trainer,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 
 import pytest
-from conftest import ROOT, TINY, compose_config, run_script
+from train_setup import ROOT, TINY, compose_config, run_script
 
 from torchrl_grpo.training import load_checkpoint
 

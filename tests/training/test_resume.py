@@ -6,7 +6,7 @@ import logging
 
 import pytest
 import torch
-from conftest import TINY, compose_config
+from train_setup import TINY, compose_config
 
 from torchrl_grpo.training import Hook, Trainer, load_checkpoint
 

@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 import torch
-from conftest import compose_config
 from PIL import Image
+from train_setup import compose_config
 
 from torchrl_grpo.training import Trainer, load_checkpoint, plot_learning_curve
 from torchrl_grpo.training.evaluation import evaluate_checkpoint

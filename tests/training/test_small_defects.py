@@ -7,7 +7,7 @@ import subprocess
 import sys
 
 import pytest
-from conftest import TINY, compose_config
+from train_setup import TINY, compose_config
 
 from torchrl_grpo.training import Trainer, check_config
 

@@ -6,8 +6,8 @@ import math
 
 import pytest
 import torch
-from conftest import TINY, compose_config, visited_states
 from tensordict import TensorDict
+from train_setup import TINY, compose_config, visited_states
 
 from torchrl_grpo.modules import CrashHead
 from torchrl_grpo.objectives import TeacherCrashLoss

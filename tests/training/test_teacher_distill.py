@@ -6,11 +6,11 @@ import math
 
 import pytest
 import torch
-from conftest import TINY, compose_config, visited_states
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
+from train_setup import TINY, compose_config, visited_states
 
 from torchrl_grpo.objectives import TeacherDistillLoss
 from torchrl_grpo.training import (

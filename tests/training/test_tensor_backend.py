@@ -10,8 +10,8 @@ import json
 
 import pytest
 import torch
-from conftest import TINY, compose_config, run_script
 from omegaconf import OmegaConf
+from train_setup import TINY, compose_config, run_script
 
 from torchrl_grpo.envs import HighwayEnv, TensorHighwayEnv
 from torchrl_grpo.modules import ConstantActionPolicy, make_scripted_policy

@@ -12,11 +12,11 @@ import time
 
 import pytest
 import torch
-from conftest import ROOT, TINY, compose_config
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
 from train_helpers import REPLAY, csv_scalars, train_run
+from train_setup import ROOT, TINY, compose_config
 
 from torchrl_grpo.modules import EXPLORED, SLOWER
 from torchrl_grpo.objectives import GRPOLoss

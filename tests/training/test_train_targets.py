@@ -6,10 +6,10 @@ import contextlib
 
 import pytest
 import torch
-from conftest import TINY, compose_config
 from tensordict import TensorDict
 from torch import nn
 from train_helpers import REPLAY, csv_scalars, logged_ratios, train_run
+from train_setup import TINY, compose_config
 
 from torchrl_grpo.modules import (
     CrashHead,

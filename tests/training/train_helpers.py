@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import csv
 
-from conftest import TINY, compose_config
+from train_setup import TINY, compose_config
 
 from torchrl_grpo.training import Trainer
 

@@ -182,11 +182,14 @@ class HighwayStateCodec(StateCodec):
         self._float_keys = {_dotted(k) for k in float_keys}
         self._spec_layout = spec_layout(self._spec)
         self._bound = True
+        # Fail now, not at the first snapshot, on what the layout cannot store: an
+        # unregistered class, or an attribute outside the field vocabulary (named with
+        # its class). A road too large for the padding fails at the snapshot, so its
+        # objects are checked by name only.
         if len(road.vehicles) <= self.max_vehicles and len(road.objects) <= self.max_objects:
-            # Fail now, not at the first snapshot, on what the layout cannot store: an
-            # unregistered class, or an attribute outside the field vocabulary (named
-            # with its class). A road too large for the padding fails at the snapshot.
             self.encode(env)
+        else:
+            self.encoder.check_names([*road.vehicles, *road.objects], self.class_index)
 
     def fingerprint(self, env: gym.Env) -> int:
         """A hash of the config, the road network and the state layout."""

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import operator
 from array import array
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
@@ -157,10 +157,7 @@ class EntityEncoder:
             cls = type(obj)
             class_id = class_index.get(cls)
             if class_id is None:
-                raise UnknownFieldError(
-                    f"road object class {cls.__module__}.{cls.__qualname__} is not registered; "
-                    "call torchrl_grpo.envs.register_vehicle_class before building the env"
-                )
+                raise _unregistered(cls)
             rows = {b: empty[b][:] for b in blocks}  # a copy of the empty row
             for b, row in rows.items():
                 blocks[b][slot] = row
@@ -187,6 +184,35 @@ class EntityEncoder:
             for b, rows in blocks.items()
         }
 
+    def check_names(self, objects: Iterable[Any], class_index: dict[type, int]) -> None:
+        """Refuse an object whose class or an attribute's name the layout cannot store.
+
+        What :meth:`encode` refuses by name, without packing anything: it serves where
+        the objects cannot be packed (more of them than the layout has slots).
+
+        Raises:
+            UnknownFieldError: an object's class is not registered, or one of its
+                attributes is neither a field nor derived on restore.
+
+        Example:
+            >>> from torchrl_grpo.envs.highway.schema import Field
+            >>> layout = EntityLayout({"speed": Field("float")}, capacity=1, nodes=["a"])
+            >>> class Car:
+            ...     def __init__(self):
+            ...         self.speed, self.mood = 3.5, "calm"
+            >>> EntityEncoder(layout).check_names([Car(), Car()], {Car: 0})
+            Traceback (most recent call last):
+            ...
+            torchrl_grpo.envs.core.errors.UnknownFieldError: Car.mood is not a field ...
+        """
+        for obj in objects:
+            cls = type(obj)
+            if cls not in class_index:
+                raise _unregistered(cls)
+            for name, value in vars(obj).items():
+                if name not in self._writers and name not in DERIVED_ATTRIBUTES:
+                    raise _unknown_attribute(cls, name, value)
+
     def _encode_slowly(self, obj: Any, rows: dict[str, array], slot_of: dict[int, int]) -> None:
         cls = type(obj)
         index = {n: i for i, n in enumerate(self.layout.names)}
@@ -196,11 +222,7 @@ class EntityEncoder:
             if writer is None:
                 if name in DERIVED_ATTRIBUTES:
                     continue
-                raise UnknownFieldError(
-                    f"{cls.__qualname__}.{name} is not a field the highway codec knows "
-                    f"(value {value!r}); register it with "
-                    "register_vehicle_class(cls, fields={...})"
-                )
+                raise _unknown_attribute(cls, name, value)
             flags[self.layout.present.start + index[name]] = True
             if value is None:
                 flags[self.layout.is_none.start + index[name]] = True
@@ -265,3 +287,17 @@ class EntityEncoder:
                 lines.append(f"        w_{i}(v, rows, slot_of)")
         exec("\n".join(lines), namespace)  # noqa: S102 - generated from the field table only
         return namespace["encode"]
+
+
+def _unregistered(cls: type) -> UnknownFieldError:
+    return UnknownFieldError(
+        f"road object class {cls.__module__}.{cls.__qualname__} is not registered; "
+        "call torchrl_grpo.envs.register_vehicle_class before building the env"
+    )
+
+
+def _unknown_attribute(cls: type, name: str, value: Any) -> UnknownFieldError:
+    return UnknownFieldError(
+        f"{cls.__qualname__}.{name} is not a field the highway codec knows "
+        f"(value {value!r}); register it with register_vehicle_class(cls, fields={{...}})"
+    )
