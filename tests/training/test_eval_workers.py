@@ -7,7 +7,7 @@ import os
 
 import pytest
 import torch
-from conftest import compose_config
+from train_setup import compose_config
 
 from torchrl_grpo.modules import ConstantActionPolicy, make_scripted_policy
 from torchrl_grpo.training import evaluate, make_env, make_policy
