@@ -24,8 +24,8 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from torchrl_grpo.branching import LookaheadPolicy
-from torchrl_grpo.modules import make_scripted_policy
+from torchrl_grpo.branching.lookahead import LookaheadPolicy
+from torchrl_grpo.modules.scripted.registry import make_scripted_policy
 from torchrl_grpo.training.env_builder import env_overrides, make_env, make_layout
 from torchrl_grpo.training.evaluation import BASELINE_LABELS, baseline_policy, evaluate
 from torchrl_grpo.training.results import EvalResult

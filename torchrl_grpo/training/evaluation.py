@@ -22,9 +22,11 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_grpo.branching import LookaheadPolicy
-from torchrl_grpo.envs import TensorHighwayEnv
-from torchrl_grpo.modules import DeterministicActor, KinematicsLayout, make_scripted_policy
+from torchrl_grpo.branching.lookahead import LookaheadPolicy
+from torchrl_grpo.envs.highway.tensor_env import TensorHighwayEnv
+from torchrl_grpo.modules.actors import DeterministicActor
+from torchrl_grpo.modules.kinematics import KinematicsLayout
+from torchrl_grpo.modules.scripted.registry import make_scripted_policy
 from torchrl_grpo.training.checkpoint import load_checkpoint
 from torchrl_grpo.training.config import typed_config
 from torchrl_grpo.training.env_builder import env_overrides, make_env, make_layout, tensor_covers
