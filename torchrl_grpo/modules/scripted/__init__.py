@@ -7,10 +7,13 @@ no state between calls: their decision depends on the current observation only, 
 keeps them exact under snapshot branching.
 
 - :mod:`~torchrl_grpo.modules.scripted.actions`: the meta actions, the
-  :class:`ScriptedPolicy` wrapper, constant and random policies;
-- :mod:`~torchrl_grpo.modules.scripted.scene`: the :class:`Scene` a driver reads from
-  the observation, and the :class:`Driver` base class;
+  :class:`~torchrl_grpo.modules.ScriptedPolicy` wrapper, constant and random policies;
+- :mod:`~torchrl_grpo.modules.scripted.scene`: the :class:`~torchrl_grpo.modules.Scene` a driver
+  reads from the observation, and the :class:`~torchrl_grpo.modules.Driver` base class;
 - :mod:`~torchrl_grpo.modules.scripted.drivers`: the decisions of the driving policies;
 - :mod:`~torchrl_grpo.modules.scripted.policies`: the driving policies;
 - :mod:`~torchrl_grpo.modules.scripted.registry`: the policies by name.
+
+What a user needs is exported by :mod:`torchrl_grpo.modules`; the rest is imported from
+its module.
 """
