@@ -49,13 +49,8 @@ from collections.abc import Iterator
 import torch
 from claims import claim
 
-from torchrl_grpo.branching import (
-    BranchParallelEnv,
-    branch_rollout,
-    make_branch_env,
-    reset_roots,
-    shutdown_env,
-)
+from torchrl_grpo.branching import branch_rollout, make_branch_env, reset_roots, shutdown_env
+from torchrl_grpo.branching.workers import BranchParallelEnv
 from torchrl_grpo.envs import HighwayEnv
 from torchrl_grpo.envs.highway.fast_observation import use_fast_kinematics
 from torchrl_grpo.modules import KinematicsMLP, make_discrete_actor

@@ -53,22 +53,17 @@ from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.modules import (
     CrashHead,
-    DeterministicActor,
     PolicyEnsemble,
     make_discrete_actor,
     make_scripted_policy,
 )
-from torchrl_grpo.training import (
-    compare_paired,
-    evaluate_on_tensor,
-    load_checkpoint,
-    make_env,
-    make_layout,
-    tensor_episodes,
-)
+from torchrl_grpo.modules.actors import DeterministicActor
+from torchrl_grpo.training import load_checkpoint, make_env
 from torchrl_grpo.training.config import typed_config
-from torchrl_grpo.training.env_builder import env_overrides
+from torchrl_grpo.training.env_builder import env_overrides, make_layout
 from torchrl_grpo.training.model_builder import make_policy
+from torchrl_grpo.training.results import compare_paired
+from torchrl_grpo.training.transfer import evaluate_on_tensor, tensor_episodes
 
 ACTIONS = ("LANE_LEFT", "IDLE", "LANE_RIGHT", "FASTER", "SLOWER")
 

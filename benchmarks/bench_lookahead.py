@@ -22,9 +22,11 @@ from claims import claim
 from omegaconf import OmegaConf
 
 from torchrl_grpo.branching import LookaheadPolicy
-from torchrl_grpo.modules import DeterministicActor, KinematicsLayout, make_scripted_policy
-from torchrl_grpo.training import evaluate, format_table, make_env, search_policy
+from torchrl_grpo.modules import KinematicsLayout, make_scripted_policy
+from torchrl_grpo.modules.actors import DeterministicActor
+from torchrl_grpo.training import evaluate, make_env, search_policy
 from torchrl_grpo.training.env_builder import tensor_covers
+from torchrl_grpo.training.results import format_table
 
 logging.basicConfig(level=logging.INFO, format="%(message)s")
 log = logging.getLogger("bench_lookahead")

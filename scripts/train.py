@@ -15,7 +15,8 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from torchrl_grpo.training import Trainer, register_configs, resume_config
+from torchrl_grpo.training import Trainer, register_configs
+from torchrl_grpo.training.compose import resume_config
 
 register_configs()
 CONF = str(Path(__file__).resolve().parents[1] / "conf")

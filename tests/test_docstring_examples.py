@@ -1,5 +1,7 @@
 """The docstring examples of the library run as tests, and every public name has one.
 
+The public API (the floors' ``__all__``) also stays within its budget of names.
+
 Each module's examples run in this process with the standard library's ``doctest``
 (like ``pytest --doctest-modules torchrl_grpo``, with ELLIPSIS and
 NORMALIZE_WHITESPACE). Examples that need Ray are marked ``# doctest: +SKIP``;
@@ -130,3 +132,25 @@ def test_every_public_class_and_function_has_an_example(subpackage):
         f"public names of torchrl_grpo.{subpackage} that are neither a class, a function "
         f"nor plain data (give them an example and extend this test): {unclassified}"
     )
+
+
+# The public API's budget (issue 40): what a user touches, not every name of the package.
+MAX_PUBLIC_NAMES = 120
+
+
+def test_the_public_api_stays_small_and_only_the_floors_export():
+    counts = {
+        sub: len(importlib.import_module(f"torchrl_grpo.{sub}").__all__) for sub in SUBPACKAGES
+    }
+    assert sum(counts.values()) <= MAX_PUBLIC_NAMES, counts
+    # A nested package is implementation: its names are reached through the floor above it
+    # or through their own modules, so it has no ``__all__`` of its own.
+    nested = [
+        info.name
+        for info in pkgutil.walk_packages(torchrl_grpo.__path__, "torchrl_grpo.")
+        if info.ispkg
+        and info.name.count(".") > 1
+        and info.name.split(".")[1] in SUBPACKAGES
+        and hasattr(importlib.import_module(info.name), "__all__")
+    ]
+    assert not nested, f"nested packages with an __all__: {nested}"

@@ -43,14 +43,12 @@ from tensordict import TensorDict, TensorDictBase  # noqa: E402
 
 from torchrl_grpo.branching import branch_rollout, make_roots, plot_group  # noqa: E402
 from torchrl_grpo.envs import HighwayEnv, states_equal  # noqa: E402
-from torchrl_grpo.modules import (  # noqa: E402
+from torchrl_grpo.modules import KinematicsLayout, RulePolicy, ScriptedPolicy  # noqa: E402
+from torchrl_grpo.modules.scripted.policies import (  # noqa: E402
     AggressivePolicy,
     CautiousPolicy,
     ConservativePolicy,
-    KinematicsLayout,
     LaneChangePolicy,
-    RulePolicy,
-    ScriptedPolicy,
 )
 
 NAME = "branch_scripted_policies"

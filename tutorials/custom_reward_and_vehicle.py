@@ -56,12 +56,8 @@ from torchrl_grpo.envs import (  # noqa: E402
     register_vehicle_class,
     states_equal,
 )
-from torchrl_grpo.modules import (  # noqa: E402
-    AggressivePolicy,
-    ConstantActionPolicy,
-    KinematicsLayout,
-    RandomPolicy,
-)
+from torchrl_grpo.modules import ConstantActionPolicy, KinematicsLayout, RandomPolicy  # noqa: E402
+from torchrl_grpo.modules.scripted.policies import AggressivePolicy  # noqa: E402
 
 NAME = "custom_reward_and_vehicle"
 

@@ -25,7 +25,8 @@ import torch
 from bench_crash_rates import ACTIONS, trained
 
 from torchrl_grpo.modules import make_scripted_policy
-from torchrl_grpo.training import compose_config, make_env, tensor_episodes
+from torchrl_grpo.training import compose_config, make_env
+from torchrl_grpo.training.transfer import tensor_episodes
 
 logging.basicConfig(level=logging.INFO, format="%(message)s")
 

@@ -26,9 +26,10 @@ from pathlib import Path
 
 import torch
 
-from torchrl_grpo.training import Trainer, evaluate_on_tensor
+from torchrl_grpo.training import Trainer
 from torchrl_grpo.training.compose import compose_config
 from torchrl_grpo.training.hooks import Hook
+from torchrl_grpo.training.transfer import evaluate_on_tensor
 
 logging.basicConfig(level=logging.WARNING, format="%(message)s")
 

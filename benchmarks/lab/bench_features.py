@@ -36,9 +36,10 @@ from tensordict import TensorDict
 from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.envs import HighwayEnv
 from torchrl_grpo.modules import RulePolicy
-from torchrl_grpo.training import evaluate, format_table
+from torchrl_grpo.training import evaluate
 from torchrl_grpo.training.config import ModelConfig
 from torchrl_grpo.training.model_builder import make_policy
+from torchrl_grpo.training.results import format_table
 
 logging.basicConfig(level=logging.INFO, format="%(message)s")
 log = logging.getLogger("bench_features")

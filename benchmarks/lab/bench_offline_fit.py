@@ -38,15 +38,18 @@ import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
-from torchrl_grpo.branching import ActionThenBase, branch_rollout
+from torchrl_grpo.branching import branch_rollout
 from torchrl_grpo.branching.keys import MASK
+from torchrl_grpo.branching.lookahead import ActionThenBase
 from torchrl_grpo.envs import TensorHighwayEnv, tensor_params
 from torchrl_grpo.modules import CrashHead, make_scripted_policy
 from torchrl_grpo.sim.observation import observe
 from torchrl_grpo.sim.state import Vehicles
-from torchrl_grpo.training import evaluate_on_tensor, make_env, make_layout
+from torchrl_grpo.training import make_env
 from torchrl_grpo.training.config import ModelConfig
+from torchrl_grpo.training.env_builder import make_layout
 from torchrl_grpo.training.model_builder import make_policy
+from torchrl_grpo.training.transfer import evaluate_on_tensor
 
 logging.basicConfig(level=logging.INFO, format="%(message)s")
 log = logging.getLogger("bench_offline_fit")

@@ -1,6 +1,6 @@
 """The drive recipe with one network forward where it ran two or three on the same rows.
 
-``torchrl_grpo.modules.shared_forward`` runs each of the policy's networks once per
+``torchrl_grpo.modules.sharing.shared_forward`` runs each of the policy's networks once per
 input tensor. ``experiment=drive`` uses it in two places:
 
 * the update: it sums three losses on every minibatch (the clipped surrogate, the

@@ -19,12 +19,12 @@ from torchrl.objectives.llm import MCAdvantage
 
 from torchrl_grpo.branching import (
     branch_rollout,
-    branch_seed,
     final_states,
     make_roots,
     reset_roots,
     shutdown_env,
 )
+from torchrl_grpo.branching.seeding import branch_seed
 from torchrl_grpo.envs import states_equal
 from torchrl_grpo.modules import KinematicsMLP, RandomPolicy, make_discrete_actor
 from torchrl_grpo.objectives import GroupRelativeAdvantage

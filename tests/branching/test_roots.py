@@ -13,14 +13,14 @@ from torchrl.envs import StepCounter, TransformedEnv
 
 from torchrl_grpo.branching import (
     StoredRoots,
-    TrunkRoots,
-    as_roots,
     make_roots,
     reset_roots,
     roots_from_trajectories,
     shutdown_env,
     trunk_roots,
 )
+from torchrl_grpo.branching.root_builders import as_roots
+from torchrl_grpo.branching.roots import TrunkRoots
 from torchrl_grpo.envs import states_equal
 from torchrl_grpo.modules import ConstantActionPolicy
 

@@ -18,14 +18,9 @@ from tensordict import TensorDict
 from torchrl.envs import ParallelEnv, TransformedEnv
 from torchrl.envs.transforms import Transform
 
-from torchrl_grpo.branching import (
-    BranchParallelEnv,
-    branch_rollout,
-    make_branch_env,
-    reset_roots,
-    shutdown_env,
-)
+from torchrl_grpo.branching import branch_rollout, make_branch_env, reset_roots, shutdown_env
 from torchrl_grpo.branching.slots import EnvSlots
+from torchrl_grpo.branching.workers import BranchParallelEnv
 from torchrl_grpo.envs import states_equal
 
 

@@ -10,7 +10,8 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from torchrl_grpo.branching import GroupCollector, make_branch_env
-from torchrl_grpo.distributed import actor_seed, split_groups
+from torchrl_grpo.distributed.actor_pool import split_groups
+from torchrl_grpo.distributed.worker import actor_seed
 from torchrl_grpo.modules import KinematicsMLP, make_discrete_actor
 
 ENV_FACTORY = functools.partial(make_branch_env, "merge-v0", 1, backend="single")

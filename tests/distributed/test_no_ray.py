@@ -8,7 +8,8 @@ import pytest
 from distributed_helpers import ENV_FACTORY, make_policy
 from omegaconf import OmegaConf
 
-from torchrl_grpo.distributed import RAY_EXTRA_HINT, RayGroupCollector, require_ray
+from torchrl_grpo.distributed import RayGroupCollector
+from torchrl_grpo.distributed.ray_setup import RAY_EXTRA_HINT, require_ray
 from torchrl_grpo.training.collect import make_collector
 from torchrl_grpo.training.config import Config, GRPOConfig, PPOConfig, RolloutConfig, check_config
 

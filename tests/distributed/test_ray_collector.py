@@ -22,7 +22,8 @@ from distributed_helpers import (  # noqa: E402
     make_policy,
 )
 
-from torchrl_grpo.branching import GROUP_ID, MASK, TRAJ_IDS  # noqa: E402
+from torchrl_grpo.branching import GROUP_ID, MASK  # noqa: E402
+from torchrl_grpo.branching.keys import TRAJ_IDS  # noqa: E402
 from torchrl_grpo.distributed import RayGroupCollector, init_ray  # noqa: E402
 
 
@@ -232,7 +233,7 @@ def _refused_states(n_good: int):
 
 def test_a_refused_state_reaches_the_caller_and_the_actor_steps_on():
     from torchrl_grpo.branching import StoredRoots
-    from torchrl_grpo.distributed import GroupWorker
+    from torchrl_grpo.distributed.worker import GroupWorker
     from torchrl_grpo.envs import StateCorruptedError
 
     bad, good, names = _refused_states(2)

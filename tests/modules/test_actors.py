@@ -5,14 +5,8 @@ from torchrl.data import Bounded, Categorical, OneHot
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor, ValueOperator
 
-from torchrl_grpo.modules import (
-    DeterministicActor,
-    EgoAttentionNet,
-    KinematicsMLP,
-    make_continuous_actor,
-    make_discrete_actor,
-    make_value_net,
-)
+from torchrl_grpo.modules import EgoAttentionNet, KinematicsMLP, make_discrete_actor, make_value_net
+from torchrl_grpo.modules.actors import DeterministicActor, make_continuous_actor
 
 V, F, N_ACTIONS = 5, 5, 5
 

@@ -8,7 +8,8 @@ import pytest
 import torch
 from torch import nn
 
-from torchrl_grpo.modules import CrashHead, PolicyEnsemble, member_halves
+from torchrl_grpo.modules import CrashHead, PolicyEnsemble
+from torchrl_grpo.modules.ensemble import member_halves
 
 
 class _Constant(nn.Module):

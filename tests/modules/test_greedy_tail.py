@@ -15,14 +15,14 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl_grpo.branching import branch_rollout, reset_roots
 from torchrl_grpo.envs import HighwayEnv
 from torchrl_grpo.modules import (
-    EXPLORED,
-    SLOWER,
     ConstantActionPolicy,
     CrashHead,
     GreedyTail,
     greedy_tail,
     make_discrete_actor,
 )
+from torchrl_grpo.modules.greedy_tail import EXPLORED
+from torchrl_grpo.modules.scripted.actions import SLOWER
 
 N_ACTIONS = 5
 

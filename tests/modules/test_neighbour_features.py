@@ -5,7 +5,8 @@ from modules_helpers import LAYOUT, scene
 from omegaconf import OmegaConf
 
 from torchrl_grpo.envs import HighwayEnv
-from torchrl_grpo.modules import KinematicsLayout, NeighbourFeatures, NeighbourMLP, RandomPolicy
+from torchrl_grpo.modules import KinematicsLayout, RandomPolicy
+from torchrl_grpo.modules.neighbours import NeighbourFeatures, NeighbourMLP
 from torchrl_grpo.training.config import ModelConfig
 from torchrl_grpo.training.model_builder import make_policy
 

@@ -1,7 +1,8 @@
 import pytest
 import torch
 
-from torchrl_grpo.modules import EgoAttentionNet, KinematicsMLP, make_network
+from torchrl_grpo.modules import EgoAttentionNet, KinematicsMLP
+from torchrl_grpo.modules.networks import make_network
 
 V, F = 5, 5
 

@@ -8,14 +8,9 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_grpo.envs import HighwayEnv
-from torchrl_grpo.modules import (
-    SLOWER,
-    KinematicsLayout,
-    KinematicsMLP,
-    PriorLogits,
-    RulePolicy,
-    make_scripted_policy,
-)
+from torchrl_grpo.modules import KinematicsLayout, KinematicsMLP, RulePolicy, make_scripted_policy
+from torchrl_grpo.modules.prior import PriorLogits
+from torchrl_grpo.modules.scripted.actions import SLOWER
 from torchrl_grpo.training.config import ModelConfig
 from torchrl_grpo.training.model_builder import make_policy
 

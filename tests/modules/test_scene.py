@@ -6,7 +6,8 @@ from modules_helpers import LAYOUT, scene
 from omegaconf import OmegaConf
 
 from torchrl_grpo.envs import HighwayEnv
-from torchrl_grpo.modules import KinematicsLayout, RandomPolicy, SceneFeatures, SceneMLP
+from torchrl_grpo.modules import KinematicsLayout, RandomPolicy, SceneMLP
+from torchrl_grpo.modules.scene import SceneFeatures
 from torchrl_grpo.training.config import ModelConfig
 from torchrl_grpo.training.model_builder import make_policy
 
@@ -73,8 +74,8 @@ def test_the_speed_feature_is_centred_on_the_envs_target_speeds():
     from omegaconf import OmegaConf
 
     from torchrl_grpo.envs import HighwayEnv
-    from torchrl_grpo.training import make_net
     from torchrl_grpo.training.config import ModelConfig
+    from torchrl_grpo.training.model_builder import make_net
 
     layout = KinematicsLayout()
     cols = {f: torch.zeros(5) for f in layout.features}

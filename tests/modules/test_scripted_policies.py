@@ -7,22 +7,20 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
 from torchrl_grpo.modules import (
-    FASTER,
-    IDLE,
-    LANE_LEFT,
-    LANE_RIGHT,
     META_ACTIONS,
     SCRIPTED_POLICIES,
-    SLOWER,
-    AggressivePolicy,
-    CautiousPolicy,
-    ConservativePolicy,
     ConstantActionPolicy,
     KinematicsLayout,
-    LaneChangePolicy,
     RandomPolicy,
     RulePolicy,
     make_scripted_policy,
+)
+from torchrl_grpo.modules.scripted.actions import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
+from torchrl_grpo.modules.scripted.policies import (
+    AggressivePolicy,
+    CautiousPolicy,
+    ConservativePolicy,
+    LaneChangePolicy,
 )
 
 
@@ -66,7 +64,7 @@ def test_layout_round_trip_and_highway_defaults():
     from highway_env.road.lane import AbstractLane
     from highway_env.vehicle.kinematics import Vehicle
 
-    from torchrl_grpo.modules import LANE_WIDTH, MAX_SPEED, VEHICLE_LENGTH
+    from torchrl_grpo.modules.kinematics import LANE_WIDTH, MAX_SPEED, VEHICLE_LENGTH
 
     assert (MAX_SPEED, LANE_WIDTH, VEHICLE_LENGTH) == (
         Vehicle.MAX_SPEED,

@@ -8,7 +8,8 @@ import pytest
 import torch
 from torch.distributions import Categorical, Normal, kl_divergence
 
-from torchrl_grpo.objectives import analytic_kl, kl_estimate
+from torchrl_grpo.objectives import kl_estimate
+from torchrl_grpo.objectives.kl import analytic_kl
 
 N_SAMPLES = 200_000
 

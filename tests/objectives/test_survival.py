@@ -11,7 +11,8 @@ from test_bootstrap import LAST, TAILS, _batch
 from torch import nn
 
 from torchrl_grpo.modules import CrashHead
-from torchrl_grpo.objectives import HorizonBootstrap, TailSurvival, crash_label
+from torchrl_grpo.objectives import HorizonBootstrap
+from torchrl_grpo.objectives.survival import TailSurvival, crash_label
 
 
 class StepHead(nn.Module):

@@ -13,18 +13,17 @@ from torchrl.objectives.value.functional import reward2go
 from train_setup import CONF, TINY, compose_config
 
 from torchrl_grpo.training import (
-    ALGORITHMS,
     GRPO,
     PPO,
     AlgoConfig,
     Algorithm,
     TeacherDistill,
     Trainer,
-    algorithm_for,
     load_checkpoint,
     register_algorithm,
     register_configs,
 )
+from torchrl_grpo.training.algos.base import ALGORITHMS, algorithm_for
 
 
 @dataclass

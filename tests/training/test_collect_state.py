@@ -11,7 +11,7 @@ import torch
 from torchrl_grpo.branching import GroupCollector
 from torchrl_grpo.envs import HighwayEnv
 from torchrl_grpo.modules import RandomPolicy
-from torchrl_grpo.training import collector_state, load_collector_state
+from torchrl_grpo.training.collect import collector_state, load_collector_state
 
 # The state_dict() keys of the root sources and the attributes the checkpoints written
 # before they were complete (until issue 19) read instead.

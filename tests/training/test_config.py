@@ -290,22 +290,28 @@ def test_roots_continue_keeps_its_older_spelling(spelling):
 
 
 def test_the_choices_are_the_librarys_literals():
-    from torchrl_grpo import branching, objectives
-    from torchrl_grpo.modules import SCRIPTED_POLICIES, NetworkKind
+    from torchrl_grpo.branching.branch_env import Backend as BranchBackend
+    from torchrl_grpo.branching.collector import RootKind
+    from torchrl_grpo.branching.continuation import Selection
+    from torchrl_grpo.modules import SCRIPTED_POLICIES
     from torchrl_grpo.modules.greedy_tail import FirstAction
+    from torchrl_grpo.modules.networks import NetworkKind
+    from torchrl_grpo.objectives.bootstrap import BootstrapMode
+    from torchrl_grpo.objectives.grpo import Aggregation
+    from torchrl_grpo.objectives.kl import KLEstimator
     from torchrl_grpo.training import config
 
     for enum, literal in [
-        (config.RootKindName, branching.RootKind),
-        (config.SelectionName, branching.Selection),
-        (config.WorkerBackend, branching.Backend),
-        (config.AggregationName, objectives.Aggregation),
-        (config.KLEstimatorName, objectives.KLEstimator),
-        (config.BootstrapName, objectives.BootstrapMode),
+        (config.RootKindName, RootKind),
+        (config.SelectionName, Selection),
+        (config.WorkerBackend, BranchBackend),
+        (config.AggregationName, Aggregation),
+        (config.KLEstimatorName, KLEstimator),
+        (config.BootstrapName, BootstrapMode),
         (config.FirstActionName, FirstAction),
     ]:
         assert [member.value for member in enum] == list(get_args(literal)), enum.__name__
-    assert [m.value for m in config.Backend] == [*get_args(branching.Backend), "ray"]
+    assert [m.value for m in config.Backend] == [*get_args(BranchBackend), "ray"]
     assert [m.value for m in config.ModelKind] == [*get_args(NetworkKind), "scene", "neighbours"]
     # The scripted base policies a prior or a greedy tail may name exist.
     assert {m.value for m in config.PriorName} < set(SCRIPTED_POLICIES)

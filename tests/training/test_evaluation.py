@@ -11,10 +11,12 @@ from train_setup import compose_config, run_script
 
 from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.envs import HighwayEnv
-from torchrl_grpo.modules import ConstantActionPolicy, DeterministicActor
-from torchrl_grpo.training import evaluate, format_table, load_checkpoint, make_env, make_policy
+from torchrl_grpo.modules import ConstantActionPolicy
+from torchrl_grpo.modules.actors import DeterministicActor
+from torchrl_grpo.training import evaluate, load_checkpoint, make_env, make_policy
 from torchrl_grpo.training.config import typed_config
 from torchrl_grpo.training.evaluation import evaluate_checkpoint
+from torchrl_grpo.training.results import format_table
 
 
 def _manual_return(action: int, seed: int, max_steps: int) -> tuple[float, bool, int]:

@@ -9,14 +9,9 @@ import torch
 from tensordict import TensorDict
 from train_setup import TINY, compose_config
 
-from torchrl_grpo.training import (
-    Trainer,
-    load_checkpoint,
-    make_env,
-    make_policy,
-    save_checkpoint,
-    to_container,
-)
+from torchrl_grpo.training import Trainer, load_checkpoint, make_env, make_policy
+from torchrl_grpo.training.checkpoint import save_checkpoint
+from torchrl_grpo.training.config import to_container
 
 TENSOR = ["env.backend=tensor", "env.num_envs=32"]
 CRASH_HEAD = ["model.crash_head=true", "model.crash_aversion=3"]

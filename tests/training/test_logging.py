@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from torchrl_grpo.training import log_metrics, make_logger
+from torchrl_grpo.training.logging_builder import log_metrics, make_logger
 
 
 @pytest.fixture(autouse=True)

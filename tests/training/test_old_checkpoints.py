@@ -16,14 +16,8 @@ import torch
 from omegaconf import OmegaConf
 from train_setup import ROOT, TINY, compose_config
 
-from torchrl_grpo.training import (
-    Trainer,
-    evaluate,
-    load_checkpoint,
-    make_env,
-    make_policy,
-    typed_config,
-)
+from torchrl_grpo.training import Trainer, evaluate, load_checkpoint, make_env, make_policy
+from torchrl_grpo.training.config import typed_config
 from torchrl_grpo.training.evaluation import evaluate_checkpoint
 
 HERE = Path(__file__).resolve().parent

@@ -9,7 +9,8 @@ import sys
 import pytest
 from train_setup import TINY, compose_config
 
-from torchrl_grpo.training import Trainer, check_config
+from torchrl_grpo.training import Trainer
+from torchrl_grpo.training.config import check_config
 
 
 def test_episodes_of_zero_steps_are_refused_at_start(tmp_path):

@@ -13,16 +13,11 @@ from torchrl.modules import ProbabilisticActor
 from train_setup import TINY, compose_config, visited_states
 
 from torchrl_grpo.objectives import TeacherDistillLoss
-from torchrl_grpo.training import (
-    Trainer,
-    check_config,
-    load_checkpoint,
-    load_teachers,
-    make_env,
-    make_policy,
-    save_checkpoint,
-)
+from torchrl_grpo.training import Trainer, load_checkpoint, make_env, make_policy
 from torchrl_grpo.training.algos.labelled import LabelledStates
+from torchrl_grpo.training.checkpoint import save_checkpoint
+from torchrl_grpo.training.config import check_config
+from torchrl_grpo.training.teachers import load_teachers
 
 TENSOR = ["env.backend=tensor", "env.num_envs=32"]
 

@@ -17,17 +17,16 @@ from torchrl_grpo.envs import HighwayEnv, TensorHighwayEnv
 from torchrl_grpo.modules import ConstantActionPolicy, make_scripted_policy
 from torchrl_grpo.training import (
     Trainer,
-    check_config,
     evaluate,
     evaluate_baselines,
-    evaluate_on_tensor,
     load_checkpoint,
     make_env,
-    make_layout,
     make_policy,
-    paired_gap,
 )
 from torchrl_grpo.training import baselines as baselines_module
+from torchrl_grpo.training.config import check_config
+from torchrl_grpo.training.env_builder import make_layout
+from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
 
 TENSOR = ["env.backend=tensor", "env.num_envs=32"]
 

@@ -18,11 +18,14 @@ from torchrl.modules import ProbabilisticActor
 from train_helpers import REPLAY, csv_scalars, train_run
 from train_setup import ROOT, TINY, compose_config
 
-from torchrl_grpo.modules import EXPLORED, SLOWER
+from torchrl_grpo.modules.greedy_tail import EXPLORED
+from torchrl_grpo.modules.scripted.actions import SLOWER
 from torchrl_grpo.objectives import GRPOLoss
-from torchrl_grpo.training import Trainer, load_checkpoint, make_collector, make_rollout_env
+from torchrl_grpo.training import Trainer, load_checkpoint
 from torchrl_grpo.training.algos.grpo import policy_weighted
 from torchrl_grpo.training.checkpoint import changed_keys
+from torchrl_grpo.training.collect import make_collector
+from torchrl_grpo.training.env_builder import make_rollout_env
 
 
 def test_smoke_run_writes_finite_metrics_and_checkpoint(smoke_run):

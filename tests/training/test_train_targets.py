@@ -11,14 +11,11 @@ from torch import nn
 from train_helpers import REPLAY, csv_scalars, logged_ratios, train_run
 from train_setup import TINY, compose_config
 
-from torchrl_grpo.modules import (
-    CrashHead,
-    PolicyEnsemble,
-    member_halves,
-    shared_forward,
-    shared_networks,
-)
-from torchrl_grpo.objectives import HorizonBootstrap, TailSurvival
+from torchrl_grpo.modules import CrashHead, PolicyEnsemble
+from torchrl_grpo.modules.ensemble import member_halves
+from torchrl_grpo.modules.sharing import shared_forward, shared_networks
+from torchrl_grpo.objectives import HorizonBootstrap
+from torchrl_grpo.objectives.survival import TailSurvival
 from torchrl_grpo.training import Trainer
 from torchrl_grpo.training.algos.tails import crash_labels
 

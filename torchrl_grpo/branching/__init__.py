@@ -11,68 +11,33 @@ the same snapshots to plan: every action from the current state, then a base pol
 See ``docs/branching.md``.
 """
 
-from torchrl_grpo.branching.branch_env import Backend, make_branch_env, shutdown_env
-from torchrl_grpo.branching.collector import GroupCollector, RootKind
-from torchrl_grpo.branching.continuation import (
-    SELECTED,
-    ContinuationRoots,
-    MultiTurnResult,
-    Selection,
-    multi_turn_rollout,
-    select_branches,
-)
-from torchrl_grpo.branching.keys import (
-    BRANCH,
-    BRANCH_RETURN,
-    GROUP_ID,
-    MASK,
-    ROOT_STEP,
-    STATE,
-    STEP_COUNT,
-    TRAJ_IDS,
-)
-from torchrl_grpo.branching.lookahead import ActionThenBase, LookaheadPolicy
-from torchrl_grpo.branching.plots import GroupFigure, plot_group
-from torchrl_grpo.branching.rollout import RngMode, branch_rollout, final_states
+from torchrl_grpo.branching.branch_env import make_branch_env, shutdown_env
+from torchrl_grpo.branching.collector import GroupCollector
+from torchrl_grpo.branching.continuation import MultiTurnResult, multi_turn_rollout, select_branches
+from torchrl_grpo.branching.keys import BRANCH, BRANCH_RETURN, GROUP_ID, MASK, STATE
+from torchrl_grpo.branching.lookahead import LookaheadPolicy
+from torchrl_grpo.branching.plots import plot_group
+from torchrl_grpo.branching.rollout import branch_rollout, final_states
 from torchrl_grpo.branching.root_builders import (
-    as_roots,
     make_roots,
     reset_roots,
     roots_from_trajectories,
     trunk_roots,
 )
-from torchrl_grpo.branching.roots import EpisodeStartRoots, RootSource, StoredRoots, TrunkRoots
-from torchrl_grpo.branching.seeding import branch_seed
-from torchrl_grpo.branching.workers import BranchParallelEnv
+from torchrl_grpo.branching.roots import RootSource, StoredRoots
 
 __all__ = [
     "BRANCH",
     "BRANCH_RETURN",
     "GROUP_ID",
     "MASK",
-    "ROOT_STEP",
-    "SELECTED",
     "STATE",
-    "STEP_COUNT",
-    "TRAJ_IDS",
-    "ActionThenBase",
-    "Backend",
-    "BranchParallelEnv",
-    "ContinuationRoots",
-    "EpisodeStartRoots",
     "GroupCollector",
-    "GroupFigure",
     "LookaheadPolicy",
     "MultiTurnResult",
-    "RngMode",
-    "RootKind",
     "RootSource",
-    "Selection",
     "StoredRoots",
-    "TrunkRoots",
-    "as_roots",
     "branch_rollout",
-    "branch_seed",
     "final_states",
     "make_branch_env",
     "make_roots",

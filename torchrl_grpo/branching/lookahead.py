@@ -21,7 +21,7 @@ from torchrl_grpo.branching.keys import BRANCH, MASK, ROOT_STEP, STATE, STEP_COU
 from torchrl_grpo.branching.rollout import branch_rollout
 from torchrl_grpo.branching.root_builders import as_roots
 from torchrl_grpo.branching.slots import has_batched_worlds
-from torchrl_grpo.envs import to_bits
+from torchrl_grpo.envs.core.bits import to_bits
 
 __all__ = ["ActionThenBase", "LookaheadPolicy"]
 

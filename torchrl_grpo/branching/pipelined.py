@@ -72,7 +72,8 @@ def run_pipelined(
 
     Example:
         >>> import functools
-        >>> from torchrl_grpo.branching import BranchParallelEnv, reset_roots, shutdown_env
+        >>> from torchrl_grpo.branching import reset_roots, shutdown_env
+        >>> from torchrl_grpo.branching.workers import BranchParallelEnv
         >>> from torchrl_grpo.envs import HighwayEnv
         >>> make = functools.partial(HighwayEnv, "merge-v0", return_state=True)
         >>> env = BranchParallelEnv(1, make, mp_start_method="fork")

@@ -60,7 +60,8 @@ def run_whole_branches(
 
     Example:
         >>> import functools
-        >>> from torchrl_grpo.branching import BranchParallelEnv, reset_roots, shutdown_env
+        >>> from torchrl_grpo.branching import reset_roots, shutdown_env
+        >>> from torchrl_grpo.branching.workers import BranchParallelEnv
         >>> from torchrl_grpo.envs import HighwayEnv
         >>> from torchrl_grpo.modules import RandomPolicy
         >>> make = functools.partial(HighwayEnv, "merge-v0", return_state=True)

@@ -15,7 +15,7 @@ from typing import Any
 
 from torchrl.envs import EnvBase
 
-from torchrl_grpo.branching import RootSource
+from torchrl_grpo.branching.roots import RootSource
 from torchrl_grpo.distributed.worker import GroupResult, GroupWorker, WorkerSnapshot, actor_seed
 
 logger = logging.getLogger(__name__)
@@ -42,14 +42,14 @@ def split_groups(groups_per_batch: int, num_actors: int) -> list[int]:
 
 
 class ActorPool:
-    """One :class:`~torchrl_grpo.distributed.GroupWorker` Ray actor per index, kept alive.
+    """One :class:`~torchrl_grpo.distributed.worker.GroupWorker` Ray actor per index, kept alive.
 
     Actor ``a`` collects ``groups_per_actor[a]`` groups per batch with the seed
     ``actor_seed(seed, a)``. The pool keeps every actor's last snapshot: a new actor
     (started lazily, or replacing a dead one) is restored from it.
 
     Args:
-        ray: the ``ray`` module (see :func:`~torchrl_grpo.distributed.require_ray`).
+        ray: the ``ray`` module (see :func:`~torchrl_grpo.distributed.ray_setup.require_ray`).
         env_factory: a picklable callable building the branch env in an actor.
         policy: the policy; one copy goes to Ray's object store for all actors.
         roots: each actor's ``roots`` argument (a ``RootSource`` is copied per actor).
@@ -65,7 +65,8 @@ class ActorPool:
     Example:
         >>> import functools
         >>> from torchrl_grpo.branching import make_branch_env
-        >>> from torchrl_grpo.distributed import init_ray, require_ray
+        >>> from torchrl_grpo.distributed import init_ray
+        >>> from torchrl_grpo.distributed.ray_setup import require_ray
         >>> from torchrl_grpo.modules import RandomPolicy
         >>> started = init_ray(num_cpus=2)  # doctest: +SKIP
         >>> pool = ActorPool(require_ray(), functools.partial(make_branch_env, "merge-v0", 1,

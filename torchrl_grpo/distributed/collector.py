@@ -13,10 +13,12 @@ from torch import nn
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
-from torchrl_grpo.branching import MASK, RootKind, RootSource
+from torchrl_grpo.branching.collector import RootKind
 from torchrl_grpo.branching.collector_base import GroupCollectorBase
 from torchrl_grpo.branching.continuation import Selection
+from torchrl_grpo.branching.keys import MASK
 from torchrl_grpo.branching.rollout import RngMode
+from torchrl_grpo.branching.roots import RootSource
 from torchrl_grpo.distributed.actor_pool import ActorPool, split_groups
 from torchrl_grpo.distributed.ray_setup import init_ray, require_ray
 

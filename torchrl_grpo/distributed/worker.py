@@ -18,9 +18,9 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
-from torchrl_grpo.branching import GroupCollector
+from torchrl_grpo.branching.collector import GroupCollector
 from torchrl_grpo.branching.roots import RootSource
-from torchrl_grpo.envs import SnapshotError
+from torchrl_grpo.envs.core.errors import SnapshotError
 
 logger = logging.getLogger(__name__)
 

@@ -1,20 +1,9 @@
 """TorchRL environments whose complete simulator state is a TensorDict of tensors."""
 
 from torchrl_grpo.envs.cartpole import CartPoleStateCodec
-from torchrl_grpo.envs.core.batched import (
-    SnapshotParallelEnv,
-    SnapshotSerialEnv,
-    check_worker_states,
-    local_worker_env,
-)
-from torchrl_grpo.envs.core.bits import (
-    check_state_layout,
-    from_bits,
-    state_differences,
-    states_equal,
-    to_bits,
-)
-from torchrl_grpo.envs.core.codec import StateCodec, stable_hash
+from torchrl_grpo.envs.core.batched import SnapshotParallelEnv, SnapshotSerialEnv
+from torchrl_grpo.envs.core.bits import from_bits, state_differences, states_equal, to_bits
+from torchrl_grpo.envs.core.codec import StateCodec
 from torchrl_grpo.envs.core.errors import (
     SnapshotError,
     StateCapacityError,
@@ -22,22 +11,13 @@ from torchrl_grpo.envs.core.errors import (
     StateMismatchError,
     UnknownFieldError,
 )
-from torchrl_grpo.envs.core.registry import codec_for, register_codec
+from torchrl_grpo.envs.core.registry import register_codec
 from torchrl_grpo.envs.core.snapshot_env import STATE_KEY, SnapshotEnv
-from torchrl_grpo.envs.highway import (
-    HIGHWAY_SCENARIOS,
-    TENSOR_SCENARIOS,
-    HighwayEnv,
-    HighwayStateCodec,
-    TensorHighwayEnv,
-    check_tensor_config,
-    tensor_params,
-)
-from torchrl_grpo.envs.highway.schema import (
-    Field,
-    register_class_parameter,
-    register_vehicle_class,
-)
+from torchrl_grpo.envs.highway.codec import HIGHWAY_SCENARIOS
+from torchrl_grpo.envs.highway.schema import Field, register_class_parameter, register_vehicle_class
+from torchrl_grpo.envs.highway.tensor_env import TensorHighwayEnv
+from torchrl_grpo.envs.highway.tensor_params import TENSOR_SCENARIOS, tensor_params
+from torchrl_grpo.envs.highway.wrapper import HighwayEnv
 
 __all__ = [
     "HIGHWAY_SCENARIOS",
@@ -46,7 +26,6 @@ __all__ = [
     "CartPoleStateCodec",
     "Field",
     "HighwayEnv",
-    "HighwayStateCodec",
     "SnapshotEnv",
     "SnapshotError",
     "SnapshotParallelEnv",
@@ -57,16 +36,10 @@ __all__ = [
     "StateMismatchError",
     "TensorHighwayEnv",
     "UnknownFieldError",
-    "check_state_layout",
-    "check_tensor_config",
-    "check_worker_states",
-    "codec_for",
     "from_bits",
-    "local_worker_env",
     "register_class_parameter",
     "register_codec",
     "register_vehicle_class",
-    "stable_hash",
     "state_differences",
     "states_equal",
     "tensor_params",

@@ -2,7 +2,7 @@
 
 TorchRL's losses rename their keys with ``LossModule.set_keys``. The modules here that
 run before a loss (:class:`~torchrl_grpo.objectives.HorizonBootstrap`,
-:class:`~torchrl_grpo.objectives.TailSurvival`) declare their keys the same way, in an
+:class:`~torchrl_grpo.objectives.survival.TailSurvival`) declare their keys the same way, in an
 ``_AcceptedKeys`` dataclass, and share this ``set_keys``.
 """
 

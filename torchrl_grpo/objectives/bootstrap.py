@@ -20,7 +20,7 @@ __all__ = ["BootstrapMode", "HorizonBootstrap"]
 
 #: ``"batch_mean"``: credit truncated branches with the batch's mean reward per step for
 #: the episode steps left; ``"survival"``: the same, times each branch's probability of
-#: surviving past its horizon (:class:`~torchrl_grpo.objectives.TailSurvival`);
+#: surviving past its horizon (:class:`~torchrl_grpo.objectives.survival.TailSurvival`);
 #: ``"none"``: the training reward is the env's reward.
 BootstrapMode = Literal["none", "batch_mean", "survival"]
 
@@ -44,7 +44,7 @@ class HorizonBootstrap(KeyedModule):
             ``survival`` key at the branch's last step: the probability that the policy
             would not crash soon after the horizon, so that a branch that ends in a trap
             is not credited the steps it would not drive; written by
-            :class:`~torchrl_grpo.objectives.TailSurvival`), or ``"none"`` (the training
+            :class:`~torchrl_grpo.objectives.survival.TailSurvival`), or ``"none"`` (the training
             reward is a copy of the env's).
         termination_penalty: subtracted from the training reward of a step where the
             env ended the episode (in highway-env a crash, or leaving the road with

@@ -34,7 +34,7 @@ class CrashHeadLoss(LossModule):
     Keys (change them with :meth:`set_keys`): ``observation`` (``"observation"``),
     ``action`` (``"action"``) and ``label`` (``"branch_crashed"``: whether the row's
     branch ended in a crash, or a probability of it, such as
-    :func:`~torchrl_grpo.objectives.crash_label`'s).
+    :func:`~torchrl_grpo.objectives.survival.crash_label`'s).
 
     Outputs: ``loss_crash_head``, and the diagnostics ``crash_head_bce`` (without
     ``coeff``) and ``crash_head_accuracy`` (predictions on the label's side of 1/2).

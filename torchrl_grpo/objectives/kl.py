@@ -71,7 +71,7 @@ def analytic_kl(dist: d.Distribution, ref_dist: d.Distribution) -> torch.Tensor:
     Example:
         >>> import torch
         >>> from torch.distributions import Categorical
-        >>> from torchrl_grpo.objectives import analytic_kl
+        >>> from torchrl_grpo.objectives.kl import analytic_kl
         >>> p = Categorical(probs=torch.tensor([0.5, 0.5]))
         >>> q = Categorical(probs=torch.tensor([0.25, 0.75]))
         >>> analytic_kl(p, q)

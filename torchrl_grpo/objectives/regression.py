@@ -2,7 +2,7 @@
 
 A group that tries every action of a root once and then follows a fixed policy scores
 each action exactly: its advantages are ``A(s, a) = Q(s, a) - mean_b Q(s, b)``. The
-cross-entropy to ``softmax(A / tau)`` (:class:`~torchrl_grpo.objectives.GroupDistillLoss`)
+cross-entropy to ``softmax(A / tau)`` (:class:`~torchrl_grpo.objectives.distill.GroupDistillLoss`)
 teaches, in states the observation cannot tell apart, how often each action is the
 best; its greedy action is then the one that wins most often, even where it crashes
 in the others. Regressing the centred logits onto the advantages,

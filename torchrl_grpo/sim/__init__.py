@@ -29,22 +29,11 @@ Example:
     torch.Size([1024])
 """
 
-from torchrl_grpo.sim.params import (
-    ControlParams,
-    HighwayParams,
-    IDMParams,
-    ObservationParams,
-    RewardParams,
-    RoadParams,
-    TimeParams,
-    TrafficParams,
-    VehicleParams,
-)
+from torchrl_grpo.sim.params import HighwayParams
 from torchrl_grpo.sim.reset import reset_world
-from torchrl_grpo.sim.rng import seed_keys, uniform
+from torchrl_grpo.sim.rng import seed_keys
 from torchrl_grpo.sim.simulate import observe_world, step
 from torchrl_grpo.sim.state import (
-    Vehicles,
     World,
     check_world,
     empty_world,
@@ -53,16 +42,7 @@ from torchrl_grpo.sim.state import (
 )
 
 __all__ = [
-    "ControlParams",
     "HighwayParams",
-    "IDMParams",
-    "ObservationParams",
-    "RewardParams",
-    "RoadParams",
-    "TimeParams",
-    "TrafficParams",
-    "VehicleParams",
-    "Vehicles",
     "World",
     "check_world",
     "empty_world",
@@ -70,7 +50,6 @@ __all__ = [
     "reset_world",
     "seed_keys",
     "step",
-    "uniform",
     "world_from_tensordict",
     "world_to_tensordict",
 ]

@@ -21,8 +21,8 @@ from typing import Any
 
 from omegaconf import DictConfig
 
-from torchrl_grpo.branching import LookaheadPolicy
-from torchrl_grpo.modules import make_scripted_policy
+from torchrl_grpo.branching.lookahead import LookaheadPolicy
+from torchrl_grpo.modules.scripted.registry import make_scripted_policy
 from torchrl_grpo.training.baseline_cache import (
     LOOKAHEAD_HORIZON,
     cache_key,

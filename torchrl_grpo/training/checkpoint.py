@@ -5,7 +5,7 @@ A checkpoint is one dict: the resolved config, the run's :class:`Progress`
 (:meth:`~torchrl_grpo.training.Algorithm.state_dict`: the loss, whose parameters
 include the GRPO reference policy, the optimiser and its step count, the value
 network, the reference-sync counter, a lagging tail policy, the replay), the
-collector's exact position (:func:`~torchrl_grpo.training.collector_state`) and the
+collector's exact position (:func:`~torchrl_grpo.training.collect.collector_state`) and the
 random states of torch, numpy and Python. Files are written atomically (a temporary
 file, then a rename), so an interrupt never leaves a half-written ``last.pt``.
 :func:`check_resumable` refuses to resume a run with another algorithm or network.
@@ -109,7 +109,7 @@ def checkpoint_dict(
         progress: the run's counters.
         policy: the policy's ``state_dict()``.
         algorithm: the algorithm's :meth:`~torchrl_grpo.training.Algorithm.state_dict`.
-        collector: :func:`~torchrl_grpo.training.collector_state`.
+        collector: :func:`~torchrl_grpo.training.collect.collector_state`.
 
     Example:
         >>> ckpt = checkpoint_dict({"seed": 0}, Progress(iteration=2), {}, {"loss": {}}, {})

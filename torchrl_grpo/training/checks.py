@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_grpo.training.algos import algorithm_for
+from torchrl_grpo.training.algos.base import algorithm_for
 
 __all__ = ["check_config"]
 
@@ -23,7 +23,8 @@ def check_config(cfg: DictConfig) -> None:
         ValueError: naming the offending key.
 
     Example:
-        >>> from torchrl_grpo.training import Config, RolloutConfig
+        >>> from torchrl_grpo.training import Config
+        >>> from torchrl_grpo.training.config import RolloutConfig
         >>> cfg = OmegaConf.structured(Config(rollout=RolloutConfig(horizon=0)))
         >>> try:
         ...     check_config(cfg)

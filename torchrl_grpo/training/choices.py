@@ -20,10 +20,15 @@ from collections.abc import Mapping
 from enum import StrEnum
 from typing import Any
 
-from torchrl_grpo import branching
+from torchrl_grpo.branching.branch_env import Backend as BranchBackend
+from torchrl_grpo.branching.collector import RootKind
+from torchrl_grpo.branching.continuation import Selection
 from torchrl_grpo.modules.greedy_tail import FirstAction
-from torchrl_grpo.objectives import Aggregation, BootstrapMode, CrashLabel, KLEstimator
 from torchrl_grpo.objectives.advantage import Baseline, Returns, RewardScaling
+from torchrl_grpo.objectives.bootstrap import BootstrapMode
+from torchrl_grpo.objectives.grpo import Aggregation
+from torchrl_grpo.objectives.kl import KLEstimator
+from torchrl_grpo.objectives.survival import CrashLabel
 from torchrl_grpo.training.env_builder import EnvBackend, RolloutBackend
 from torchrl_grpo.training.logging_builder import LoggerKind, WandbRunMode
 from torchrl_grpo.training.model_builder import BasePolicyName, ModelArchitecture
@@ -105,13 +110,11 @@ def _choices(name: str, choices: Any, doc: str, **aliases: str) -> Any:
 # library's RootKind: configs, and checkpoints, that say so still validate.
 RootKindName = _choices(
     "RootKindName",
-    branching.RootKind,
+    RootKind,
     "Where GRPO groups start (see :class:`~torchrl_grpo.branching.GroupCollector`).",
     continuation="continue",
 )
-SelectionName = _choices(
-    "SelectionName", branching.Selection, "Branch selection of ``roots=continue``."
-)
+SelectionName = _choices("SelectionName", Selection, "Branch selection of ``roots=continue``.")
 AggregationName = _choices(
     "AggregationName",
     Aggregation,
@@ -154,7 +157,7 @@ EnvBackendName = _choices(
     EnvBackend,
     "The simulator training runs on: tensor, highway, or auto (tensor where it covers the config).",
 )
-WorkerBackend = _choices("WorkerBackend", branching.Backend, "How each Ray actor runs its workers.")
+WorkerBackend = _choices("WorkerBackend", BranchBackend, "How each Ray actor runs its workers.")
 LoggerBackend = _choices("LoggerBackend", LoggerKind, "Where metrics go.")
 WandbMode = _choices(
     "WandbMode", WandbRunMode, "wandb's mode: ``offline`` writes a run folder to sync later."

@@ -25,9 +25,12 @@ from torchrl.collectors import BaseCollector, Collector
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
-from torchrl_grpo.branching import STATE, GroupCollector, TrunkRoots, make_branch_env
-from torchrl_grpo.distributed import RayGroupCollector
-from torchrl_grpo.modules import GreedyTail
+from torchrl_grpo.branching.branch_env import make_branch_env
+from torchrl_grpo.branching.collector import GroupCollector
+from torchrl_grpo.branching.keys import STATE
+from torchrl_grpo.branching.roots import TrunkRoots
+from torchrl_grpo.distributed.collector import RayGroupCollector
+from torchrl_grpo.modules.greedy_tail import GreedyTail
 from torchrl_grpo.training.env_builder import env_overrides
 
 __all__ = [
@@ -63,7 +66,7 @@ def make_collector(
     tails follow: a lagging copy of ``policy`` (``algo.tail_sync_batches``; greedy
     trunks follow it too) or a scripted base policy (``algo.tail_policy``; trunks follow
     ``policy``). Default: ``policy``. ``trunk_stagger`` spreads live trunks' first
-    episodes over that many steps (:class:`~torchrl_grpo.branching.TrunkRoots`'
+    episodes over that many steps (:class:`~torchrl_grpo.branching.roots.TrunkRoots`'
     ``stagger``; ``rollout.stagger_trunks``); ``trunk_max_steps`` ends trunks at that
     episode step (``rollout.full_horizon_roots``), and ``trunk_min_steps`` starts their
     decision points at that step (``rollout.first_root_step``).

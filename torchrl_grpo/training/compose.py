@@ -124,7 +124,7 @@ def resume_config(
 
     Example:
         >>> import tempfile
-        >>> from torchrl_grpo.training import save_checkpoint
+        >>> from torchrl_grpo.training.checkpoint import save_checkpoint
         >>> saved = to_container(compose_config(["algo.group_size=4"]))
         >>> path = save_checkpoint({"config": saved}, tempfile.mkdtemp() + "/last.pt")
         >>> cfg = compose_config([f"resume={path}", "algo.epochs=1"])

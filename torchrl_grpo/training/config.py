@@ -33,7 +33,7 @@ from typing import Any, Literal
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from torchrl_grpo.training.algos import ALGORITHMS, AlgoConfig, algorithm_for
+from torchrl_grpo.training.algos.base import ALGORITHMS, AlgoConfig, algorithm_for
 from torchrl_grpo.training.algos.grpo import (
     ActionWeightsName,
     GRPOConfig,
@@ -240,7 +240,7 @@ class LoggerConfig:
 
     Example:
         >>> import tempfile
-        >>> from torchrl_grpo.training import make_logger
+        >>> from torchrl_grpo.training.logging_builder import make_logger
         >>> cfg = OmegaConf.structured(LoggerConfig(backend="csv"))
         >>> print(cfg.backend, cfg.mode, cfg.video)
         csv offline True

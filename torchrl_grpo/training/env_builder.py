@@ -10,9 +10,11 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.envs import EnvBase
 
-from torchrl_grpo.branching import Backend, make_branch_env
-from torchrl_grpo.envs import HighwayEnv, TensorHighwayEnv, check_tensor_config
-from torchrl_grpo.modules import KinematicsLayout
+from torchrl_grpo.branching.branch_env import Backend, make_branch_env
+from torchrl_grpo.envs.highway.tensor_env import TensorHighwayEnv
+from torchrl_grpo.envs.highway.tensor_params import check_tensor_config
+from torchrl_grpo.envs.highway.wrapper import HighwayEnv
+from torchrl_grpo.modules.kinematics import KinematicsLayout
 
 __all__ = [
     "EnvBackend",
@@ -27,9 +29,10 @@ __all__ = [
     "tensor_covers",
 ]
 
-#: How the rollout workers run (``rollout.backend``): a :data:`~torchrl_grpo.branching.Backend`
-#: of :func:`~torchrl_grpo.branching.make_branch_env`, or ``"ray"`` (GRPO groups collected
-#: on Ray actors, :class:`~torchrl_grpo.distributed.RayGroupCollector`).
+#: How the rollout workers run (``rollout.backend``): a
+#: :data:`~torchrl_grpo.branching.branch_env.Backend` of
+#: :func:`~torchrl_grpo.branching.make_branch_env`, or ``"ray"`` (GRPO groups collected on
+#: Ray actors, :class:`~torchrl_grpo.distributed.RayGroupCollector`).
 RolloutBackend = Literal[Backend, "ray"]
 #: The simulator training runs on (``env.backend``): ``tensor`` (the batched simulator,
 #: :class:`~torchrl_grpo.envs.TensorHighwayEnv`), ``highway`` (highway-env itself, on

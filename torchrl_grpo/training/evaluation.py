@@ -21,9 +21,11 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
-from torchrl_grpo.branching import LookaheadPolicy
-from torchrl_grpo.envs import TensorHighwayEnv
-from torchrl_grpo.modules import DeterministicActor, KinematicsLayout, make_scripted_policy
+from torchrl_grpo.branching.lookahead import LookaheadPolicy
+from torchrl_grpo.envs.highway.tensor_env import TensorHighwayEnv
+from torchrl_grpo.modules.actors import DeterministicActor
+from torchrl_grpo.modules.kinematics import KinematicsLayout
+from torchrl_grpo.modules.scripted.registry import make_scripted_policy
 from torchrl_grpo.training.baseline_cache import cache_key, read_cached
 from torchrl_grpo.training.checkpoint import load_checkpoint
 from torchrl_grpo.training.config import typed_config

@@ -21,7 +21,8 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 
-from torchrl_grpo.branching import BRANCH_RETURN, plot_group
+from torchrl_grpo.branching.keys import BRANCH_RETURN
+from torchrl_grpo.branching.plots import plot_group
 from torchrl_grpo.training.baselines import evaluate_baselines
 from torchrl_grpo.training.checkpoint import (
     Progress,

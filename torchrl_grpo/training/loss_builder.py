@@ -13,9 +13,9 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import LossModule
 
-from torchrl_grpo.objectives import ReferenceSync
-from torchrl_grpo.training.algos import GRPO, algorithm_for
-from torchrl_grpo.training.algos.grpo import TRAIN_REWARD
+from torchrl_grpo.objectives.reference import ReferenceSync
+from torchrl_grpo.training.algos.base import algorithm_for
+from torchrl_grpo.training.algos.grpo import GRPO, TRAIN_REWARD
 from torchrl_grpo.training.optim_builder import make_optimizer
 
 __all__ = [

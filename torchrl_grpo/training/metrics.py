@@ -15,7 +15,7 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 
-from torchrl_grpo.branching import BRANCH_RETURN, MASK
+from torchrl_grpo.branching.keys import BRANCH_RETURN, MASK
 
 __all__ = ["PhaseTimer", "group_metrics", "metric_name", "progress_bar", "progress_postfix"]
 

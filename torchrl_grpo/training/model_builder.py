@@ -9,20 +9,15 @@ from torch import nn
 from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, ValueOperator
 
-from torchrl_grpo.modules import (
-    CrashHead,
-    NeighbourMLP,
-    NetworkKind,
-    PolicyEnsemble,
-    PriorLogits,
-    SceneMLP,
-    ScriptedPolicy,
-    make_discrete_actor,
-    make_network,
-    make_scripted_policy,
-    make_value_net,
-)
-from torchrl_grpo.modules.scene import DEFAULT_TARGET_SPEEDS
+from torchrl_grpo.modules.actors import make_discrete_actor, make_value_net
+from torchrl_grpo.modules.crash_head import CrashHead
+from torchrl_grpo.modules.ensemble import PolicyEnsemble
+from torchrl_grpo.modules.neighbours import NeighbourMLP
+from torchrl_grpo.modules.networks import NetworkKind, make_network
+from torchrl_grpo.modules.prior import PriorLogits
+from torchrl_grpo.modules.scene import DEFAULT_TARGET_SPEEDS, SceneMLP
+from torchrl_grpo.modules.scripted.actions import ScriptedPolicy
+from torchrl_grpo.modules.scripted.registry import make_scripted_policy
 from torchrl_grpo.training.env_builder import make_layout
 
 __all__ = [
@@ -34,7 +29,7 @@ __all__ = [
     "make_value",
 ]
 
-#: The network of ``model.kind``: one of :func:`~torchrl_grpo.modules.make_network`'s
+#: The network of ``model.kind``: one of :func:`~torchrl_grpo.modules.networks.make_network`'s
 #: kinds, or ``"scene"`` (:class:`~torchrl_grpo.modules.SceneMLP`).
 ModelArchitecture = Literal[NetworkKind, "scene", "neighbours"]
 #: The scripted policies that drive deterministically (names of
@@ -105,7 +100,7 @@ def make_policy(model_cfg: DictConfig, env: EnvBase) -> ProbabilisticActor:
     policy is ``K`` such networks (:class:`~torchrl_grpo.modules.PolicyEnsemble`) that
     act with their mean logits. With ``model.prior`` set, the logits
     are the network's plus ``model.prior_weight``
-    on that scripted policy's action (:class:`~torchrl_grpo.modules.PriorLogits`).
+    on that scripted policy's action (:class:`~torchrl_grpo.modules.prior.PriorLogits`).
 
     Example:
         >>> from omegaconf import OmegaConf

@@ -77,8 +77,9 @@ def load_run_policy(
 
     Example:
         >>> import tempfile, torch
-        >>> from torchrl_grpo.training import compose_config, make_env, save_checkpoint
-        >>> from torchrl_grpo.training import to_container
+        >>> from torchrl_grpo.training import compose_config, make_env
+        >>> from torchrl_grpo.training.checkpoint import save_checkpoint
+        >>> from torchrl_grpo.training.config import to_container
         >>> cfg = compose_config(["experiment=smoke", "model=mlp"])
         >>> env = make_env(cfg.env, seed=0)
         >>> policy = make_policy(cfg.model, env)
@@ -120,8 +121,9 @@ def init_policy(path: str, policy: ProbabilisticActor, cfg: DictConfig) -> None:
 
     Example:
         >>> import tempfile, torch
-        >>> from torchrl_grpo.training import compose_config, make_env, save_checkpoint
-        >>> from torchrl_grpo.training import to_container
+        >>> from torchrl_grpo.training import compose_config, make_env
+        >>> from torchrl_grpo.training.checkpoint import save_checkpoint
+        >>> from torchrl_grpo.training.config import to_container
         >>> cfg = compose_config(["experiment=smoke"])
         >>> env = make_env(cfg.env, seed=0)
         >>> trained, fresh = make_policy(cfg.model, env), make_policy(cfg.model, env)

@@ -17,7 +17,7 @@ from tensordict.nn import TensorDictModuleBase
 from torch import nn
 from torchrl.envs import EnvBase
 
-from torchrl_grpo.modules import PolicyEnsemble
+from torchrl_grpo.modules.ensemble import PolicyEnsemble
 from torchrl_grpo.training.pretrained import load_run_policy
 
 __all__ = ["Teachers", "has_crash_head", "load_teachers"]
@@ -129,8 +129,10 @@ def load_teachers(
 
     Example:
         >>> import tempfile
-        >>> from torchrl_grpo.training import compose_config, make_env, save_checkpoint
-        >>> from torchrl_grpo.training import make_policy, to_container
+        >>> from torchrl_grpo.training import compose_config, make_env
+        >>> from torchrl_grpo.training.checkpoint import save_checkpoint
+        >>> from torchrl_grpo.training import make_policy
+        >>> from torchrl_grpo.training.config import to_container
         >>> cfg = compose_config(["experiment=smoke"])
         >>> env = make_env(cfg.env, seed=0)
         >>> policy = make_policy(cfg.model, env)

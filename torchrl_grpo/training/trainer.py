@@ -28,7 +28,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 from torchrl.collectors import BaseCollector
 
-from torchrl_grpo.training.algos import algorithm_for
+from torchrl_grpo.training.algos.base import algorithm_for
 from torchrl_grpo.training.averaging import PolicyAverage
 from torchrl_grpo.training.checkpoint import (
     Progress,

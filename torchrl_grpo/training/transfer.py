@@ -20,8 +20,8 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_grpo.envs import TensorHighwayEnv
-from torchrl_grpo.modules import DeterministicActor
+from torchrl_grpo.envs.highway.tensor_env import TensorHighwayEnv
+from torchrl_grpo.modules.actors import DeterministicActor
 from torchrl_grpo.training.env_builder import env_overrides, make_env
 from torchrl_grpo.training.results import EvalResult
 

@@ -22,9 +22,15 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl_grpo.envs.core.errors import StateMismatchError
 from torchrl_grpo.envs.core.gym_state import restore_rng
 from torchrl_grpo.envs.highway.wrapper import HighwayEnv
-from torchrl_grpo.sim import World, world_from_tensordict
 from torchrl_grpo.sim.rng import mix64
-from torchrl_grpo.sim.state import BOOL_FIELDS, FLOAT_FIELDS, INT_FIELDS, Vehicles
+from torchrl_grpo.sim.state import (
+    BOOL_FIELDS,
+    FLOAT_FIELDS,
+    INT_FIELDS,
+    Vehicles,
+    World,
+    world_from_tensordict,
+)
 
 __all__ = ["HighwayBridge", "export_states", "import_states"]
 

@@ -33,7 +33,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl_grpo.envs.highway.parity_stats import chi2_counts, ks_2samp, proportions_z
 from torchrl_grpo.envs.highway.tensor_env import TensorHighwayEnv
 from torchrl_grpo.envs.highway.wrapper import HighwayEnv
-from torchrl_grpo.sim import world_from_tensordict
+from torchrl_grpo.sim.state import world_from_tensordict
 
 __all__ = ["StepMiss", "one_step", "record_worlds", "same_world", "whole_episodes"]
 

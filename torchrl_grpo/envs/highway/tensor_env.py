@@ -34,17 +34,16 @@ from torchrl_grpo.envs.highway.tensor_state import (
     tensor_state_spec,
     where_rows,
 )
-from torchrl_grpo.sim import (
+from torchrl_grpo.sim.reset import reset_world
+from torchrl_grpo.sim.reward import REWARD_COMPONENTS
+from torchrl_grpo.sim.rng import seed_keys
+from torchrl_grpo.sim.simulate import observe_world, step
+from torchrl_grpo.sim.state import (
+    FLOAT_FIELDS,
     empty_world,
-    observe_world,
-    reset_world,
-    seed_keys,
-    step,
     world_from_tensordict,
     world_to_tensordict,
 )
-from torchrl_grpo.sim.reward import REWARD_COMPONENTS
-from torchrl_grpo.sim.state import FLOAT_FIELDS
 
 __all__ = ["TensorHighwayEnv"]
 

@@ -37,7 +37,8 @@ from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
 from torchrl_grpo.envs.highway import schema
-from torchrl_grpo.sim import (
+from torchrl_grpo.sim.observation import FEATURES
+from torchrl_grpo.sim.params import (
     ControlParams,
     HighwayParams,
     IDMParams,
@@ -48,7 +49,6 @@ from torchrl_grpo.sim import (
     TrafficParams,
     VehicleParams,
 )
-from torchrl_grpo.sim.observation import FEATURES
 
 __all__ = ["TENSOR_SCENARIOS", "check_tensor_config", "tensor_params"]
 

@@ -23,9 +23,17 @@ from torchrl.data import Composite, Unbounded
 
 from torchrl_grpo.envs.core.errors import StateCorruptedError, StateMismatchError
 from torchrl_grpo.envs.core.gym_state import RNG_WORDS, seeded_rng_words
-from torchrl_grpo.sim import HighwayParams, World, check_world, world_from_tensordict
+from torchrl_grpo.sim.params import HighwayParams
 from torchrl_grpo.sim.rng import mix64, uniform
-from torchrl_grpo.sim.state import BOOL_FIELDS, FLOAT_FIELDS, INT_FIELDS, Vehicles
+from torchrl_grpo.sim.state import (
+    BOOL_FIELDS,
+    FLOAT_FIELDS,
+    INT_FIELDS,
+    Vehicles,
+    World,
+    check_world,
+    world_from_tensordict,
+)
 
 __all__ = [
     "check_state_structure",

@@ -31,6 +31,8 @@ __all__ = [
 # Indices of highway-env's DiscreteMetaAction.ACTIONS_ALL (envs/common/action.py).
 LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER = 0, 1, 2, 3, 4
 MetaAction = Literal["LANE_LEFT", "IDLE", "LANE_RIGHT", "FASTER", "SLOWER"]
+#: highway-env's DiscreteMetaAction by name: the action index a policy writes, e.g.
+#: ``META_ACTIONS["SLOWER"] == 4``.
 META_ACTIONS: dict[str, int] = {
     "LANE_LEFT": LANE_LEFT,
     "IDLE": IDLE,

@@ -149,7 +149,9 @@ class RuleDriver(Driver):
 
 
 class AggressiveDriver(Driver):
-    """The decision of :class:`~torchrl_grpo.modules.AggressivePolicy` (its arguments).
+    """The decision of :class:`~torchrl_grpo.modules.scripted.policies.AggressivePolicy`.
+
+    It takes the policy's arguments.
 
     Example:
         >>> driver = AggressiveDriver(KinematicsLayout(), overtake_headway=1.5, brake_ttc=1.5)
@@ -198,7 +200,8 @@ class AggressiveDriver(Driver):
 class KeepDistanceDriver(Driver):
     """Keeps lane; brakes when the leader is within a headway or closing fast.
 
-    The decision of :class:`~torchrl_grpo.modules.ConservativePolicy` (its arguments).
+    The decision of :class:`~torchrl_grpo.modules.scripted.policies.ConservativePolicy`
+    (its arguments).
 
     Example:
         >>> driver = KeepDistanceDriver(KinematicsLayout(), headway=3.0, ttc=10.0)
@@ -232,7 +235,8 @@ class KeepDistanceDriver(Driver):
 class LaneChangeDriver(KeepDistanceDriver):
     """Changes lane towards ``offset`` (-1 left, +1 right) while it can, else keeps distance.
 
-    The decision of :class:`~torchrl_grpo.modules.LaneChangePolicy` (its arguments).
+    The decision of :class:`~torchrl_grpo.modules.scripted.policies.LaneChangePolicy`
+    (its arguments).
 
     Example:
         >>> driver = LaneChangeDriver(KinematicsLayout(), offset=1, headway=1.5, ttc=5.0)
@@ -261,7 +265,9 @@ class LaneChangeDriver(KeepDistanceDriver):
 
 
 class CautiousDriver(Driver):
-    """The decision of :class:`~torchrl_grpo.modules.CautiousPolicy` (its arguments).
+    """The decision of :class:`~torchrl_grpo.modules.scripted.policies.CautiousPolicy`.
+
+    It takes the policy's arguments.
 
     Example:
         >>> driver = CautiousDriver(KinematicsLayout(), near_distance=30.0)

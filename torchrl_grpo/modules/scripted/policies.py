@@ -93,7 +93,7 @@ class RulePolicy(ScriptedPolicy):
     Example:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> from torchrl_grpo.modules import SLOWER
+        >>> from torchrl_grpo.modules.scripted.actions import SLOWER
         >>> policy = RulePolicy()
         >>> obs = torch.zeros(5, 5)
         >>> obs[0] = torch.tensor([1.0, 0.5, 0.0, 25 / 80, 0.0])  # ego: 25 m/s, left lane

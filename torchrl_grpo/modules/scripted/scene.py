@@ -5,7 +5,7 @@
 lateral offset, relative speed and lane. A driver subclasses :class:`Driver` and maps
 that scene to actions in :meth:`Driver.decide`; the drivers of the library are in
 :mod:`~torchrl_grpo.modules.scripted.drivers`, and
-:class:`~torchrl_grpo.modules.SceneFeatures` reads the same scene.
+:class:`~torchrl_grpo.modules.scene.SceneFeatures` reads the same scene.
 """
 
 from __future__ import annotations
@@ -153,7 +153,8 @@ class Driver(nn.Module):
 
     Example:
         >>> from tensordict import TensorDict
-        >>> from torchrl_grpo.modules import SLOWER, ScriptedPolicy
+        >>> from torchrl_grpo.modules import ScriptedPolicy
+        >>> from torchrl_grpo.modules.scripted.actions import SLOWER
         >>> class BrakeWhenFollowing(Driver):
         ...     def decide(self, scene):
         ...         gap, _ = scene.leader(0)

@@ -26,8 +26,10 @@ from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import LossModule
 
-from torchrl_grpo.branching import GROUP_ID
-from torchrl_grpo.modules import CrashHead, PolicyEnsemble, member_halves, shared_forward
+from torchrl_grpo.branching.keys import GROUP_ID
+from torchrl_grpo.modules.crash_head import CrashHead
+from torchrl_grpo.modules.ensemble import PolicyEnsemble, member_halves
+from torchrl_grpo.modules.sharing import shared_forward
 from torchrl_grpo.training.collect import make_collector
 from torchrl_grpo.training.env_builder import make_rollout_env
 from torchrl_grpo.training.metrics import PhaseTimer, metric_name
@@ -90,7 +92,8 @@ class Algorithm:
         env: an env of the scenario in this process, for specs.
 
     Example:
-        >>> from torchrl_grpo.training import Algorithm, algorithm_for
+        >>> from torchrl_grpo.training import Algorithm
+        >>> from torchrl_grpo.training.algos.base import algorithm_for
         >>> cls = algorithm_for(OmegaConf.create({"name": "grpo_episode"}))
         >>> cls.__name__, cls.config_name, issubclass(cls, Algorithm)
         ('GRPO', 'base_grpo', True)
@@ -189,7 +192,7 @@ class Algorithm:
         """TorchRL's ``Collector`` of ``rollout.frames_per_batch`` steps over the workers.
 
         The workers write their simulator state after each step, so that a checkpoint
-        restores them mid-episode (:func:`~torchrl_grpo.training.collector_state`).
+        restores them mid-episode (:func:`~torchrl_grpo.training.collect.collector_state`).
         """
         cfg = self.cfg
         env = make_rollout_env(
@@ -223,7 +226,7 @@ class Algorithm:
         loss of its own outputs (its ratios, targets and crash predictions), so the
         members are fitted to the same data independently; the ensemble acts with
         their mean. With ``model.bagging``, member ``k`` gets the loss of the rows of
-        its own half of the groups only (:func:`~torchrl_grpo.modules.member_halves`).
+        its own half of the groups only (:func:`~torchrl_grpo.modules.ensemble.member_halves`).
         """
         ensemble = self.ensemble
         if ensemble is None:
@@ -332,7 +335,8 @@ def register_algorithm(cls: type[Algorithm]) -> type[Algorithm]:
 
     Example:
         >>> from dataclasses import dataclass
-        >>> from torchrl_grpo.training import ALGORITHMS, PPO, PPOConfig
+        >>> from torchrl_grpo.training import PPO, PPOConfig
+        >>> from torchrl_grpo.training.algos.base import ALGORITHMS
         >>> @dataclass
         ... class MyPPOConfig(PPOConfig):
         ...     name: str = "my_ppo"

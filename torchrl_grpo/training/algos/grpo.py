@@ -18,15 +18,13 @@ from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import LossModule
 
-from torchrl_grpo.branching import GROUP_ID, MASK
-from torchrl_grpo.modules import EXPLORED
-from torchrl_grpo.objectives import (
-    CrashHeadLoss,
-    GroupRelativeAdvantage,
-    GRPOLoss,
-    HorizonBootstrap,
-    ReferenceSync,
-)
+from torchrl_grpo.branching.keys import GROUP_ID, MASK
+from torchrl_grpo.modules.greedy_tail import EXPLORED
+from torchrl_grpo.objectives.advantage import GroupRelativeAdvantage
+from torchrl_grpo.objectives.bootstrap import HorizonBootstrap
+from torchrl_grpo.objectives.crash_head import CrashHeadLoss
+from torchrl_grpo.objectives.grpo import GRPOLoss
+from torchrl_grpo.objectives.reference import ReferenceSync
 from torchrl_grpo.training.algos.base import AlgoConfig, Algorithm, register_algorithm
 from torchrl_grpo.training.algos.enumerated import (
     BRANCH_CRASHED,

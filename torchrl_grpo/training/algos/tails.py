@@ -18,8 +18,9 @@ from tensordict import TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
 
-from torchrl_grpo.branching import MASK
-from torchrl_grpo.objectives import HorizonBootstrap, TailSurvival, crash_label
+from torchrl_grpo.branching.keys import MASK
+from torchrl_grpo.objectives.bootstrap import HorizonBootstrap
+from torchrl_grpo.objectives.survival import TailSurvival, crash_label
 from torchrl_grpo.training.algos.enumerated import branch_crashed
 from torchrl_grpo.training.algos.grpo_checks import check_crash_head_needed
 from torchrl_grpo.training.model_builder import make_base_policy
@@ -52,7 +53,7 @@ def make_tail_policy(algo: DictConfig, policy: nn.Module, env: EnvBase) -> nn.Mo
 
 
 def make_tail_survival(algo: DictConfig, head: nn.Module | None) -> TailSurvival | None:
-    """The :class:`~torchrl_grpo.objectives.TailSurvival` of ``algo.bootstrap=survival``.
+    """The :class:`~torchrl_grpo.objectives.survival.TailSurvival` of ``algo.bootstrap=survival``.
 
     Also built for ``algo.crash_label=bootstrap``, whose labels it gives.
 
@@ -80,7 +81,7 @@ def crash_labels(
     """``[R, G, T]``: each branch's crash label, on every step of the branch.
 
     Whether the branch crashed; with ``survival`` (``algo.crash_label=bootstrap``, after
-    ``survival`` has written its key), :func:`~torchrl_grpo.objectives.crash_label`:
+    ``survival`` has written its key), :func:`~torchrl_grpo.objectives.survival.crash_label`:
     where the horizon cut the branch before its episode's last step
     (:meth:`~torchrl_grpo.objectives.HorizonBootstrap.steps_left` > 0), the head's crash
     probability at its last state.
