@@ -165,7 +165,7 @@ def test_the_run_curve_has_baseline_lines_a_final_star_and_a_crash_panel(tmp_pat
 def test_a_frame_zero_evaluation_leaves_the_weights_and_the_table_as_they_were(
     tmp_path, monkeypatch
 ):
-    from torchrl_grpo.training import EvaluationHook, Hook
+    from torchrl_grpo.training.hooks import EvaluationHook, Hook
 
     overrides = [
         "experiment=smoke",

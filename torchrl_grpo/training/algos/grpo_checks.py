@@ -17,7 +17,8 @@ def check_grpo_config(cfg: DictConfig) -> None:
 
     Example:
         >>> from torchrl_grpo.training import compose_config
-        >>> cfg = compose_config(["algo.replay_groups=8", "algo.tail_policy=learner"])
+        >>> learner_tails = ["algo.tail_policy=learner", "algo.tail_learner_steps=0"]
+        >>> cfg = compose_config(["algo.replay_groups=8", *learner_tails])
         >>> check_grpo_config(cfg)
         Traceback (most recent call last):
         ...
