@@ -16,7 +16,7 @@ import torch
 
 from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.modules import KinematicsLayout, make_scripted_policy
-from torchrl_grpo.training.plots import save_gif
+from torchrl_grpo.training.run_plots import save_gif
 
 logging.basicConfig(level=logging.INFO, format="%(message)s")
 log = logging.getLogger("render_tensor_episode")

@@ -50,7 +50,7 @@ from torchrl_grpo.branching import (  # noqa: E402
     reset_roots,
     shutdown_env,
 )
-from torchrl_grpo.envs.core.batched import local_worker_env  # noqa: E402
+from torchrl_grpo.envs.core.snapshot_batched import local_worker_env  # noqa: E402
 from torchrl_grpo.modules import KinematicsMLP, make_discrete_actor  # noqa: E402
 
 NAME = "multi_turn"

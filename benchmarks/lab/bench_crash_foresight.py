@@ -29,7 +29,7 @@ from bench_crash_rates import trained
 from omegaconf import OmegaConf
 
 from torchrl_grpo.modules import PolicyEnsemble
-from torchrl_grpo.training.teachers import has_crash_head
+from torchrl_grpo.training.teacher_loading import has_crash_head
 from torchrl_grpo.training.transfer import tensor_episodes
 
 logging.basicConfig(level=logging.INFO, format="%(message)s")

@@ -1,6 +1,6 @@
 """The drive recipe with one network forward where it ran two or three on the same rows.
 
-``torchrl_grpo.modules.sharing.shared_forward`` runs each of the policy's networks once per
+``torchrl_grpo.modules.forward_sharing.shared_forward`` runs each of the policy's networks once per
 input tensor. ``experiment=drive`` uses it in two places:
 
 * the update: it sums three losses on every minibatch (the clipped surrogate, the
@@ -43,7 +43,7 @@ from tensordict import TensorDictBase
 import torchrl_grpo.modules.greedy_tail as greedy_tail
 import torchrl_grpo.training.algos.base as algo_base
 from torchrl_grpo.modules import GreedyTail
-from torchrl_grpo.modules.sharing import shared_forward
+from torchrl_grpo.modules.forward_sharing import shared_forward
 from torchrl_grpo.training import Trainer, compose_config
 
 #: Training modes: (the update shares, the rollout shares).

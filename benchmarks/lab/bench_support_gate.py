@@ -7,7 +7,8 @@ the base policy's action wherever the data compared actions too rarely. This scr
 applies that rule, after training, to a run that learned with ``model=scene`` or
 ``model.prior`` and replayed groups (``algo.replay_groups``): the learner acts in a
 state only when at least ``k`` of the replay's root states lie within ``r`` of it in
-:class:`~torchrl_grpo.modules.scene.SceneFeatures` space (Euclidean distance); elsewhere the
+:class:`~torchrl_grpo.modules.scene_features.SceneFeatures` space (Euclidean distance); elsewhere
+the
 rule policy acts. It evaluates the greedy policy on the evaluation seeds for each gate
 ``r:k`` beside the two ends: the learner everywhere and the rule policy everywhere.
 
@@ -28,7 +29,7 @@ from torch import nn
 from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor
 
-from torchrl_grpo.modules.scene import SceneFeatures
+from torchrl_grpo.modules.scene_features import SceneFeatures
 from torchrl_grpo.training import load_checkpoint
 from torchrl_grpo.training.algos.grpo import make_replay  # the buffer the run trained with
 from torchrl_grpo.training.env_builder import make_env, make_layout

@@ -6,7 +6,7 @@ from omegaconf import OmegaConf
 
 from torchrl_grpo.envs import HighwayEnv
 from torchrl_grpo.modules import KinematicsLayout, RandomPolicy
-from torchrl_grpo.modules.neighbours import NeighbourFeatures, NeighbourMLP
+from torchrl_grpo.modules.neighbour_features import NeighbourFeatures, NeighbourMLP
 from torchrl_grpo.training.config import ModelConfig
 from torchrl_grpo.training.model_builder import make_policy
 

@@ -7,7 +7,7 @@ from omegaconf import OmegaConf
 
 from torchrl_grpo.envs import HighwayEnv
 from torchrl_grpo.modules import KinematicsLayout, RandomPolicy, SceneMLP
-from torchrl_grpo.modules.scene import SceneFeatures
+from torchrl_grpo.modules.scene_features import SceneFeatures
 from torchrl_grpo.training.config import ModelConfig
 from torchrl_grpo.training.model_builder import make_policy
 

@@ -64,7 +64,7 @@ def test_layout_round_trip_and_highway_defaults():
     from highway_env.road.lane import AbstractLane
     from highway_env.vehicle.kinematics import Vehicle
 
-    from torchrl_grpo.modules.kinematics import LANE_WIDTH, MAX_SPEED, VEHICLE_LENGTH
+    from torchrl_grpo.modules.kinematics_table import LANE_WIDTH, MAX_SPEED, VEHICLE_LENGTH
 
     assert (MAX_SPEED, LANE_WIDTH, VEHICLE_LENGTH) == (
         Vehicle.MAX_SPEED,

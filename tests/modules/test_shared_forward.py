@@ -9,7 +9,7 @@ from tensordict import TensorDict
 from torchrl.data import Categorical
 
 from torchrl_grpo.modules import CrashHead, PolicyEnsemble, make_discrete_actor
-from torchrl_grpo.modules.sharing import shared_forward, shared_networks
+from torchrl_grpo.modules.forward_sharing import shared_forward, shared_networks
 
 
 def test_the_networks_are_the_ones_the_actor_calls():

@@ -8,7 +8,11 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
 
-from torchrl_grpo.objectives.distill import GroupDistillLoss, group_softmax_target, group_spread
+from torchrl_grpo.objectives.group_distill import (
+    GroupDistillLoss,
+    group_softmax_target,
+    group_spread,
+)
 from torchrl_grpo.training.algos.enumerated import distill_targets
 
 

@@ -122,7 +122,7 @@ def test_a_non_finite_policy_log_prob_is_a_clear_error():
 
 
 def test_finite_values_whose_sum_overflows_pass_the_check():
-    from torchrl_grpo.objectives.checks import check_finite
+    from torchrl_grpo.objectives.loss_checks import check_finite
 
     check_finite({"'advantage'": torch.full((4,), 3e38)})  # the sum is inf, no value is
     with pytest.raises(ValueError, match="1 of 5 valid steps"):

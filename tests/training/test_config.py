@@ -291,13 +291,13 @@ def test_roots_continue_keeps_its_older_spelling(spelling):
 
 def test_the_choices_are_the_librarys_literals():
     from torchrl_grpo.branching.branch_env import Backend as BranchBackend
-    from torchrl_grpo.branching.collector import RootKind
     from torchrl_grpo.branching.continuation import Selection
+    from torchrl_grpo.branching.group_collector import RootKind
     from torchrl_grpo.modules import SCRIPTED_POLICIES
     from torchrl_grpo.modules.greedy_tail import FirstAction
     from torchrl_grpo.modules.networks import NetworkKind
     from torchrl_grpo.objectives.bootstrap import BootstrapMode
-    from torchrl_grpo.objectives.grpo import Aggregation
+    from torchrl_grpo.objectives.grpo_loss import Aggregation
     from torchrl_grpo.objectives.kl import KLEstimator
     from torchrl_grpo.training import config
 

@@ -121,8 +121,8 @@ def _blobs(mask):
 
 
 def test_the_run_curve_has_baseline_lines_a_final_star_and_a_crash_panel(tmp_path):
-    from torchrl_grpo.training.plots import plot_run_curve
     from torchrl_grpo.training.results import EvalResult
+    from torchrl_grpo.training.run_plots import plot_run_curve
 
     def row(frames, ret, crash, seed):
         return {"frames": frames, "return": ret, "crash_rate": crash, "seed": seed, "episodes": 4}

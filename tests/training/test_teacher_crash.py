@@ -13,7 +13,7 @@ from torchrl_grpo.modules import CrashHead
 from torchrl_grpo.objectives import TeacherCrashLoss
 from torchrl_grpo.training import Trainer, load_checkpoint, make_env, make_policy
 from torchrl_grpo.training.checkpoint import save_checkpoint
-from torchrl_grpo.training.teachers import load_teachers
+from torchrl_grpo.training.teacher_loading import load_teachers
 
 TENSOR = ["env.backend=tensor", "env.num_envs=32"]
 CRASH_HEAD = ["model.crash_head=true", "model.crash_aversion=3"]

@@ -17,7 +17,7 @@ from torchrl_grpo.training import Trainer, load_checkpoint, make_env, make_polic
 from torchrl_grpo.training.algos.labelled import LabelledStates
 from torchrl_grpo.training.checkpoint import save_checkpoint
 from torchrl_grpo.training.config import check_config
-from torchrl_grpo.training.teachers import load_teachers
+from torchrl_grpo.training.teacher_loading import load_teachers
 
 TENSOR = ["env.backend=tensor", "env.num_envs=32"]
 

@@ -13,11 +13,11 @@ from train_setup import TINY, compose_config
 
 from torchrl_grpo.modules import CrashHead, PolicyEnsemble
 from torchrl_grpo.modules.ensemble import member_halves
-from torchrl_grpo.modules.sharing import shared_forward, shared_networks
+from torchrl_grpo.modules.forward_sharing import shared_forward, shared_networks
 from torchrl_grpo.objectives import HorizonBootstrap
 from torchrl_grpo.objectives.survival import TailSurvival
 from torchrl_grpo.training import Trainer
-from torchrl_grpo.training.algos.tails import crash_labels
+from torchrl_grpo.training.algos.branch_tails import crash_labels
 
 
 def test_distillation_stores_each_groups_target_and_trains_on_it(tmp_path):

@@ -12,11 +12,11 @@ See ``docs/branching.md``.
 """
 
 from torchrl_grpo.branching.branch_env import make_branch_env, shutdown_env
-from torchrl_grpo.branching.collector import GroupCollector
 from torchrl_grpo.branching.continuation import MultiTurnResult, multi_turn_rollout, select_branches
+from torchrl_grpo.branching.group_collector import GroupCollector
+from torchrl_grpo.branching.group_plots import plot_group
 from torchrl_grpo.branching.keys import BRANCH, BRANCH_RETURN, GROUP_ID, MASK, STATE
 from torchrl_grpo.branching.lookahead import LookaheadPolicy
-from torchrl_grpo.branching.plots import plot_group
 from torchrl_grpo.branching.rollout import branch_rollout, final_states
 from torchrl_grpo.branching.root_builders import (
     make_roots,

@@ -17,10 +17,10 @@ from typing import Any, Literal
 from torchrl.envs import EnvBase, TransformedEnv
 
 from torchrl_grpo.branching.workers import BranchParallelEnv
-from torchrl_grpo.envs.core.batched import SnapshotSerialEnv
-from torchrl_grpo.envs.core.registry import codec_for
+from torchrl_grpo.envs.core.codec_registry import codec_for
+from torchrl_grpo.envs.core.snapshot_batched import SnapshotSerialEnv
 from torchrl_grpo.envs.core.snapshot_env import SnapshotEnv
-from torchrl_grpo.envs.highway.codec import HIGHWAY_SCENARIOS
+from torchrl_grpo.envs.highway.highway_codec import HIGHWAY_SCENARIOS
 from torchrl_grpo.envs.highway.wrapper import HighwayEnv
 
 logger = logging.getLogger(__name__)

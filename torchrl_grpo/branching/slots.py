@@ -23,8 +23,8 @@ from torchrl.envs import EnvBase, TransformedEnv
 
 from torchrl_grpo.branching.keys import STATE
 from torchrl_grpo.branching.workers import BranchParallelEnv
-from torchrl_grpo.envs.core.batched import local_worker_env
 from torchrl_grpo.envs.core.errors import StateCorruptedError
+from torchrl_grpo.envs.core.snapshot_batched import local_worker_env
 
 logger = logging.getLogger(__name__)
 

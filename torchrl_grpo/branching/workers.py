@@ -21,7 +21,7 @@ from torchrl.envs import EnvBase
 
 from torchrl_grpo.branching.keys import STATE
 from torchrl_grpo.branching.worker_factory import BranchWorkerFactory
-from torchrl_grpo.envs.core.batched import SnapshotParallelEnv
+from torchrl_grpo.envs.core.snapshot_batched import SnapshotParallelEnv
 
 logger = logging.getLogger(__name__)
 

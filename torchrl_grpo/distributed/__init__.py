@@ -5,7 +5,7 @@ it, and building a :class:`RayGroupCollector` without it raises an ``ImportError
 naming the extra. See ``docs/distributed.md``.
 """
 
-from torchrl_grpo.distributed.collector import RayGroupCollector
+from torchrl_grpo.distributed.ray_collector import RayGroupCollector
 from torchrl_grpo.distributed.ray_setup import init_ray
 
 __all__ = [

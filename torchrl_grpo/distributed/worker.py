@@ -18,7 +18,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
-from torchrl_grpo.branching.collector import GroupCollector
+from torchrl_grpo.branching.group_collector import GroupCollector
 from torchrl_grpo.branching.roots import RootSource
 from torchrl_grpo.envs.core.errors import SnapshotError
 

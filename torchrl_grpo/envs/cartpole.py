@@ -9,7 +9,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Composite, Unbounded
 
 from torchrl_grpo.envs.core.bits import check_state_layout
-from torchrl_grpo.envs.core.codec import StateCodec
+from torchrl_grpo.envs.core.codec_registry import register_codec
 from torchrl_grpo.envs.core.errors import StateCorruptedError
 from torchrl_grpo.envs.core.gym_state import (
     check_wrappers,
@@ -21,7 +21,7 @@ from torchrl_grpo.envs.core.gym_state import (
     with_seeded_rng,
     wrapper_spec,
 )
-from torchrl_grpo.envs.core.registry import register_codec
+from torchrl_grpo.envs.core.state_codec import StateCodec
 
 __all__ = ["CartPoleStateCodec"]
 

@@ -4,9 +4,9 @@ from torchrl_grpo.modules.actors import make_discrete_actor, make_value_net
 from torchrl_grpo.modules.crash_head import CrashHead
 from torchrl_grpo.modules.ensemble import PolicyEnsemble
 from torchrl_grpo.modules.greedy_tail import GreedyTail
-from torchrl_grpo.modules.kinematics import KinematicsLayout
+from torchrl_grpo.modules.kinematics_table import KinematicsLayout
 from torchrl_grpo.modules.networks import EgoAttentionNet, KinematicsMLP
-from torchrl_grpo.modules.scene import SceneMLP
+from torchrl_grpo.modules.scene_features import SceneMLP
 from torchrl_grpo.modules.scripted.actions import (
     META_ACTIONS,
     ConstantActionPolicy,
@@ -14,7 +14,7 @@ from torchrl_grpo.modules.scripted.actions import (
     ScriptedPolicy,
 )
 from torchrl_grpo.modules.scripted.policies import RulePolicy
-from torchrl_grpo.modules.scripted.registry import SCRIPTED_POLICIES, make_scripted_policy
+from torchrl_grpo.modules.scripted.policy_registry import SCRIPTED_POLICIES, make_scripted_policy
 from torchrl_grpo.modules.scripted.scene import Driver, Scene
 
 __all__ = [

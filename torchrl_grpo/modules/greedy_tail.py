@@ -9,7 +9,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, exploration_type, set_exploration_type
 
-from torchrl_grpo.modules.sharing import shared_forward
+from torchrl_grpo.modules.forward_sharing import shared_forward
 
 __all__ = ["EXPLORED", "FirstAction", "GreedyTail"]
 

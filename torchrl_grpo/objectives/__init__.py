@@ -10,12 +10,12 @@ tail survival of ``survival.py``, the cross-entropy distillation of ``distill.py
 
 from torchrl_grpo.objectives.advantage import GroupRelativeAdvantage
 from torchrl_grpo.objectives.bootstrap import HorizonBootstrap
-from torchrl_grpo.objectives.crash_head import CrashHeadLoss
-from torchrl_grpo.objectives.grpo import GRPOLoss
+from torchrl_grpo.objectives.crash_head_loss import CrashHeadLoss
+from torchrl_grpo.objectives.grpo_loss import GRPOLoss
 from torchrl_grpo.objectives.kl import kl_estimate
 from torchrl_grpo.objectives.reference import ReferenceSync
 from torchrl_grpo.objectives.regression import AdvantageRegressionLoss
-from torchrl_grpo.objectives.teacher import TeacherCrashLoss, TeacherDistillLoss
+from torchrl_grpo.objectives.teacher_losses import TeacherCrashLoss, TeacherDistillLoss
 
 __all__ = [
     "AdvantageRegressionLoss",

@@ -17,7 +17,7 @@ from torchrl_grpo.objectives.aggregation import (
     step_weights,
     time_trajectories,
 )
-from torchrl_grpo.objectives.checks import per_step, require
+from torchrl_grpo.objectives.loss_checks import per_step, require
 
 __all__ = ["batch_step_weights"]
 

@@ -2,7 +2,8 @@
 
 A group that tries every action of a root once and then follows a fixed policy scores
 each action exactly: its advantages are ``A(s, a) = Q(s, a) - mean_b Q(s, b)``. The
-cross-entropy to ``softmax(A / tau)`` (:class:`~torchrl_grpo.objectives.distill.GroupDistillLoss`)
+cross-entropy to ``softmax(A / tau)``
+(:class:`~torchrl_grpo.objectives.group_distill.GroupDistillLoss`)
 teaches, in states the observation cannot tell apart, how often each action is the
 best; its greedy action is then the one that wins most often, even where it crashes
 in the others. Regressing the centred logits onto the advantages,
@@ -21,7 +22,7 @@ from tensordict import NestedKey, TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential
 from torchrl.objectives import LossModule
 
-from torchrl_grpo.objectives.checks import check_finite, require
+from torchrl_grpo.objectives.loss_checks import check_finite, require
 
 __all__ = ["AdvantageRegressionLoss"]
 

@@ -7,7 +7,7 @@ package. Nothing in the rest of the library imports it.
 from torchrl_grpo.training.algos.base import AlgoConfig, Algorithm, register_algorithm
 from torchrl_grpo.training.algos.grpo import GRPO, GRPOConfig
 from torchrl_grpo.training.algos.ppo import PPO, PPOConfig
-from torchrl_grpo.training.algos.teacher import DistillConfig, TeacherDistill
+from torchrl_grpo.training.algos.teacher_distill import DistillConfig, TeacherDistill
 from torchrl_grpo.training.baselines import evaluate_baselines
 from torchrl_grpo.training.checkpoint import load_checkpoint
 from torchrl_grpo.training.compose import compose_config
@@ -16,8 +16,8 @@ from torchrl_grpo.training.env_builder import make_env
 from torchrl_grpo.training.evaluation import evaluate, search_policy
 from torchrl_grpo.training.hooks import Hook
 from torchrl_grpo.training.model_builder import make_policy
-from torchrl_grpo.training.plots import plot_learning_curve
 from torchrl_grpo.training.pretrained import load_run_policy
+from torchrl_grpo.training.run_plots import plot_learning_curve
 from torchrl_grpo.training.trainer import Trainer, TrainResult
 
 __all__ = [

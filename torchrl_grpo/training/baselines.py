@@ -22,7 +22,7 @@ from typing import Any
 from omegaconf import DictConfig
 
 from torchrl_grpo.branching.lookahead import LookaheadPolicy
-from torchrl_grpo.modules.scripted.registry import make_scripted_policy
+from torchrl_grpo.modules.scripted.policy_registry import make_scripted_policy
 from torchrl_grpo.training.baseline_cache import (
     LOOKAHEAD_HORIZON,
     cache_key,

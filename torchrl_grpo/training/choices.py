@@ -21,12 +21,12 @@ from enum import StrEnum
 from typing import Any
 
 from torchrl_grpo.branching.branch_env import Backend as BranchBackend
-from torchrl_grpo.branching.collector import RootKind
 from torchrl_grpo.branching.continuation import Selection
+from torchrl_grpo.branching.group_collector import RootKind
 from torchrl_grpo.modules.greedy_tail import FirstAction
 from torchrl_grpo.objectives.advantage import Baseline, Returns, RewardScaling
 from torchrl_grpo.objectives.bootstrap import BootstrapMode
-from torchrl_grpo.objectives.grpo import Aggregation
+from torchrl_grpo.objectives.grpo_loss import Aggregation
 from torchrl_grpo.objectives.kl import KLEstimator
 from torchrl_grpo.objectives.survival import CrashLabel
 from torchrl_grpo.training.env_builder import EnvBackend, RolloutBackend

@@ -26,10 +26,10 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
 from torchrl_grpo.branching.branch_env import make_branch_env
-from torchrl_grpo.branching.collector import GroupCollector
+from torchrl_grpo.branching.group_collector import GroupCollector
 from torchrl_grpo.branching.keys import STATE
 from torchrl_grpo.branching.roots import TrunkRoots
-from torchrl_grpo.distributed.collector import RayGroupCollector
+from torchrl_grpo.distributed.ray_collector import RayGroupCollector
 from torchrl_grpo.modules.greedy_tail import GreedyTail
 from torchrl_grpo.training.env_builder import env_overrides
 

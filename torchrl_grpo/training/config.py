@@ -42,7 +42,6 @@ from torchrl_grpo.training.algos.grpo import (
     TrunkPolicyName,
 )
 from torchrl_grpo.training.algos.ppo import PPOConfig, PPOVariant
-from torchrl_grpo.training.checks import check_config
 from torchrl_grpo.training.choices import (
     AggregationName,
     Backend,
@@ -62,6 +61,7 @@ from torchrl_grpo.training.choices import (
     WorkerBackend,
     choice_enum,
 )
+from torchrl_grpo.training.config_checks import check_config
 from torchrl_grpo.training.resolvers import CONF_DIR, register_resolvers
 
 __all__ = [

@@ -14,7 +14,7 @@ from torchrl_grpo.branching.branch_env import Backend, make_branch_env
 from torchrl_grpo.envs.highway.tensor_env import TensorHighwayEnv
 from torchrl_grpo.envs.highway.tensor_params import check_tensor_config
 from torchrl_grpo.envs.highway.wrapper import HighwayEnv
-from torchrl_grpo.modules.kinematics import KinematicsLayout
+from torchrl_grpo.modules.kinematics_table import KinematicsLayout
 
 __all__ = [
     "EnvBackend",

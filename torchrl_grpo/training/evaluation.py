@@ -24,16 +24,16 @@ from torchrl.envs import EnvBase
 from torchrl_grpo.branching.lookahead import LookaheadPolicy
 from torchrl_grpo.envs.highway.tensor_env import TensorHighwayEnv
 from torchrl_grpo.modules.actors import DeterministicActor
-from torchrl_grpo.modules.kinematics import KinematicsLayout
-from torchrl_grpo.modules.scripted.registry import make_scripted_policy
+from torchrl_grpo.modules.kinematics_table import KinematicsLayout
+from torchrl_grpo.modules.scripted.policy_registry import make_scripted_policy
 from torchrl_grpo.training.baseline_cache import cache_key, read_cached
 from torchrl_grpo.training.checkpoint import load_checkpoint
 from torchrl_grpo.training.config import typed_config
 from torchrl_grpo.training.env_builder import env_overrides, make_env, make_layout, tensor_covers
 from torchrl_grpo.training.eval_episodes import eval_workers, run_episodes
 from torchrl_grpo.training.model_builder import make_policy
-from torchrl_grpo.training.plots import plot_comparison, plot_run_curve, save_gif
 from torchrl_grpo.training.results import EvalResult, format_table, paired_verdicts
+from torchrl_grpo.training.run_plots import plot_comparison, plot_run_curve, save_gif
 
 __all__ = [
     "BASELINE_LABELS",

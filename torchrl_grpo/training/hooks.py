@@ -21,8 +21,8 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 
+from torchrl_grpo.branching.group_plots import plot_group
 from torchrl_grpo.branching.keys import BRANCH_RETURN
-from torchrl_grpo.branching.plots import plot_group
 from torchrl_grpo.training.baselines import evaluate_baselines
 from torchrl_grpo.training.checkpoint import (
     Progress,
@@ -34,8 +34,8 @@ from torchrl_grpo.training.env_builder import make_env, tensor_covers
 from torchrl_grpo.training.eval_episodes import eval_workers
 from torchrl_grpo.training.evaluation import evaluate
 from torchrl_grpo.training.logging_builder import log_metrics
-from torchrl_grpo.training.plots import plot_run_curve, save_gif
 from torchrl_grpo.training.results import EvalResult, format_table, paired_verdicts
+from torchrl_grpo.training.run_plots import plot_run_curve, save_gif
 from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
 
 __all__ = [
@@ -217,7 +217,7 @@ class EvaluationHook(Hook):
     the policy and of every baseline of ``experiment.baselines``, the baselines from
     their cache (:func:`~torchrl_grpo.training.evaluate_baselines`; ``results.md``,
     ``results.json``), the first episode as a GIF (with ``logger.video``), and the
-    learning curve (:func:`~torchrl_grpo.training.plots.plot_run_curve`: the evaluation
+    learning curve (:func:`~torchrl_grpo.training.run_plots.plot_run_curve`: the evaluation
     history, the final evaluation as a star, the baselines on the periodic seeds as
     lines, cached like the final ones). Where the tensor simulator covers the env,
     each evaluation also logs the paired transfer gap (``eval/transfer_*`` metrics).

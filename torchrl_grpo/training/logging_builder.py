@@ -21,7 +21,7 @@ import torch
 from omegaconf import DictConfig
 from torchrl.record.loggers import CSVLogger, Logger, WandbLogger
 
-from torchrl_grpo.training.plots import save_gif
+from torchrl_grpo.training.run_plots import save_gif
 
 __all__ = [
     "LoggerKind",

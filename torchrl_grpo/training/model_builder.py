@@ -12,12 +12,12 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl_grpo.modules.actors import make_discrete_actor, make_value_net
 from torchrl_grpo.modules.crash_head import CrashHead
 from torchrl_grpo.modules.ensemble import PolicyEnsemble
-from torchrl_grpo.modules.neighbours import NeighbourMLP
+from torchrl_grpo.modules.neighbour_features import NeighbourMLP
 from torchrl_grpo.modules.networks import NetworkKind, make_network
 from torchrl_grpo.modules.prior import PriorLogits
-from torchrl_grpo.modules.scene import DEFAULT_TARGET_SPEEDS, SceneMLP
+from torchrl_grpo.modules.scene_features import DEFAULT_TARGET_SPEEDS, SceneMLP
 from torchrl_grpo.modules.scripted.actions import ScriptedPolicy
-from torchrl_grpo.modules.scripted.registry import make_scripted_policy
+from torchrl_grpo.modules.scripted.policy_registry import make_scripted_policy
 from torchrl_grpo.training.env_builder import make_layout
 
 __all__ = [

@@ -51,8 +51,8 @@ from torchrl_grpo.training.logging_builder import log_metrics, make_logger
 from torchrl_grpo.training.metrics import PhaseTimer, progress_bar, progress_postfix
 from torchrl_grpo.training.model_builder import make_policy
 from torchrl_grpo.training.optim_builder import anneal_lr
-from torchrl_grpo.training.plots import plot_learning_curve
 from torchrl_grpo.training.pretrained import init_policy
+from torchrl_grpo.training.run_plots import plot_learning_curve
 
 # PhaseTimer and plot_learning_curve lived here before metrics.py and plots.py: still
 # importable from here.

@@ -31,8 +31,8 @@ from torchrl_grpo.envs.core.bits import (
     spec_layout,
     to_bits,
 )
-from torchrl_grpo.envs.core.codec import StateCodec
 from torchrl_grpo.envs.core.errors import SnapshotError, StateCorruptedError
+from torchrl_grpo.envs.core.state_codec import StateCodec
 
 logger = logging.getLogger(__name__)
 
@@ -94,7 +94,7 @@ class SnapshotEnv(EnvBase):
             env = env()
         self._env: gym.Env = env
         if codec is None:
-            from torchrl_grpo.envs.core.registry import codec_for
+            from torchrl_grpo.envs.core.codec_registry import codec_for
 
             codec = codec_for(self._env_id())
         self.codec = codec

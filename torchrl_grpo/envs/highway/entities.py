@@ -49,7 +49,7 @@ def decode_entities(
 
     Example:
         >>> import gymnasium as gym
-        >>> from torchrl_grpo.envs.highway.codec import HighwayStateCodec
+        >>> from torchrl_grpo.envs.highway.highway_codec import HighwayStateCodec
         >>> env = gym.make("merge-v0")
         >>> _ = env.reset(seed=0)
         >>> codec = HighwayStateCodec()

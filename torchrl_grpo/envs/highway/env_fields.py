@@ -5,7 +5,8 @@ observed, the action and observation types' own state (a continuous action's las
 command, the Kinematics ``features_range``, grayscale frames), and lane-keeping's
 extras (its env-level lanes and growing trajectory, stored by
 :mod:`.lane_keeping_fields`). The rules a restore checks these entries against are in
-:mod:`.env_checks`. Built by :class:`~torchrl_grpo.envs.highway.codec.HighwayStateCodec` when it
+:mod:`.env_checks`. Built by :class:`~torchrl_grpo.envs.highway.highway_codec.HighwayStateCodec`
+when it
 binds to an env.
 """
 
@@ -97,7 +98,7 @@ class EnvFields:
 
     Example:
         >>> import gymnasium as gym
-        >>> from torchrl_grpo.envs.highway.codec import HighwayStateCodec
+        >>> from torchrl_grpo.envs.highway.highway_codec import HighwayStateCodec
         >>> env = gym.make("highway-fast-v0")
         >>> _ = env.reset(seed=0)
         >>> codec = HighwayStateCodec()

@@ -39,7 +39,7 @@ class LaneKeepingFields:
     Example:
         >>> import gymnasium as gym
         >>> import highway_env  # noqa: F401 - registers the scenarios
-        >>> from torchrl_grpo.envs.highway.codec import HighwayStateCodec
+        >>> from torchrl_grpo.envs.highway.highway_codec import HighwayStateCodec
         >>> env = gym.make("lane-keeping-v0")
         >>> _ = env.reset(seed=0)
         >>> codec = HighwayStateCodec()

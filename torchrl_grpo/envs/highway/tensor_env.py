@@ -20,10 +20,10 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Categorical, Composite, OneHot, Unbounded
 from torchrl.envs import EnvBase
 
-from torchrl_grpo.envs.core.codec import stable_hash
 from torchrl_grpo.envs.core.errors import SnapshotError
 from torchrl_grpo.envs.core.gym_state import RNG_WORDS
 from torchrl_grpo.envs.core.snapshot_env import STATE_KEY
+from torchrl_grpo.envs.core.state_codec import stable_hash
 from torchrl_grpo.envs.highway.bridge import HighwayBridge, export_states, import_states
 from torchrl_grpo.envs.highway.tensor_params import check_tensor_config, tensor_params
 from torchrl_grpo.envs.highway.tensor_state import (

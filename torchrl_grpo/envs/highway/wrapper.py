@@ -14,8 +14,8 @@ from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
 from torchrl_grpo.envs.core.bits import flag_tensor, float32_tensor
 from torchrl_grpo.envs.core.snapshot_env import SnapshotEnv
 from torchrl_grpo.envs.highway import schema
-from torchrl_grpo.envs.highway.codec import HIGHWAY_SCENARIOS, HighwayStateCodec
 from torchrl_grpo.envs.highway.fast_observation import use_fast_kinematics
+from torchrl_grpo.envs.highway.highway_codec import HIGHWAY_SCENARIOS, HighwayStateCodec
 
 
 class HighwayEnv(SnapshotEnv):

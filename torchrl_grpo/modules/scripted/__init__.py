@@ -12,7 +12,7 @@ keeps them exact under snapshot branching.
   reads from the observation, and the :class:`~torchrl_grpo.modules.Driver` base class;
 - :mod:`~torchrl_grpo.modules.scripted.drivers`: the decisions of the driving policies;
 - :mod:`~torchrl_grpo.modules.scripted.policies`: the driving policies;
-- :mod:`~torchrl_grpo.modules.scripted.registry`: the policies by name.
+- :mod:`~torchrl_grpo.modules.scripted.policy_registry`: the policies by name.
 
 What a user needs is exported by :mod:`torchrl_grpo.modules`; the rest is imported from
 its module.

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_grpo.modules.kinematics import VEHICLE_LENGTH, KinematicsLayout
+from torchrl_grpo.modules.kinematics_table import VEHICLE_LENGTH, KinematicsLayout
 from torchrl_grpo.modules.scripted.actions import FASTER, IDLE, LANE_LEFT, LANE_RIGHT, SLOWER
 from torchrl_grpo.modules.scripted.scene import Driver, Scene, time_to_collision
 

@@ -19,7 +19,7 @@ from typing import Any, Literal
 
 from tensordict.utils import NestedKey
 
-from torchrl_grpo.modules.kinematics import KinematicsLayout
+from torchrl_grpo.modules.kinematics_table import KinematicsLayout
 from torchrl_grpo.modules.scripted.actions import ScriptedPolicy
 from torchrl_grpo.modules.scripted.drivers import (
     AggressiveDriver,

@@ -5,7 +5,7 @@
 lateral offset, relative speed and lane. A driver subclasses :class:`Driver` and maps
 that scene to actions in :meth:`Driver.decide`; the drivers of the library are in
 :mod:`~torchrl_grpo.modules.scripted.drivers`, and
-:class:`~torchrl_grpo.modules.scene.SceneFeatures` reads the same scene.
+:class:`~torchrl_grpo.modules.scene_features.SceneFeatures` reads the same scene.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from torchrl_grpo.modules.kinematics import VEHICLE_LENGTH, KinematicsLayout
+from torchrl_grpo.modules.kinematics_table import VEHICLE_LENGTH, KinematicsLayout
 
 __all__ = ["Driver", "Scene", "time_to_collision"]
 

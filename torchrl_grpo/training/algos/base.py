@@ -29,7 +29,7 @@ from torchrl.objectives import LossModule
 from torchrl_grpo.branching.keys import GROUP_ID
 from torchrl_grpo.modules.crash_head import CrashHead
 from torchrl_grpo.modules.ensemble import PolicyEnsemble, member_halves
-from torchrl_grpo.modules.sharing import shared_forward
+from torchrl_grpo.modules.forward_sharing import shared_forward
 from torchrl_grpo.training.collect import make_collector
 from torchrl_grpo.training.env_builder import make_rollout_env
 from torchrl_grpo.training.metrics import PhaseTimer, metric_name

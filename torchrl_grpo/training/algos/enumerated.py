@@ -20,7 +20,11 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.objectives import LossModule
 
 from torchrl_grpo.branching.keys import GROUP_ID
-from torchrl_grpo.objectives.distill import GroupDistillLoss, group_softmax_target, group_spread
+from torchrl_grpo.objectives.group_distill import (
+    GroupDistillLoss,
+    group_softmax_target,
+    group_spread,
+)
 from torchrl_grpo.objectives.regression import AdvantageRegressionLoss
 from torchrl_grpo.training.choices import choice_enum
 
@@ -195,7 +199,8 @@ def distill_targets(
     ``loss="cross_entropy"``, :data:`DISTILL_WEIGHT` is each row's weight in its root's
     softmax target; with ``loss="regression"`` it is 1 and :data:`DISTILL_TARGET` holds
     the row's advantage. With ``weighting="spread"`` each group's weights are scaled by
-    its spread (:func:`~torchrl_grpo.objectives.distill.group_spread`): the loss's weighted mean
+    its spread (:func:`~torchrl_grpo.objectives.group_distill.group_spread`): the loss's weighted
+    mean
     then counts a root by how much its best action beats its worst, so the rare states
     where one action crashes and another does not outweigh the many where all score alike.
 

@@ -22,10 +22,15 @@ from torchrl_grpo.branching.keys import GROUP_ID, MASK
 from torchrl_grpo.modules.greedy_tail import EXPLORED
 from torchrl_grpo.objectives.advantage import GroupRelativeAdvantage
 from torchrl_grpo.objectives.bootstrap import HorizonBootstrap
-from torchrl_grpo.objectives.crash_head import CrashHeadLoss
-from torchrl_grpo.objectives.grpo import GRPOLoss
+from torchrl_grpo.objectives.crash_head_loss import CrashHeadLoss
+from torchrl_grpo.objectives.grpo_loss import GRPOLoss
 from torchrl_grpo.objectives.reference import ReferenceSync
 from torchrl_grpo.training.algos.base import AlgoConfig, Algorithm, register_algorithm
+from torchrl_grpo.training.algos.branch_tails import (
+    crash_labels,
+    make_tail_policy,
+    make_tail_survival,
+)
 from torchrl_grpo.training.algos.enumerated import (
     BRANCH_CRASHED,
     ActionWeightsName,
@@ -39,7 +44,6 @@ from torchrl_grpo.training.algos.enumerated import (
     replay_rows,
 )
 from torchrl_grpo.training.algos.grpo_checks import check_grpo_config
-from torchrl_grpo.training.algos.tails import crash_labels, make_tail_policy, make_tail_survival
 from torchrl_grpo.training.choices import (
     AggregationName,
     BaselineName,

@@ -15,7 +15,7 @@ from tensordict import NestedKey, TensorDict, TensorDictBase
 from torch import nn
 from torchrl.objectives import LossModule
 
-from torchrl_grpo.objectives.checks import check_crash_head_args, check_finite, require
+from torchrl_grpo.objectives.loss_checks import check_crash_head_args, check_finite, require
 
 __all__ = ["CrashHeadLoss"]
 

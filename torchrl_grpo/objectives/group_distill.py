@@ -18,7 +18,7 @@ from tensordict import NestedKey, TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential
 from torchrl.objectives import LossModule
 
-from torchrl_grpo.objectives.checks import check_finite, require
+from torchrl_grpo.objectives.loss_checks import check_finite, require
 
 __all__ = ["GroupDistillLoss", "group_softmax_target", "group_spread"]
 

@@ -38,7 +38,7 @@ from torchrl_grpo.envs.core.bits import (
     nested_tensordict,
     spec_layout,
 )
-from torchrl_grpo.envs.core.codec import StateCodec, stable_hash
+from torchrl_grpo.envs.core.codec_registry import register_codec
 from torchrl_grpo.envs.core.errors import (
     SnapshotError,
     StateCapacityError,
@@ -51,7 +51,7 @@ from torchrl_grpo.envs.core.gym_state import (
     with_seeded_rng,
     wrapper_spec,
 )
-from torchrl_grpo.envs.core.registry import register_codec
+from torchrl_grpo.envs.core.state_codec import StateCodec, stable_hash
 from torchrl_grpo.envs.highway import schema
 from torchrl_grpo.envs.highway.entities import decode_entities
 from torchrl_grpo.envs.highway.env_fields import EnvFields

@@ -13,9 +13,9 @@ from torch import nn
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
-from torchrl_grpo.branching.collector import RootKind
 from torchrl_grpo.branching.collector_base import GroupCollectorBase
 from torchrl_grpo.branching.continuation import Selection
+from torchrl_grpo.branching.group_collector import RootKind
 from torchrl_grpo.branching.keys import MASK
 from torchrl_grpo.branching.rollout import RngMode
 from torchrl_grpo.branching.roots import RootSource

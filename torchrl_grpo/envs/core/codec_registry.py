@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from torchrl_grpo.envs.core.codec import StateCodec
+from torchrl_grpo.envs.core.state_codec import StateCodec
 
 # Filled by the simulator packages as they are imported (torchrl_grpo.envs imports them
 # all): core does not import the simulators it serves.

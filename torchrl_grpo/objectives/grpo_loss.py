@@ -18,7 +18,9 @@ from torchrl_grpo.objectives.aggregation import (
     Aggregation,
     aggregate,
 )
-from torchrl_grpo.objectives.checks import (
+from torchrl_grpo.objectives.diagnostics import RATIO_DIAGNOSTICS, ratio_diagnostics
+from torchrl_grpo.objectives.kl import KLEstimator, analytic_kl, kl_estimate
+from torchrl_grpo.objectives.loss_checks import (
     behaviour_log_prob,
     check_finite,
     check_loss_args,
@@ -26,8 +28,6 @@ from torchrl_grpo.objectives.checks import (
     require,
     sum_event,
 )
-from torchrl_grpo.objectives.diagnostics import RATIO_DIAGNOSTICS, ratio_diagnostics
-from torchrl_grpo.objectives.kl import KLEstimator, analytic_kl, kl_estimate
 from torchrl_grpo.objectives.loss_weights import batch_step_weights
 
 __all__ = ["Aggregation", "GRPOLoss"]

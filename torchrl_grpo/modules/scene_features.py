@@ -20,7 +20,7 @@ import torch
 from torch import nn
 from torchrl.modules import MLP
 
-from torchrl_grpo.modules.kinematics import KinematicsLayout
+from torchrl_grpo.modules.kinematics_table import KinematicsLayout
 from torchrl_grpo.modules.scripted.scene import Driver, time_to_collision
 
 __all__ = ["FeatureMLP", "SceneFeatures", "SceneMLP"]

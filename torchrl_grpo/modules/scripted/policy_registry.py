@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from torchrl_grpo.modules.kinematics import KinematicsLayout
+from torchrl_grpo.modules.kinematics_table import KinematicsLayout
 from torchrl_grpo.modules.scripted.actions import (
     IDLE,
     SLOWER,

@@ -1,6 +1,7 @@
 """A policy network over every lane's nearest neighbours, ahead and behind.
 
-:class:`~torchrl_grpo.modules.scene.SceneFeatures` gives each lane its nearest vehicle ahead
+:class:`~torchrl_grpo.modules.scene_features.SceneFeatures` gives each lane its nearest vehicle
+ahead
 and, for a lane change, one yes-or-no judgement of room. What decides a crash is often
 elsewhere: the car that closes in from behind in the lane the ego moves into, or the
 car ahead of the leader that makes the leader brake. :class:`NeighbourFeatures` reads,
@@ -14,8 +15,8 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_grpo.modules.kinematics import VEHICLE_LENGTH
-from torchrl_grpo.modules.scene import FeatureMLP, SceneFeatures
+from torchrl_grpo.modules.kinematics_table import VEHICLE_LENGTH
+from torchrl_grpo.modules.scene_features import FeatureMLP, SceneFeatures
 from torchrl_grpo.modules.scripted.scene import Scene
 
 __all__ = ["NeighbourFeatures", "NeighbourMLP"]
@@ -57,7 +58,8 @@ class NeighbourFeatures(SceneFeatures):
     """Every nearby lane's neighbours: ``[*batch, V, F] -> [*batch, 30]``.
 
     In order: the ego speed (centred and scaled as in
-    :class:`~torchrl_grpo.modules.scene.SceneFeatures`), its lateral offset from the centre of
+    :class:`~torchrl_grpo.modules.scene_features.SceneFeatures`), its lateral offset from the
+    centre of
     its lane (m / 2), its lane-change direction (-1, 0, +1); then for the left lane,
     the ego's lane and the right lane: whether it exists; for the nearest vehicle
     ahead, the second nearest ahead and the nearest behind, the bumper-to-bumper gap
@@ -65,7 +67,7 @@ class NeighbourFeatures(SceneFeatures):
     and the inverse time to collision with the nearest ahead and the nearest behind
     (1/s, at most 5).
 
-    It reads the scene as :class:`~torchrl_grpo.modules.scene.SceneFeatures` does, and
+    It reads the scene as :class:`~torchrl_grpo.modules.scene_features.SceneFeatures` does, and
     scales the speed as it does; the other features are its own.
 
     Args:

@@ -1,7 +1,8 @@
 """Teacher distillation (``algo=distill``): one policy trained on trained policies' labels.
 
 The student drives (TorchRL's ``Collector``, as PPO's trunks), and every state it visits
-is labelled with the teachers' mean logits (:func:`~torchrl_grpo.training.teachers.load_teachers`):
+is labelled with the teachers' mean logits
+(:func:`~torchrl_grpo.training.teacher_loading.load_teachers`):
 DAgger with soft labels. The labelled states are kept, up to ``algo.replay_frames`` of
 them, and each batch trains ``algo.max_minibatches`` minibatches drawn from all of them
 through :class:`~torchrl_grpo.objectives.TeacherDistillLoss`. A frame is a step of the
@@ -22,13 +23,13 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, ValueOperator
 
-from torchrl_grpo.objectives.teacher import TeacherCrashLoss, TeacherDistillLoss
+from torchrl_grpo.objectives.teacher_losses import TeacherCrashLoss, TeacherDistillLoss
 from torchrl_grpo.training.algos.base import AlgoConfig, register_algorithm
 from torchrl_grpo.training.algos.episodes import TrunkEpisodes
 from torchrl_grpo.training.algos.labelled import LabelledStates
 from torchrl_grpo.training.choices import choice_enum
 from torchrl_grpo.training.metrics import PhaseTimer
-from torchrl_grpo.training.teachers import load_teachers
+from torchrl_grpo.training.teacher_loading import load_teachers
 
 __all__ = ["TEACHER_CRASH_LOGITS", "DistillConfig", "DistillVariant", "TeacherDistill"]
 
