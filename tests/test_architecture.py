@@ -126,3 +126,14 @@ def test_the_checker_sees_an_upward_import(tmp_path):
     a.write_text("from torchrl_grpo.training import Trainer\n")
     found = imports(a, {"torchrl_grpo.training"})
     assert found == {"torchrl_grpo.training"} and FLOORS["training"] > FLOORS["envs"]
+
+
+def test_no_module_basename_names_two_things():
+    # A file's name says what it holds: the same name in two subpackages would hold two
+    # different things under one name (``codec.py`` once named three).
+    seen: dict[str, list[str]] = {}
+    for path in PACKAGE.rglob("*.py"):
+        if path.name != "__init__.py":
+            seen.setdefault(path.name, []).append(str(path.relative_to(PACKAGE)))
+    repeated = {name: paths for name, paths in seen.items() if len(paths) > 1}
+    assert not repeated, repeated
