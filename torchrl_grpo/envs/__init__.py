@@ -1,6 +1,7 @@
 """TorchRL environments whose complete simulator state is a TensorDict of tensors."""
 
 from torchrl_grpo.envs.cartpole import CartPoleStateCodec
+from torchrl_grpo.envs.core.actions import InvalidActionError
 from torchrl_grpo.envs.core.batched import (
     SnapshotParallelEnv,
     SnapshotSerialEnv,
@@ -47,6 +48,7 @@ __all__ = [
     "Field",
     "HighwayEnv",
     "HighwayStateCodec",
+    "InvalidActionError",
     "SnapshotEnv",
     "SnapshotError",
     "SnapshotParallelEnv",
