@@ -21,10 +21,11 @@ state's bytes per world. With ``--compile``, the same figures for ``compile=True
 The checks' costs, each on against off in alternating blocks (``--checks-only`` prints
 only these): a restore of B = 1,024 worlds with ``check_states=True`` against ``False``
 (and the value check's own time, :meth:`TensorHighwayEnv.validate_state`); at each B,
-``env.step_and_maybe_reset`` with ``check_actions=True`` against ``False``; and
-HighwayEnv's step with its action check on against off. The state figures run against
-any checkout (``PYTHONPATH=<checkout> python benchmarks/bench_tensor_env.py
---checks-only``), so that a change to the state check is measured before and after.
+``env.step_and_maybe_reset`` with ``check_actions=True`` against ``False``, and the
+action check alone against one step; and HighwayEnv's step with its action check on
+against off. The state figures run against any checkout (``PYTHONPATH=<checkout> python
+benchmarks/bench_tensor_env.py --checks-only --sizes``: no sizes, the state figures
+alone), so that a change to the state check is measured before and after.
 """
 
 from __future__ import annotations
@@ -183,9 +184,11 @@ def state_check_cost(batch: int, repeats: int) -> None:
 
 def action_check_cost(sizes: list[int], device: str, repeats: int) -> None:
     """``step_and_maybe_reset`` with ``check_actions`` on against off, at each B."""
-    if "check_actions" not in inspect.signature(TensorHighwayEnv).parameters:
+    if "check_actions" not in inspect.signature(TensorHighwayEnv.__init__).parameters:
         print("  (this checkout has no check_actions: no action-check figures)")
         return
+    from torchrl_grpo.envs.core.actions import check_action
+
     for batch in sizes:
         calls = max(2, min(200, 20000 // batch))
         runs = {
@@ -203,6 +206,19 @@ def action_check_cost(sizes: list[int], device: str, repeats: int) -> None:
             on / off,
             note=f"{on:,.0f}/s vs {off:,.0f}/s",
         )
+        # The check alone, against the step it guards (the ratio above is within noise).
+        env = TensorHighwayEnv(num_envs=batch, device=device)
+        action = torch.full((batch,), IDLE, device=env.device)
+        calls_check = 2000
+        start = time.perf_counter()
+        for _ in range(calls_check):
+            check_action(action, env.action_spec, "bench", batch_dims=1)
+        alone = (time.perf_counter() - start) / calls_check
+        claim(
+            f"TensorHighwayEnv B={batch}, {device}: the action check / one step, time",
+            alone / (batch / off),
+            note=f"{alone * 1e6:.1f} us of {batch / off * 1e6:,.0f} us",
+        )
     runs = {f"{on}": (highway_stepper(check_actions=on), 30, 1) for on in (True, False)}
     rates = interleaved(runs, repeats)
     claim(
@@ -214,7 +230,8 @@ def action_check_cost(sizes: list[int], device: str, repeats: int) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sizes", type=int, nargs="+", default=[1, 64, 1024, 8192])
+    # "--sizes" with no value: with --checks-only, the state check's figures alone.
+    parser.add_argument("--sizes", type=int, nargs="*", default=[1, 64, 1024, 8192])
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--compile", action="store_true")
@@ -224,7 +241,8 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     if args.checks_only:
         state_check_cost(1024, args.repeats)
-        action_check_cost(args.sizes, args.device, args.repeats)
+        if args.sizes:
+            action_check_cost(args.sizes, args.device, args.repeats)
         return
     hw = highway_stepper()
     for batch in args.sizes:
