@@ -195,7 +195,8 @@ class SnapshotSerialEnv(_ChecksStatesFirst, SerialEnv):
 
     Every state is checked before the first worker restores, so a refused state
     leaves every worker as it was (a plain ``SerialEnv`` restores the workers before
-    the one that refuses).
+    the one that refuses). Likewise every action before the first worker steps
+    (:class:`~torchrl_grpo.envs.InvalidActionError`; ``check_actions=False`` skips it).
 
     Example:
         >>> import functools
@@ -217,7 +218,9 @@ class SnapshotParallelEnv(_ChecksStatesFirst, ParallelEnv):
     A worker of a plain ``ParallelEnv`` that refuses a state raises in its own
     process and dies. Here the checks run first, in the parent, on a local copy of
     the worker (built on the first restore: a gym.make and a reset), so a bad
-    state raises the error that names it and every worker lives on unchanged.
+    state raises the error that names it and every worker lives on unchanged. Actions
+    are checked against the batched action spec before any worker sees them
+    (:class:`~torchrl_grpo.envs.InvalidActionError`; ``check_actions=False`` skips it).
 
     Example:
         >>> import functools
