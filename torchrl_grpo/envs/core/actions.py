@@ -4,9 +4,9 @@ Every env of the package runs :func:`check_action` at the top of its ``_step`` (
 built with ``check_actions=False``): an action out of range, of the wrong dtype or of
 the wrong shape raises :class:`InvalidActionError` in the calling process, naming the
 env, the offending rows and values, and the spec, and the env is left as it was.
-Without it, an off-by-one in a policy trains silently on wrong data (a batched
-simulator indexes past its table) or fails deep inside the simulator (highway-env's
-``KeyError: 7``).
+Without it, an off-by-one in a policy trains silently on wrong data (the tensor
+simulator stepped action 7 as if it were a valid one) or fails deep inside the
+simulator (highway-env's ``KeyError: 7``).
 """
 
 from __future__ import annotations
