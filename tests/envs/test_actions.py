@@ -186,16 +186,24 @@ def _batched(cls, **kwargs):
     return env
 
 
-@pytest.mark.parametrize("cls", [SnapshotSerialEnv, SnapshotParallelEnv])
-def test_batched_envs_refuse_a_bad_action_before_any_worker_steps(cls):
+@pytest.mark.parametrize(
+    ("cls", "action", "match"),
+    [
+        (SnapshotSerialEnv, [1, 7], r"rows \[1\]: values \[7\]"),
+        (SnapshotSerialEnv, [1.0, 1.5], r"dtype torch.float32 \(\[1.0, 1.5\]\)"),
+        (SnapshotSerialEnv, [[1], [1]], r"shape \(2, 1\)"),
+        (SnapshotParallelEnv, [1, 7], r"rows \[1\]: values \[7\]"),
+    ],
+)
+def test_batched_envs_refuse_a_bad_action_before_any_worker_steps(cls, action, match):
     env, twin = _batched(cls), _batched(SnapshotSerialEnv)
     try:
         before = torch.stack(env.get_state())
-        bad = TensorDict(action=torch.tensor([1, 7]), batch_size=[2])
+        bad = TensorDict(action=torch.tensor(action), batch_size=[2])
         name = f"{cls.__name__} of 2 workers"
-        with pytest.raises(InvalidActionError, match=rf"{name}: .* rows \[1\]: values \[7\]"):
+        with pytest.raises(InvalidActionError, match=rf"{name}: .*{match}"):
             env.step(bad.clone())
-        with pytest.raises(InvalidActionError, match=r"rows \[1\]"):
+        with pytest.raises(InvalidActionError, match=match):
             env.step_and_maybe_reset(bad.clone())
         # Worker 0 did not step before worker 1 refused (a plain SerialEnv steps it).
         assert_bitwise_equal(torch.stack(env.get_state()), before, "workers' states")
