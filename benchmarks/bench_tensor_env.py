@@ -1,7 +1,7 @@
 """TensorHighwayEnv's throughput beside HighwayEnv and EnvPool, and its snapshot cost.
 
 Usage: ``python benchmarks/bench_tensor_env.py [--sizes 1 64 1024 8192] [--threads 2]
-[--compile] [--device cpu]``
+[--compile] [--device cpu] [--checks-only]``
 
 For each batch size B, one run measures env steps per second of highway-fast-v0 in
 float32, side by side in alternating blocks (so that both sides of a ratio see the same
@@ -17,6 +17,15 @@ Goals (issue #17): at B = 1,024 on 2 CPU cores, TensorHighwayEnv >= 200 x Highwa
 EnvPool's rate is the aim (the ratio is reported). Also reported: ``get_state`` plus a
 restore of B = 1,024 worlds against one ``copy.deepcopy`` of a highway-env env, and the
 state's bytes per world. With ``--compile``, the same figures for ``compile=True``.
+
+The checks' costs, each on against off in alternating blocks (``--checks-only`` prints
+only these): a restore of B = 1,024 worlds with ``check_states=True`` against ``False``
+(and the value check's own time, :meth:`TensorHighwayEnv.validate_state`); at each B,
+``env.step_and_maybe_reset`` with ``check_actions=True`` against ``False``, and the
+action check alone against one step; and HighwayEnv's step with its action check on
+against off. The state figures run against any checkout (``PYTHONPATH=<checkout> python
+benchmarks/bench_tensor_env.py --checks-only --sizes``: no sizes, the state figures
+alone), so that a change to the state check is measured before and after.
 """
 
 from __future__ import annotations
@@ -24,6 +33,7 @@ from __future__ import annotations
 import argparse
 import copy
 import importlib.util
+import inspect
 import statistics
 import time
 from collections.abc import Callable
@@ -56,10 +66,10 @@ def interleaved(
     return {k: statistics.median(v) for k, v in out.items()}
 
 
-def tensor_stepper(batch: int, compile: bool, device: str) -> Callable[[], None]:
+def tensor_stepper(batch: int, compile: bool, device: str, **kwargs) -> Callable[[], None]:
     """One ``env.step`` of B worlds, with TorchRL's auto-reset of finished rows."""
     env = TensorHighwayEnv(
-        "highway-fast-v0", num_envs=batch, seed=0, compile=compile, device=device
+        "highway-fast-v0", num_envs=batch, seed=0, compile=compile, device=device, **kwargs
     )
     td = env.reset()
     action = torch.full((batch,), IDLE, device=env.device)
@@ -81,9 +91,9 @@ def tensor_stepper(batch: int, compile: bool, device: str) -> Callable[[], None]
     return step
 
 
-def highway_stepper() -> Callable[[], None]:
+def highway_stepper(**kwargs) -> Callable[[], None]:
     """One step of highway-env, reset at the end of an episode."""
-    env = HighwayEnv("highway-fast-v0", seed=0)
+    env = HighwayEnv("highway-fast-v0", seed=0, **kwargs)
     env.reset()
     action = TensorDict(action=torch.tensor(IDLE))
 
@@ -144,15 +154,96 @@ def snapshot_cost(batch: int, repeats: int) -> None:
     claim("state bytes per world (highway-fast-v0, float32)", size / batch)
 
 
+def state_check_cost(batch: int, repeats: int) -> None:
+    """A restore of B worlds with ``check_states`` on against off, and the check alone."""
+    envs = {on: TensorHighwayEnv(num_envs=batch, seed=0, check_states=on) for on in (True, False)}
+    state = envs[True].get_state()
+    restore = TensorDict(state=state, batch_size=[batch])
+
+    def timed(call: Callable[[], object]) -> float:
+        start = time.perf_counter()
+        for _ in range(20):
+            call()
+        return (time.perf_counter() - start) / 20
+
+    times: dict[str, list[float]] = {"on": [], "off": [], "check": []}
+    for _ in range(repeats):
+        for on, env in envs.items():
+            times["on" if on else "off"].append(
+                timed(lambda env=env: env.reset(restore.clone(False), set_state=True))
+            )
+        times["check"].append(timed(lambda: envs[True].validate_state(state)))
+    on, off, check = (statistics.median(times[k]) for k in ("on", "off", "check"))
+    claim(
+        f"restore of {batch} worlds: check_states=True / False time",
+        on / off,
+        note=f"{on * 1e3:.3f} ms vs {off * 1e3:.3f} ms",
+    )
+    claim(f"validate_state of {batch} worlds (ms, the value check included)", check * 1e3)
+
+
+def action_check_cost(sizes: list[int], device: str, repeats: int) -> None:
+    """``step_and_maybe_reset`` with ``check_actions`` on against off, at each B."""
+    if "check_actions" not in inspect.signature(TensorHighwayEnv.__init__).parameters:
+        print("  (this checkout has no check_actions: no action-check figures)")
+        return
+    from torchrl_grpo.envs.core.action_validation import check_action
+
+    for batch in sizes:
+        calls = max(2, min(200, 20000 // batch))
+        runs = {
+            f"check_actions={on}": (
+                tensor_stepper(batch, False, device, check_actions=on),
+                calls,
+                batch,
+            )
+            for on in (True, False)
+        }
+        rates = interleaved(runs, repeats)
+        on, off = rates["check_actions=True"], rates["check_actions=False"]
+        claim(
+            f"TensorHighwayEnv B={batch}, {device}: check_actions=True / False env-steps/s",
+            on / off,
+            note=f"{on:,.0f}/s vs {off:,.0f}/s",
+        )
+        # The check alone, against the step it guards (the ratio above is within noise).
+        env = TensorHighwayEnv(num_envs=batch, device=device)
+        action = torch.full((batch,), IDLE, device=env.device)
+        calls_check = 2000
+        start = time.perf_counter()
+        for _ in range(calls_check):
+            check_action(action, env.action_spec, "bench", batch_dims=1)
+        alone = (time.perf_counter() - start) / calls_check
+        claim(
+            f"TensorHighwayEnv B={batch}, {device}: the action check / one step, time",
+            alone / (batch / off),
+            note=f"{alone * 1e6:.1f} us of {batch / off * 1e6:,.0f} us",
+        )
+    runs = {f"{on}": (highway_stepper(check_actions=on), 30, 1) for on in (True, False)}
+    rates = interleaved(runs, repeats)
+    claim(
+        "HighwayEnv: check_actions=True / False env-steps/s",
+        rates["True"] / rates["False"],
+        note=f"{rates['True']:,.0f}/s vs {rates['False']:,.0f}/s",
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sizes", type=int, nargs="+", default=[1, 64, 1024, 8192])
+    # "--sizes" with no value: with --checks-only, the state check's figures alone.
+    parser.add_argument("--sizes", type=int, nargs="*", default=[1, 64, 1024, 8192])
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--compile", action="store_true")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--checks-only", action="store_true", help="only the checks' costs")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
+    if args.checks_only:
+        state_check_cost(1024, args.repeats)
+        if args.sizes:
+            action_check_cost(args.sizes, args.device, args.repeats)
+        return
     hw = highway_stepper()
     for batch in args.sizes:
         # Blocks of about a second each: fewer calls for larger batches.
@@ -185,6 +276,8 @@ def main() -> None:
                 rates["tensor"] / rates["envpool"],
             )
     snapshot_cost(1024, args.repeats)
+    state_check_cost(1024, args.repeats)
+    action_check_cost(args.sizes, args.device, args.repeats)
 
 
 if __name__ == "__main__":

@@ -138,7 +138,8 @@ def test_a_worker_error_is_raised_with_its_traceback(short_parallel, roots):
     slots = EnvSlots(short_parallel)
     bad = ("step", 1, {("action",): np.array([[1.0, 2.0]])}, 0, False)
     short_parallel.branch_send(0, [bad], [*slots.obs_keys], slots.next_keys)
-    with pytest.raises(RuntimeError, match="(?s)branch worker 0 failed:.*ValueError"):
+    # The worker's env refuses the action by name (InvalidActionError, a ValueError).
+    with pytest.raises(RuntimeError, match="(?s)branch worker 0 failed:.*InvalidActionError"):
         short_parallel.branch_receive(0)
     data = branch_rollout(short_parallel, ScheduledPolicy(_table()), roots, 2, 3)
     assert data["mask"].any()

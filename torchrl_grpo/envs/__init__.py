@@ -1,6 +1,7 @@
 """TorchRL environments whose complete simulator state is a TensorDict of tensors."""
 
 from torchrl_grpo.envs.cartpole import CartPoleStateCodec
+from torchrl_grpo.envs.core.action_validation import InvalidActionError
 from torchrl_grpo.envs.core.bits import from_bits, state_differences, states_equal, to_bits
 from torchrl_grpo.envs.core.codec_registry import register_codec
 from torchrl_grpo.envs.core.errors import (
@@ -26,6 +27,7 @@ __all__ = [
     "CartPoleStateCodec",
     "Field",
     "HighwayEnv",
+    "InvalidActionError",
     "SnapshotEnv",
     "SnapshotError",
     "SnapshotParallelEnv",

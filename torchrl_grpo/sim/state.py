@@ -237,21 +237,26 @@ def world_from_tensordict(state: TensorDictBase) -> World:
     )
 
 
-def check_world(world: World, params: HighwayParams) -> list[str]:
+def check_world(
+    world: World, params: HighwayParams, max_magnitude: float = float("inf")
+) -> list[str]:
     """The problems that make ``world`` unfit for ``params``, each naming its entry.
 
-    Checks every entry: float columns finite, lanes and the speed index in range,
-    counters non-negative, the ego present and checking collisions, the others'
-    collision checks as the scenario sets them (the collision pass relies on it).
-    Values that highway-env itself reaches (negative speeds, unwrapped headings,
-    speeds past the clip) are admitted.
+    Checks every entry: float columns finite and within ``max_magnitude``, lanes and
+    the speed index in range, counters non-negative, the ego present and checking
+    collisions, the others' collision checks as the scenario sets them (the collision
+    pass relies on it). Values that highway-env itself reaches (negative speeds,
+    unwrapped headings, speeds past the clip) are admitted.
 
     Args:
         world: B worlds.
         params: the scenario they must belong to.
+        max_magnitude: the largest magnitude a float (and the clock) may hold; the
+            envs pass the bound of highway-env's state codec.
 
     Returns:
-        Messages such as ``"vehicles.speed: not finite in rows [3]"``; empty if fit.
+        Messages such as ``"vehicles.speed: not finite in rows [3] (values [nan])"``;
+        empty if fit.
 
     Example:
         >>> from torchrl_grpo.envs import tensor_params
@@ -260,7 +265,10 @@ def check_world(world: World, params: HighwayParams) -> list[str]:
         >>> w.vehicles.check_collisions[:, 0] = True
         >>> w.vehicles.speed[1, 3] = float("nan")
         >>> check_world(w, params)
-        ['vehicles.speed: not finite in rows [1]']
+        ['vehicles.speed: not finite in rows [1] (values [nan])']
+        >>> w.vehicles.speed[1, 3] = -1e6
+        >>> check_world(w, params, max_magnitude=1e5)
+        ['vehicles.speed: not finite, or beyond 100000 in rows [1] (values [-1000000.0])']
     """
     v = world.vehicles
     problems: list[str] = []
@@ -272,13 +280,31 @@ def check_world(world: World, params: HighwayParams) -> list[str]:
             rows = mask.nonzero().flatten()[:8].tolist()
             problems.append(f"{name}: {_WHY[name.split('.')[-1]]} in rows {rows}")
 
+    def beyond(name: str, ok: torch.Tensor, values: torch.Tensor, why: str) -> None:
+        # Reduced to rows before the one host read: as cheap as the isfinite it replaced.
+        rows_ok = ok.all(-1) if ok.ndim > 1 else ok
+        if not bool(rows_ok.all()):
+            rows = (~rows_ok).nonzero().flatten()[:8]
+            # Per offending row, its first offending value.
+            if ok.ndim > 1:
+                first = (~ok[rows]).to(torch.int8).argmax(-1)
+                shown = values[rows, first]
+            else:
+                shown = values[rows]
+            problems.append(f"{name}: {why} in rows {rows.tolist()} (values {shown.tolist()})")
+
     n = params.num_vehicles
     if v.x.ndim != 2 or v.x.shape[1] != n:
         return [
             f"vehicles: expected [B, {n}] rows (the ego and {n - 1} others), got {tuple(v.x.shape)}"
         ]
+    finite = max_magnitude == float("inf")
+    why = "not finite" if finite else f"not finite, or beyond {max_magnitude:g}"
+    # The largest finite value of the dtype when unbounded: inf and NaN fail ``<=``.
+    limit = min(max_magnitude, torch.finfo(v.x.dtype).max)
     for name in FLOAT_FIELDS:
-        bad(f"vehicles.{name}", ~torch.isfinite(getattr(v, name)))
+        column = getattr(v, name)
+        beyond(f"vehicles.{name}", column.abs() <= limit, column, why)
     lanes = params.road.lanes_count
     bad("vehicles.lane", (v.lane < 0) | (v.lane >= lanes))
     bad("vehicles.target_lane", (v.target_lane < 0) | (v.target_lane >= lanes))
@@ -289,21 +315,21 @@ def check_world(world: World, params: HighwayParams) -> list[str]:
     bad("vehicles.check_collisions", v.check_collisions != expected)
     speeds = len(params.control.target_speeds)
     bad("speed_index", (world.speed_index < 0) | (world.speed_index >= speeds))
-    bad("time", ~torch.isfinite(world.time) | (world.time < 0))
+    time_limit = min(max_magnitude, torch.finfo(world.time.dtype).max)
+    clock = (world.time >= 0) & (world.time <= time_limit)
+    beyond("time", clock, world.time, "negative, " + why)
     bad("steps", world.steps < 0)
     bad("rng.counter", world.rng_counter < 0)
     return problems
 
 
 _WHY = {
-    **dict.fromkeys(FLOAT_FIELDS, "not finite"),
     "lane": "outside the road's lanes",
     "target_lane": "outside the road's lanes",
     "present": "the ego (row 0) is missing",
     "check_collisions": "collision checks differ from the scenario's (ego: True, others: "
     "True in highway-v0, False in highway-fast-v0)",
     "speed_index": "outside the target speeds",
-    "time": "not finite or negative",
     "steps": "negative",
     "counter": "negative",
 }

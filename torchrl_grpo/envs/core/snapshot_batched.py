@@ -19,6 +19,7 @@ from tensordict import TensorDictBase, unravel_key
 from torchrl.data import Composite
 from torchrl.envs import EnvBase, ParallelEnv, SerialEnv, TransformedEnv
 
+from torchrl_grpo.envs.core.action_validation import check_action
 from torchrl_grpo.envs.core.errors import SnapshotError
 from torchrl_grpo.envs.core.snapshot_env import STATE_KEY
 
@@ -136,13 +137,40 @@ def check_worker_states(env: EnvBase, tensordict: TensorDictBase) -> None:
 
 
 class _ChecksStatesFirst:
-    """Mixin for ``SerialEnv`` / ``ParallelEnv``: check every state before restoring.
+    """Mixin for ``SerialEnv`` / ``ParallelEnv``: check every state and action before any worker.
 
     A reset also returns the workers' states, as a single snapshot env's reset does:
     the state is in ``state_spec`` (it routes a restore to every worker), so an output
     without it would not match the specs (``check_env_specs``) unless the workers
     return it at every step (``return_state=True``).
+
+    A step checks the whole batch of actions against the batched action spec first
+    (``check_actions=False`` skips it): a ``SerialEnv`` would have stepped the workers
+    before the one that refuses, and a ``ParallelEnv`` worker that refuses dies.
     """
+
+    def __init__(self, *args: Any, check_actions: bool = True, **kwargs: Any) -> None:
+        self.check_actions = check_actions
+        super().__init__(*args, **kwargs)
+
+    def _check_actions(self, tensordict: TensorDictBase) -> None:
+        if not self.__dict__.get("check_actions", True):
+            return
+        spec = self.full_action_spec
+        name = f"{type(self).__name__} of {self.batch_size[0]} workers"
+        rows = tensordict.get("_step", None)
+        for key in self.action_keys:
+            check_action(
+                tensordict.get(key, None),
+                spec[key],
+                name,
+                batch_dims=len(self.batch_size),
+                rows=rows,
+            )
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        self._check_actions(tensordict)
+        return super()._step(tensordict)
 
     def _create_td(self) -> None:
         super()._create_td()
@@ -167,7 +195,8 @@ class SnapshotSerialEnv(_ChecksStatesFirst, SerialEnv):
 
     Every state is checked before the first worker restores, so a refused state
     leaves every worker as it was (a plain ``SerialEnv`` restores the workers before
-    the one that refuses).
+    the one that refuses). Likewise every action before the first worker steps
+    (:class:`~torchrl_grpo.envs.InvalidActionError`; ``check_actions=False`` skips it).
 
     Example:
         >>> import functools
@@ -184,12 +213,14 @@ class SnapshotSerialEnv(_ChecksStatesFirst, SerialEnv):
 
 
 class SnapshotParallelEnv(_ChecksStatesFirst, ParallelEnv):
-    """A ``ParallelEnv`` that checks states in this process before its workers restore them.
+    """A ``ParallelEnv`` that checks states and actions in this process before its workers see them.
 
     A worker of a plain ``ParallelEnv`` that refuses a state raises in its own
     process and dies. Here the checks run first, in the parent, on a local copy of
     the worker (built on the first restore: a gym.make and a reset), so a bad
-    state raises the error that names it and every worker lives on unchanged.
+    state raises the error that names it and every worker lives on unchanged. Actions
+    are checked against the batched action spec before any worker sees them
+    (:class:`~torchrl_grpo.envs.InvalidActionError`; ``check_actions=False`` skips it).
 
     Example:
         >>> import functools
@@ -207,3 +238,14 @@ class SnapshotParallelEnv(_ChecksStatesFirst, ParallelEnv):
         torch.Size([1, 2])
         >>> env.close()
     """
+
+    def step_and_maybe_reset(
+        self, tensordict: TensorDictBase
+    ) -> tuple[TensorDictBase, TensorDictBase]:
+        """See ``ParallelEnv.step_and_maybe_reset``; actions are checked first.
+
+        With shared buffers TorchRL sends the actions to the workers without ``_step``.
+        """
+        if self.__dict__.get("_use_buffers", False):
+            self._check_actions(tensordict)
+        return super().step_and_maybe_reset(tensordict)

@@ -21,6 +21,7 @@ from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase
 from torchrl.envs.libs.gym import _gym_to_torchrl_spec_transform
 
+from torchrl_grpo.envs.core.action_validation import check_action, gym_action
 from torchrl_grpo.envs.core.bits import (
     bits_spec,
     check_finite_floats,
@@ -54,6 +55,8 @@ class SnapshotEnv(EnvBase):
             or one-hot vectors (``False``, TorchRL's ``GymEnv`` default).
         device: the device of the output tensors.
         make_kwargs: keyword arguments for ``gym.make`` when ``env`` is an id.
+        check_actions: refuse an action outside the action spec before stepping, with an
+            :class:`~torchrl_grpo.envs.InvalidActionError` (the env unchanged).
 
     The state has two parts: ``state["sim"]`` (the codec's encoding of the
     simulator) and ``state["output"]`` (the observation the env last returned,
@@ -86,6 +89,7 @@ class SnapshotEnv(EnvBase):
         categorical_action_encoding: bool = True,
         device: torch.device | str = "cpu",
         make_kwargs: dict | None = None,
+        check_actions: bool = True,
     ) -> None:
         super().__init__(device=device, batch_size=())
         if isinstance(env, str):
@@ -99,6 +103,7 @@ class SnapshotEnv(EnvBase):
             codec = codec_for(self._env_id())
         self.codec = codec
         self.return_state = return_state
+        self.check_actions = check_actions
         self._categorical = categorical_action_encoding
         obs, info = self._gym_reset(seed)
         # The first reset() starts the seeded episode again (the one built here, which
@@ -120,6 +125,8 @@ class SnapshotEnv(EnvBase):
             device=self.device,
             categorical_action_encoding=self._categorical,
         )
+        self._action_leaf = self.action_spec  # for the per-step check, read once
+        self._name = f"{type(self).__name__}({self._env_id()!r})"
         obs_spec = _gym_to_torchrl_spec_transform(self._env.observation_space, device=self.device)
         if not isinstance(obs_spec, Composite):
             obs_spec = Composite(observation=obs_spec, device=self.device)
@@ -326,8 +333,12 @@ class SnapshotEnv(EnvBase):
         return found
 
     def _step(self, tensordict: TensorDictBase) -> TensorDict:
-        action = self._to_gym_action(tensordict.get("action"))
-        obs, reward, terminated, truncated, info = self._env.step(action)
+        action = tensordict.get("action")
+        if self.check_actions:  # before the simulator sees it: the env stays as it was
+            check_action(action, self._action_leaf, self._name)
+        obs, reward, terminated, truncated, info = self._env.step(
+            gym_action(action, self._env.action_space, self._categorical)
+        )
         self._last_output = self._output_leaves(obs, info)
         flat = dict(self._last_output)
         # Through numpy: torch.tensor() of a Python scalar costs twice as much.
@@ -355,14 +366,6 @@ class SnapshotEnv(EnvBase):
             # seed it too, so that a seed fixes the whole reset output.
             self._env.action_space.seed(seed)
         return self._env.reset(seed=seed)
-
-    def _to_gym_action(self, action: torch.Tensor) -> Any:
-        space = self._env.action_space
-        if isinstance(space, gym.spaces.Discrete):
-            if not self._categorical:
-                action = action.argmax(-1)
-            return int(action)
-        return action.detach().cpu().numpy()
 
     def _output_leaves(self, obs: Any, info: dict) -> dict[tuple[str, ...], torch.Tensor]:
         # Built leaf by leaf, without TensorDict validation: this runs on every step.

@@ -20,6 +20,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Categorical, Composite, OneHot, Unbounded
 from torchrl.envs import EnvBase
 
+from torchrl_grpo.envs.core.action_validation import check_action
 from torchrl_grpo.envs.core.errors import SnapshotError
 from torchrl_grpo.envs.core.gym_state import RNG_WORDS
 from torchrl_grpo.envs.core.snapshot_env import STATE_KEY
@@ -67,6 +68,12 @@ class TensorHighwayEnv(EnvBase):
         check_states: check the values of restored states (finite floats, lanes and
             indices in range, valid generator words); structure and config are checked
             always. Turn off for speed once states are known good.
+        check_actions: refuse, before stepping, actions outside the action spec (out of
+            range, not integers, of the wrong shape) with an
+            :class:`~torchrl_grpo.envs.InvalidActionError` naming the rows and values;
+            the env is left unchanged. One vectorised comparison per step, whose bool is
+            read back to the host (a sync on a GPU): turn off for speed once the policy
+            is known to write valid actions.
         categorical_action_encoding: integer actions (``False``: one-hot).
 
     Example:
@@ -99,6 +106,7 @@ class TensorHighwayEnv(EnvBase):
         seed: int | None = None,
         return_state: bool = False,
         check_states: bool = True,
+        check_actions: bool = True,
         categorical_action_encoding: bool = True,
     ) -> None:
         if dtype not in (torch.float32, torch.float64):
@@ -116,6 +124,7 @@ class TensorHighwayEnv(EnvBase):
         self.dtype = dtype
         self.return_state = return_state
         self.check_states = check_states
+        self.check_actions = check_actions
         self._categorical = categorical_action_encoding
         self._bridge: HighwayBridge | None = None
         self.fingerprint = stable_hash("TensorHighwayEnv", scenario, repr(self.params), str(dtype))
@@ -196,6 +205,9 @@ class TensorHighwayEnv(EnvBase):
             self.action_spec = Categorical(5, b, dtype=torch.int64, device=dev)
         else:
             self.action_spec = OneHot(5, (*b, 5), dtype=torch.int64, device=dev)
+        # Kept for the per-step check: reading action_spec goes through the input spec.
+        self._action_leaf = self.action_spec
+        self._name = f"TensorHighwayEnv({self.scenario!r}, num_envs={b[0]})"
         self.reward_spec = real(1)
         self.done_spec = Composite(
             done=flag.clone(), terminated=flag.clone(), truncated=flag.clone(), shape=b, device=dev
@@ -330,13 +342,16 @@ class TensorHighwayEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDict:
         action = tensordict.get("action")
+        # TorchRL's partial steps: rows outside the "_step" mask keep their world (their
+        # outputs are computed and discarded: one batched step costs the same).
+        rows = tensordict.get("_step", None)
+        if self.check_actions:
+            # Before anything changes, so that a refused action leaves the env as it was.
+            check_action(action, self._action_leaf, self._name, batch_dims=1, rows=rows)
         if not self._categorical:
             action = action.argmax(-1)
         world, outputs = self._step_fn(self._world, action.to(torch.int64))
         self.world_steps += self.batch_size[0]
-        # TorchRL's partial steps: rows outside the "_step" mask keep their world (their
-        # outputs are computed and discarded: one batched step costs the same).
-        rows = tensordict.get("_step", None)
         if rows is not None:
             world = where_rows(rows.reshape(self.batch_size), world, self._world)
         self._world = world

@@ -23,6 +23,7 @@ from torchrl.data import Composite, Unbounded
 
 from torchrl_grpo.envs.core.errors import StateCorruptedError, StateMismatchError
 from torchrl_grpo.envs.core.gym_state import RNG_WORDS, seeded_rng_words
+from torchrl_grpo.envs.highway.schema import MAX_MAGNITUDE
 from torchrl_grpo.sim.params import HighwayParams
 from torchrl_grpo.sim.rng import mix64, uniform
 from torchrl_grpo.sim.state import (
@@ -130,8 +131,12 @@ def check_state_structure(state: TensorDictBase, spec: Composite, fingerprint: i
 def check_state_values(state: TensorDictBase, params: HighwayParams) -> None:
     """Every entry's values: the world's (:func:`~torchrl_grpo.sim.check_world`) and the words.
 
+    Floats (and the clock) must be finite and within :data:`~.schema.MAX_MAGNITUDE`,
+    the bound HighwayEnv's codec holds every float of a highway-env state to.
+
     Raises:
-        StateCorruptedError: naming each entry that does not fit, and its rows.
+        StateCorruptedError: naming each entry that does not fit, its rows and (for
+            floats) their values.
 
     Example:
         >>> from torchrl_grpo.envs import StateCorruptedError, TensorHighwayEnv
@@ -144,7 +149,7 @@ def check_state_values(state: TensorDictBase, params: HighwayParams) -> None:
         ...     print(err)
         invalid state: highway.rng: not a valid PCG64 state in rows [0, 1]
     """
-    problems = check_world(world_from_tensordict(state), params)
+    problems = check_world(world_from_tensordict(state), params, MAX_MAGNITUDE)
     words = state.get(("highway", "rng"))
     bad = ((words < 0) | (words > _MASK32)).any(-1) | (words[..., 4] & 1 == 0)
     bad |= (words[..., 8] < 0) | (words[..., 8] > 1)

@@ -41,6 +41,8 @@ class HighwayEnv(SnapshotEnv):
         fast_observation: compute a plain Kinematics observation without pandas
             (:class:`~torchrl_grpo.envs.highway.fast_observation.FastKinematicObservation`:
             the same bits, 3 ms less per step); ``False`` keeps highway-env's own.
+        check_actions: refuse an action outside the action spec before highway-env
+            sees it (see :class:`~torchrl_grpo.envs.SnapshotEnv`).
 
     Bit-exactness holds on one machine and numeric setup: restore + the same actions
     gives the same bits, as highway-env itself would; on another CPU (another BLAS
@@ -77,6 +79,7 @@ class HighwayEnv(SnapshotEnv):
         categorical_action_encoding: bool = True,
         device: torch.device | str = "cpu",
         fast_observation: bool = True,
+        check_actions: bool = True,
     ) -> None:
         if scenario not in HIGHWAY_SCENARIOS:
             close = difflib.get_close_matches(scenario, HIGHWAY_SCENARIOS, n=3)
@@ -101,6 +104,7 @@ class HighwayEnv(SnapshotEnv):
             return_state=return_state,
             categorical_action_encoding=categorical_action_encoding,
             device=device,
+            check_actions=check_actions,
         )
 
     @property
