@@ -1,19 +1,21 @@
 """A benchmark script of this tree against the same script of another checkout, A/B interleaved.
 
 Runs ``python benchmarks/SCRIPT ARGS`` of the baseline checkout (A, e.g. the main
-branch) and of this tree (B) in turn, A B A B ..., each with its own package first on
+branch) and of this tree (B) in turn, each with its own package first on
 ``PYTHONPATH``, and reads the figures each run prints: the claim lines of
 :mod:`claims` (ratios measured inside the run, e.g. branch steps/s over the raw
 processes' ceiling) and ``NAME: VALUE steps/s`` lines. It prints, per figure, the
 median of A's runs, of B's, and the median (and range) of B / A over the pairs. On a
-shared machine the load drifts; taking the ratio pair by pair, in alternating runs,
-lets both sides meet the same load.
+shared machine the load drifts: the runs alternate, and the pairs alternate which side
+goes first (A B, B A, A B, ...), so that both sides meet the same load and a steady
+drift favours neither. The ratios measured inside a run (to a ceiling timed in the same
+run) cancel most of the load; absolute rates (``steps/s``) cancel it only over pairs.
 
 Run (from this tree's root)::
 
-    python benchmarks/compare_main.py --baseline /work/main --pairs 3 -- \\
+    python benchmarks/compare_main.py --baseline /work/main --pairs 4 -- \\
         bench_ceiling.py --repeats 1 --engines whole lockstep
-    python benchmarks/compare_main.py --baseline /work/main --pairs 3 -- \\
+    python benchmarks/compare_main.py --baseline /work/main --pairs 4 -- \\
         bench_branching.py --repeats 2
 
 A ratio B / A above 1 means this tree's figure is higher (for rates and ratios to a
@@ -77,7 +79,7 @@ def run_once(tree: Path, script: str, args: list[str]) -> dict[str, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--baseline", type=Path, required=True, help="checkout A (e.g. main)")
-    parser.add_argument("--pairs", type=int, default=3, help="A/B pairs, run A B A B ...")
+    parser.add_argument("--pairs", type=int, default=4, help="A/B pairs: A B, B A, A B, ...")
     parser.add_argument("script", help="a script of benchmarks/, e.g. bench_ceiling.py")
     parser.add_argument("args", nargs=argparse.REMAINDER, help="the script's arguments")
     opts = parser.parse_args()
@@ -85,13 +87,13 @@ def main() -> None:
     runs: dict[str, list[dict[str, float]]] = {"A": [], "B": []}
     load = [os.getloadavg()[0]]
     for pair in range(opts.pairs):
-        for side in ("A", "B"):
+        for side in ("A", "B") if pair % 2 == 0 else ("B", "A"):
             runs[side].append(run_once(sides[side], opts.script, opts.args))
             load.append(os.getloadavg()[0])
         print(f"pair {pair + 1}/{opts.pairs} done", file=sys.stderr, flush=True)
     names = [n for n in runs["A"][0] if all(n in r for r in runs["A"] + runs["B"])]
     print(
-        f"{opts.script} {' '.join(opts.args)}: {opts.pairs} pairs run A B A B ...; "
+        f"{opts.script} {' '.join(opts.args)}: {opts.pairs} pairs run A B, B A, A B, ...; "
         f"A = {sides['A']}, B = {sides['B']}; {os.cpu_count()} cores, 1-minute load "
         f"{min(load):.1f}-{max(load):.1f}"
     )
