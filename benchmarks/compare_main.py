@@ -19,7 +19,7 @@ Run (from this tree's root)::
         bench_branching.py --repeats 2
 
 A ratio B / A above 1 means this tree's figure is higher (for rates and ratios to a
-ceiling: faster).
+ceiling: faster; for CPU ms per step: slower).
 """
 
 from __future__ import annotations
@@ -37,15 +37,22 @@ HERE = Path(__file__).resolve().parent.parent
 CLAIM = re.compile(r"^  (?P<name>\S.*?)\s+(?P<value>-?\d+\.\d{4})\s{3}(?:goal|\(no goal\))")
 # "       W=1:    41.2 steps/s   (range ...)", as bench_branching prints its rates.
 RATE = re.compile(r"^\s+(?P<name>[^:]+):\s+(?P<value>-?\d+(?:\.\d+)?) steps/s")
+# "       W=1:   1.52 /  22.31", bench_branching's CPU ms per branch step, parent / workers.
+CPU = re.compile(r"^\s+(?P<name>W=[^:]+):\s+(?P<parent>[\d.]+) /\s+(?P<workers>[\d.]+)$")
 
 
 def figures(text: str) -> dict[str, float]:
-    """The figures of one run's output: claim values and ``steps/s`` rates, by name.
+    """The figures of one run's output: claim values, rates and CPU per step, by name.
+
+    CPU time per step (of the parent, of the workers) barely moves with the machine's
+    load, where rates do: on a shared machine it is the steadier figure.
 
     Example:
         >>> figures("  W=1:    41.2 steps/s   (range 40-42)\\n"
-        ...         "  merge-v0: ratio      0.8466   (no goal)     load 2\\n")
-        {'W=1 steps/s': 41.2, 'merge-v0: ratio': 0.8466}
+        ...         "  merge-v0: ratio      0.8466   (no goal)     load 2\\n"
+        ...         "       W=2:   1.50 /  22.00\\n")  # doctest: +NORMALIZE_WHITESPACE
+        {'W=1 steps/s': 41.2, 'merge-v0: ratio': 0.8466,
+         'W=2 parent CPU ms/step': 1.5, 'W=2 workers CPU ms/step': 22.0}
     """
     out: dict[str, float] = {}
     for line in text.splitlines():
@@ -56,6 +63,11 @@ def figures(text: str) -> dict[str, float]:
         match = RATE.match(line)
         if match:
             out[f"{match['name'].strip()} steps/s"] = float(match["value"])
+            continue
+        match = CPU.match(line)
+        if match:
+            out[f"{match['name'].strip()} parent CPU ms/step"] = float(match["parent"])
+            out[f"{match['name'].strip()} workers CPU ms/step"] = float(match["workers"])
     return out
 
 
