@@ -9,7 +9,7 @@ being stepped with the others (its steps are masked out, and nothing resets it),
 the rollout's shapes never change; with N > B, the branches run in waves of B rows.
 
 :func:`run_batched_branches` returns what the worker-slot engines return (a
-:class:`~torchrl_grpo.branching.branch_run.BranchRun`), so
+:class:`~torchrl_grpo.branching.rollout_rows.BranchRun`), so
 :func:`~torchrl_grpo.branching.branch_rollout` labels both the same way.
 """
 
@@ -24,8 +24,8 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from torchrl_grpo.branching.action_checks import check_policy_actions
-from torchrl_grpo.branching.branch_run import BranchRun, KeepStates, Policy
 from torchrl_grpo.branching.keys import BRANCH, GROUP_ID, ROOT_STEP, STATE, STEP_COUNT
+from torchrl_grpo.branching.rollout_rows import BranchRun, KeepStates, Policy
 
 __all__ = ["run_batched_branches"]
 
@@ -61,7 +61,7 @@ def run_batched_branches(
         on_wave: called with the number of branches of each wave (for progress).
 
     Returns:
-        The :class:`~torchrl_grpo.branching.branch_run.BranchRun`: ``[N, H]`` data (zeros
+        The :class:`~torchrl_grpo.branching.rollout_rows.BranchRun`: ``[N, H]`` data (zeros
         after each branch's end), mask, lengths, ended flags, final states.
 
     Example:

@@ -13,12 +13,12 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
 from torchrl_grpo.branching.branch_env import shutdown_env
-from torchrl_grpo.branching.branch_run import Policy
 from torchrl_grpo.branching.collector_base import GroupCollectorBase
 from torchrl_grpo.branching.continuation import ContinuationRoots, Selection
 from torchrl_grpo.branching.env_slots import EnvSlots
 from torchrl_grpo.branching.keys import MASK, STATE
 from torchrl_grpo.branching.rollout import RngMode, run_groups
+from torchrl_grpo.branching.rollout_rows import Policy
 from torchrl_grpo.branching.roots import EpisodeStartRoots, RootSource, TrunkRoots
 
 logger = logging.getLogger(__name__)

@@ -16,9 +16,9 @@ from __future__ import annotations
 from tensordict import TensorDictBase
 
 from torchrl_grpo.branching.batched_worlds import run_batched_branches
-from torchrl_grpo.branching.branch_run import BranchRun, Policy
 from torchrl_grpo.branching.env_slots import EnvSlots, has_batched_worlds
 from torchrl_grpo.branching.lockstep import run_branches
+from torchrl_grpo.branching.rollout_rows import BranchRun, Policy
 from torchrl_grpo.branching.worker_branches import run_whole_branches
 
 __all__ = ["run_on"]

@@ -29,9 +29,9 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_grpo.branching.action_checks import check_policy_actions
-from torchrl_grpo.branching.branch_run import BranchRun, KeepStates, Policy, RolloutRows
 from torchrl_grpo.branching.env_slots import EnvSlots
 from torchrl_grpo.branching.keys import BRANCH, GROUP_ID, ROOT_STEP, STEP_COUNT
+from torchrl_grpo.branching.rollout_rows import BranchRun, KeepStates, Policy, RolloutRows
 
 __all__ = ["check_actions", "run_branches"]
 

@@ -20,10 +20,10 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
-from torchrl_grpo.branching.branch_run import Policy
 from torchrl_grpo.branching.dispatch import run_on
 from torchrl_grpo.branching.env_slots import EnvSlots
 from torchrl_grpo.branching.keys import ROOT_STEP, STATE
+from torchrl_grpo.branching.rollout_rows import Policy
 from torchrl_grpo.branching.root_builders import (
     as_roots,
     make_roots,

@@ -32,11 +32,11 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType
 
-from torchrl_grpo.branching.branch_run import BranchRun, KeepStates, Policy, RolloutRows
 from torchrl_grpo.branching.branch_runner import RolloutSetup
 from torchrl_grpo.branching.env_slots import EnvSlots
 from torchrl_grpo.branching.pipe_arrays import STATE_ALWAYS, STATE_AT_END, STATE_NEVER, to_arrays
 from torchrl_grpo.branching.policy_transport import pack_policy
+from torchrl_grpo.branching.rollout_rows import BranchRun, KeepStates, Policy, RolloutRows
 
 __all__ = ["run_whole_branches"]
 
