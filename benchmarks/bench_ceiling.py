@@ -12,10 +12,9 @@ alike), this script times ``branch_rollout`` on a ``BranchParallelEnv`` of W wor
   (the default: ``whole_branches = True``, ``branch_queue_depth = 2``);
 - ``whole-q1``: the same with one branch at a time per worker
   (``branch_queue_depth = 1``);
-- ``lanes``: pipelined lanes, the policy in this process (``whole_branches = False``,
-  ``branch_lanes = 3``);
-- ``lockstep``: the lock-step engine (``branch_lanes = 0``): every step, the policy,
-  then all workers step, then the parent waits for the slowest.
+- ``lockstep``: the lock-step engine, the policy in this process
+  (``whole_branches = False``, as for a policy that cannot be sent to the workers):
+  every step, the policy, then all workers step, then the parent waits for the slowest.
 
 The workers' HighwayEnv computes highway-env's Kinematics observation without pandas
 (``FastKinematicObservation``: the same bits, about 3 ms less per step), so a worker
@@ -57,23 +56,22 @@ from torchrl_grpo.modules import KinematicsMLP, make_discrete_actor
 
 warnings.filterwarnings("ignore", message=".*is out of date.*")
 SCENARIOS = ("highway-fast-v0", "merge-v0")
-# Engine -> (whole_branches, branch_queue_depth, branch_lanes); the first is the default.
+# Engine -> (whole_branches, branch_queue_depth); the first is the default.
 ENGINES = {
-    "whole": (True, 2, 3),
-    "whole-q1": (True, 1, 3),
-    "lanes": (False, 1, 3),
-    "lockstep": (False, 1, 0),
+    "whole": (True, 2),
+    "whole-q1": (True, 1),
+    "lockstep": (False, 1),
 }
 
 
 @contextlib.contextmanager
 def use_engine(env: BranchParallelEnv, name: str) -> Iterator[None]:
     """Run ``env``'s branch rollouts with engine ``name`` (see ``ENGINES``)."""
-    env.whole_branches, env.branch_queue_depth, env.branch_lanes = ENGINES[name]
+    env.whole_branches, env.branch_queue_depth = ENGINES[name]
     try:
         yield
     finally:
-        del env.whole_branches, env.branch_queue_depth, env.branch_lanes
+        del env.whole_branches, env.branch_queue_depth
 
 
 def make_raw_env(scenario: str, seed: int):
@@ -174,7 +172,7 @@ def main() -> None:
         for w in args.workers:
             roots = reset_roots(plain, args.roots * w, seed=w)
             env = make_branch_env(scenario, w, mp_start_method="fork")
-            # Builds every lane and warms the workers up, for each engine.
+            # Warms the workers up, for each engine.
             for name in ENGINES:
                 with use_engine(env, name):
                     branch_rollout(env, make_policy(plain), roots, args.group_size, 2)

@@ -38,7 +38,7 @@ from torchrl.envs.utils import ExplorationType
 import torchrl_grpo.branching.branch_runner as runner_module
 from torchrl_grpo.branching import reset_roots
 from torchrl_grpo.branching.branch_runner import BranchRunner, RolloutSetup
-from torchrl_grpo.branching.lanes import STATE_NEVER, to_arrays
+from torchrl_grpo.branching.pipe_arrays import STATE_NEVER, to_arrays
 from torchrl_grpo.branching.policy_transport import pack_policy
 from torchrl_grpo.envs import HighwayEnv
 from torchrl_grpo.envs.highway.fast_observation import use_fast_kinematics

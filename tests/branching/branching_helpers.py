@@ -74,14 +74,14 @@ def branch_env(scenario: str, backend: str, num_workers: int = 2, **kwargs):
 
 
 @contextlib.contextmanager
-def engine(env, *, whole: bool = False, lanes: int = 0) -> Iterator[None]:
+def engine(env, *, whole: bool = False) -> Iterator[None]:
     """Run ``env``'s branch rollouts with one engine: whole branches in the workers
-    (``whole=True``), else ``lanes`` pipelined lanes, else (``lanes=0``) lock-step."""
-    env.whole_branches, env.branch_lanes = whole, lanes
+    (``whole=True``), else lock-step with the policy in this process."""
+    env.whole_branches = whole
     try:
         yield
     finally:
-        del env.whole_branches, env.branch_lanes
+        del env.whole_branches
 
 
 class ScheduledPolicy:

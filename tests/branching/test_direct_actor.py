@@ -14,7 +14,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl_grpo.branching import reset_roots
 from torchrl_grpo.branching.branch_runner import BranchRunner, RolloutSetup
 from torchrl_grpo.branching.direct_actor import ProbedPolicy, direct_actor
-from torchrl_grpo.branching.lanes import STATE_AT_END, to_arrays
+from torchrl_grpo.branching.pipe_arrays import STATE_AT_END, to_arrays
 from torchrl_grpo.branching.policy_transport import PolicyCopy, pack_policy
 from torchrl_grpo.envs import HighwayEnv
 from torchrl_grpo.modules import KinematicsMLP, RandomPolicy, make_discrete_actor

@@ -20,9 +20,10 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType
 
 from torchrl_grpo.branching import branch_rollout, make_branch_env, reset_roots, shutdown_env
-from torchrl_grpo.branching.batched import run_on
+from torchrl_grpo.branching.dispatch import run_on
+from torchrl_grpo.branching.env_slots import EnvSlots
 from torchrl_grpo.branching.policy_transport import pack_policy
-from torchrl_grpo.branching.slots import EnvSlots
+from torchrl_grpo.envs import states_equal
 from torchrl_grpo.modules import RandomPolicy
 
 SCENARIO = "highway-fast-v0"
@@ -155,6 +156,22 @@ def test_every_keep_mode_matches_the_serial_engine(short_parallel, short_serial,
         assert bitwise_equal(runs[0].final_states, runs[1].final_states) == []
 
 
+def test_final_states_are_the_branches_own(short_parallel, roots):
+    # Each final state is the branch's: stepping its root with its actions gets there.
+    states = roots["state"][torch.tensor([0, 0, 1, 1, 1])]
+    ids = {"group_id": torch.arange(5), "branch": torch.arange(5)}
+    ids["root_step"] = torch.zeros(5, dtype=torch.long)
+    slots = EnvSlots(short_parallel)
+    run = run_on(slots, ScheduledPolicy(_table()), states, 6, keep="final", **ids)
+    assert run.ended.any()
+    check = plain_env(SCENARIO, config=CONFIG)
+    for i in range(5):
+        check.set_state(states[i])
+        for t in range(int(run.lengths[i])):
+            check.step(TensorDict(action=_table()[i, t]))
+        assert states_equal(check.get_state(), run.final_states[i]), i
+
+
 def test_a_deterministic_actor_gives_the_single_env_data(short_parallel, roots):
     # The workers call the policy on one row, as a plain env's rollout does: its
     # logits are bitwise the same (a batch of W rows may round differently).
@@ -239,7 +256,7 @@ def test_a_policy_that_cannot_go_to_the_workers_runs_in_the_parent(
 
     policy = closure if kind == "closure" else ParentOnly(_table())
     data = branch_rollout(short_parallel, policy, roots, 5, 6)
-    # The lanes ran it, in this process.
+    # The lock-step engine ran it, in this process.
     assert (len(calls) if kind == "closure" else policy.calls) > 0
     reference = branch_rollout(short_serial, ScheduledPolicy(_table()), roots, 5, 6)
     assert bitwise_equal(reference, data) == []
@@ -265,7 +282,7 @@ def test_policies_that_cannot_be_copied_to_workers_are_not_packed():
 def test_a_dead_worker_is_reported(roots, no_workers_left):
     env = make_branch_env(SCENARIO, 2, config=CONFIG, mp_start_method="fork")
     try:
-        with engine(env, whole=True, lanes=3), pytest.raises(RuntimeError, match="dead"):
+        with engine(env, whole=True), pytest.raises(RuntimeError, match="dead"):
             branch_rollout(env, ExitsOnBranch3(_table()), roots, 5, 6)
     finally:
         shutdown_env(env)

@@ -19,7 +19,7 @@ from torchrl.envs import ParallelEnv, TransformedEnv
 from torchrl.envs.transforms import Transform
 
 from torchrl_grpo.branching import branch_rollout, make_branch_env, reset_roots, shutdown_env
-from torchrl_grpo.branching.slots import EnvSlots
+from torchrl_grpo.branching.env_slots import EnvSlots
 from torchrl_grpo.branching.workers import BranchParallelEnv
 from torchrl_grpo.envs import states_equal
 
@@ -141,8 +141,8 @@ def test_branch_fast_paths_match_torchrl_reset_and_step(highway_parallel, return
     )
     try:
         fast = {}
-        for name, whole, lanes in (("whole", True, 0), ("lanes", False, 3), ("lockstep", False, 0)):
-            with engine(env, whole=whole, lanes=lanes):
+        for name, whole in (("whole", True), ("lockstep", False)):
+            with engine(env, whole=whole):
                 fast[name] = branch_rollout(
                     env, ScheduledPolicy(table), roots, 5, 6, return_states=return_states
                 )
@@ -158,9 +158,9 @@ def test_branch_fast_paths_match_torchrl_reset_and_step(highway_parallel, return
 
 def test_sleeping_wait_learns_the_wait_lengths(highway_parallel):
     # After a few steps, a step's wait starts with one long sleep: a handful of
-    # wake-ups per wait instead of one every 0.5 ms (the lock-step path: no lanes).
+    # wake-ups per wait instead of one every 0.5 ms (the lock-step path).
     roots = reset_roots(plain_env("highway-fast-v0"), 1, seed=0)
-    with engine(highway_parallel, lanes=0):
+    with engine(highway_parallel, whole=False):
         branch_rollout(highway_parallel, ScheduledPolicy(torch.ones(2, 4)), roots, 2, 4)
     recent = highway_parallel.__dict__["_recent_waits"]
     assert recent["step"] > 0 and recent["restore"] > 0

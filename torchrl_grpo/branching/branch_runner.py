@@ -1,11 +1,11 @@
 """Whole branches in a branch worker: restore, then policy and step until the branch ends.
 
 The part of a :class:`~torchrl_grpo.branching.BranchParallelEnv` worker that runs the
-jobs of :func:`~torchrl_grpo.branching.whole.run_whole_branches`. At the start of a
-rollout the parent sends a ``"setup"`` message with the packed policy
+jobs of :func:`~torchrl_grpo.branching.worker_branches.run_whole_branches`. At the start
+of a rollout the parent sends a ``"setup"`` message with the packed policy
 (:mod:`~torchrl_grpo.branching.policy_transport`) and what the rollout keeps; then one
 ``"branch"`` message per branch. The worker restores the branch's start state, and
-for ``t < H`` builds the policy's input as the parent's engines do (observations,
+for ``t < H`` builds the policy's input as the lock-step engine does (observations,
 done flags, ``group_id``, ``branch``, ``root_step``, ``step_count = root_step + t``,
 a batch of one row), runs its copy of the policy under the rollout's exploration
 type, checks the action, and steps, until ``done`` or ``H`` steps. It answers once
@@ -32,7 +32,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_grpo.branching.action_checks import check_policy_actions
 from torchrl_grpo.branching.keys import BRANCH, GROUP_ID, ROOT_STEP, STATE, STEP_COUNT
-from torchrl_grpo.branching.lanes import (
+from torchrl_grpo.branching.pipe_arrays import (
     STATE_ALWAYS,
     Arrays,
     from_arrays,
@@ -43,7 +43,7 @@ from torchrl_grpo.branching.policy_transport import PackedPolicy, PolicyCopy
 
 __all__ = ["BranchRunner", "RolloutSetup"]
 
-# Entries of the policy's td that are not per-step data (as the parent's engines skip them).
+# Entries of the policy's td that are not per-step data (as the lock-step engine skips them).
 _SKIP = ((STATE,), ("next",), ("_step",))
 
 
@@ -77,7 +77,7 @@ class BranchRunner:
 
     Example:
         >>> from torchrl_grpo.envs import HighwayEnv
-        >>> from torchrl_grpo.branching.lanes import STATE_AT_END
+        >>> from torchrl_grpo.branching.pipe_arrays import STATE_AT_END
         >>> from torchrl_grpo.branching.policy_transport import pack_policy
         >>> from torchrl_grpo.modules import RandomPolicy
         >>> env = HighwayEnv("merge-v0", return_state=True)
@@ -171,7 +171,7 @@ def _policy_input(
 
     ``keys`` of ``out`` (observations, done flags), then the branch's ``labels``
     (``group_id``, ``branch``, ``root_step``) and ``step_count``, in the order the
-    parent's engines write them.
+    lock-step engine writes them.
     """
     source = {k: out.get(k).unsqueeze(0) for k in keys}
     source.update(labels)

@@ -23,12 +23,12 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
-from torchrl_grpo.branching.engine import BranchRun, Policy
+from torchrl_grpo.branching.env_slots import EnvSlots
 from torchrl_grpo.branching.keys import BRANCH_RETURN, MASK, ROOT_STEP, STATE
 from torchrl_grpo.branching.rollout import RngMode, check_group_args, run_groups
+from torchrl_grpo.branching.rollout_rows import BranchRun, Policy
 from torchrl_grpo.branching.root_builders import as_roots
 from torchrl_grpo.branching.roots import RootSource
-from torchrl_grpo.branching.slots import EnvSlots
 
 Selection = Literal["best", "sampled", "trunk"]
 SELECTED = "selected"

@@ -15,11 +15,11 @@ from torchrl.envs.utils import ExplorationType
 from torchrl_grpo.branching.branch_env import shutdown_env
 from torchrl_grpo.branching.collector_base import GroupCollectorBase
 from torchrl_grpo.branching.continuation import ContinuationRoots, Selection
-from torchrl_grpo.branching.engine import Policy
+from torchrl_grpo.branching.env_slots import EnvSlots
 from torchrl_grpo.branching.keys import MASK, STATE
 from torchrl_grpo.branching.rollout import RngMode, run_groups
+from torchrl_grpo.branching.rollout_rows import Policy
 from torchrl_grpo.branching.roots import EpisodeStartRoots, RootSource, TrunkRoots
-from torchrl_grpo.branching.slots import EnvSlots
 
 logger = logging.getLogger(__name__)
 

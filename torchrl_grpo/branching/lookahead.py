@@ -17,10 +17,10 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
+from torchrl_grpo.branching.env_slots import has_batched_worlds
 from torchrl_grpo.branching.keys import BRANCH, MASK, ROOT_STEP, STATE, STEP_COUNT
 from torchrl_grpo.branching.rollout import branch_rollout
 from torchrl_grpo.branching.root_builders import as_roots
-from torchrl_grpo.branching.slots import has_batched_worlds
 from torchrl_grpo.envs.core.bits import to_bits
 
 __all__ = ["ActionThenBase", "LookaheadPolicy"]

@@ -1,6 +1,6 @@
 """A policy sent to branch workers: pickled once per rollout, its draws seeded per branch.
 
-Workers that run whole branches (:mod:`~torchrl_grpo.branching.whole`) each hold a
+Workers that run whole branches (:mod:`~torchrl_grpo.branching.worker_branches`) each hold a
 copy of the policy. The parent pickles it at the start of a rollout
 (:func:`pack_policy`); each worker unpickles it (:class:`PolicyCopy`) and, before
 each branch, seeds every random source the copy draws from, from the rollout's base

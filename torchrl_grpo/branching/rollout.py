@@ -10,8 +10,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
-from torchrl_grpo.branching.batched import run_on
-from torchrl_grpo.branching.engine import BranchRun, Policy
+from torchrl_grpo.branching.dispatch import run_on
+from torchrl_grpo.branching.env_slots import EnvSlots, has_batched_worlds
 from torchrl_grpo.branching.keys import (
     BRANCH,
     BRANCH_RETURN,
@@ -22,9 +22,9 @@ from torchrl_grpo.branching.keys import (
     STEP_COUNT,
     TRAJ_IDS,
 )
+from torchrl_grpo.branching.rollout_rows import BranchRun, Policy
 from torchrl_grpo.branching.root_builders import as_roots
 from torchrl_grpo.branching.seeding import branch_seed
-from torchrl_grpo.branching.slots import EnvSlots, has_batched_worlds
 
 RngMode = Literal["shared", "per_branch"]
 

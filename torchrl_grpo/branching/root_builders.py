@@ -17,10 +17,10 @@ from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
-from torchrl_grpo.branching.batched import run_on
-from torchrl_grpo.branching.engine import Policy
+from torchrl_grpo.branching.dispatch import run_on
+from torchrl_grpo.branching.env_slots import EnvSlots
 from torchrl_grpo.branching.keys import MASK, ROOT_STEP, STATE, STEP_COUNT
-from torchrl_grpo.branching.slots import EnvSlots
+from torchrl_grpo.branching.rollout_rows import Policy
 
 __all__ = [
     "as_roots",

@@ -20,9 +20,10 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
-from torchrl_grpo.branching.batched import run_on
-from torchrl_grpo.branching.engine import Policy
+from torchrl_grpo.branching.dispatch import run_on
+from torchrl_grpo.branching.env_slots import EnvSlots
 from torchrl_grpo.branching.keys import ROOT_STEP, STATE
+from torchrl_grpo.branching.rollout_rows import Policy
 from torchrl_grpo.branching.root_builders import (
     as_roots,
     make_roots,
@@ -32,7 +33,6 @@ from torchrl_grpo.branching.root_builders import (
     run_trunks,
     trunk_roots,
 )
-from torchrl_grpo.branching.slots import EnvSlots
 
 __all__ = [
     "EpisodeStartRoots",

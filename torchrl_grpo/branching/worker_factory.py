@@ -1,11 +1,9 @@
-"""The constructor of branch workers: a worker env with its job runners attached.
+"""The constructor of branch workers: a worker env with its branch runner attached.
 
 A :class:`~torchrl_grpo.branching.BranchParallelEnv` wraps each worker constructor in a
-:class:`BranchWorkerFactory`, so that every worker env carries the runners its parent
-sends jobs to through TorchRL's generic attribute call: ``env.branch_jobs`` (a
-:class:`~torchrl_grpo.branching.lanes.LaneRunner`: single restores and steps of the
-pipelined lanes) and ``env.branch_runs`` (a
-:class:`~torchrl_grpo.branching.branch_runner.BranchRunner`: whole branches, stepped
+:class:`BranchWorkerFactory`, so that every worker env carries the runner its parent
+sends whole branches to through TorchRL's generic attribute call: ``env.branch_runs``
+(a :class:`~torchrl_grpo.branching.branch_runner.BranchRunner`, which steps branches
 with the worker's own copy of the policy).
 """
 
@@ -17,13 +15,12 @@ from typing import Any
 from torchrl.envs import EnvBase
 
 from torchrl_grpo.branching.branch_runner import BranchRunner
-from torchrl_grpo.branching.lanes import LaneRunner
 
 __all__ = ["BranchWorkerFactory"]
 
 
 class BranchWorkerFactory:
-    """Builds a worker env with a :class:`LaneRunner` and a :class:`BranchRunner` attached.
+    """Builds a worker env with a :class:`BranchRunner` attached.
 
     Args:
         make: the worker constructor (what ``ParallelEnv`` would be given).
@@ -32,8 +29,8 @@ class BranchWorkerFactory:
         >>> import functools
         >>> from torchrl_grpo.envs import HighwayEnv
         >>> env = BranchWorkerFactory(functools.partial(HighwayEnv, "merge-v0"))()
-        >>> isinstance(env.branch_jobs, LaneRunner), isinstance(env.branch_runs, BranchRunner)
-        (True, True)
+        >>> isinstance(env.branch_runs, BranchRunner)
+        True
     """
 
     def __init__(self, make: Callable[..., EnvBase]) -> None:
@@ -47,8 +44,7 @@ class BranchWorkerFactory:
         return hash(self.make)
 
     def __call__(self, **kwargs: Any) -> EnvBase:
-        """Build the worker env (``make(**kwargs)``) with its runners attached."""
+        """Build the worker env (``make(**kwargs)``) with its runner attached."""
         env = self.make(**kwargs)
-        env.branch_jobs = LaneRunner(env, lambda: self.make(**kwargs))
         env.branch_runs = BranchRunner(env)
         return env

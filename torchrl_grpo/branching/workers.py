@@ -68,15 +68,12 @@ class BranchParallelEnv(SnapshotParallelEnv):
         branch_fast_paths: set to ``False`` to make branch rollouts use TorchRL's
             ``reset`` and ``step``.
         whole_branches: run whole branches in the workers, each with its own copy of
-            the policy (the default, see ``whole``): the parent does nothing per
-            step. ``False``, or a policy that does not pickle for CPU workers, runs
-            the pipelined lanes (or, with ``branch_lanes = 0``, the lock-step engine).
+            the policy (the default, see ``worker_branches``): the parent does nothing
+            per step. ``False``, or a policy that does not pickle for CPU workers, runs
+            the lock-step engine (the policy in the parent, see ``lockstep``).
         branch_queue_depth: whole branches queued per worker (2 by default: a worker
             starts its next branch without waiting for the parent to read its answer;
             in a rollout's last branches, 1, so that the workers finish together).
-        branch_lanes: envs per worker for pipelined branch rollouts (3 by default: a
-            worker steps one lane while the parent runs the policy for the others;
-            ``0`` runs the lock-step engine).
 
     Example:
         >>> import functools
@@ -93,7 +90,6 @@ class BranchParallelEnv(SnapshotParallelEnv):
     branch_fast_paths: bool = True
     whole_branches: bool = True
     branch_queue_depth: int = 2
-    branch_lanes: int = 3
     _MIN_SLEEP = 1e-5
     _MAX_SLEEP = 5e-4
     # Waits of branch_restore / branch_step: a first sleep of this share of the
@@ -109,11 +105,11 @@ class BranchParallelEnv(SnapshotParallelEnv):
         *args: Any,
         **kwargs: Any,
     ) -> None:
-        # Each worker env gets a LaneRunner (env.branch_jobs) for pipelined rollouts.
+        # Each worker env gets a BranchRunner (env.branch_runs) for whole branches.
         if callable(create_env_fn):
-            wrapped = _with_lanes(create_env_fn)
+            wrapped = _with_runner(create_env_fn)
         else:
-            wrapped = [_with_lanes(f) for f in create_env_fn]
+            wrapped = [_with_runner(f) for f in create_env_fn]
         super().__init__(num_workers, wrapped, *args, **kwargs)
 
     def _sleeping_wait_applies(self) -> bool:
@@ -281,11 +277,11 @@ class BranchParallelEnv(SnapshotParallelEnv):
         self._wait_as("step", workers)
         return shared.get("next").select(*keys).clone()
 
-    # ------------------------------------------------------------ pipelined rollouts
+    # ------------------------------------------------------------ whole branches
     def branch_workers_apply(self) -> bool:
-        """Whether the workers run branch jobs (pipelined lanes, whole branches).
+        """Whether the workers can run whole branches.
 
-        They need workers built from constructors (which then carry the runners of
+        They need workers built from constructors (which then carry the runner of
         :class:`~torchrl_grpo.branching.worker_factory.BranchWorkerFactory`) and what
         :meth:`branch_fast_paths_apply` checks.
         """
@@ -294,33 +290,13 @@ class BranchParallelEnv(SnapshotParallelEnv):
         makers = self.__dict__.get("create_env_fn")
         return isinstance(makers, list) and all(isinstance(f, BranchWorkerFactory) for f in makers)
 
-    def branch_lanes_apply(self) -> bool:
-        """Whether branch rollouts run pipelined on this env's lanes (see ``pipelined``).
-
-        They need :attr:`branch_lanes` >= 1 and :meth:`branch_workers_apply`.
-        """
-        return self.branch_lanes >= 1 and self.branch_workers_apply()
-
     def whole_branches_apply(self) -> bool:
-        """Whether branch rollouts may run whole branches in the workers (see ``whole``).
+        """Whether branch rollouts may run whole branches in the workers (``worker_branches``).
 
         They need :attr:`whole_branches` and :meth:`branch_workers_apply`; a rollout
         whose policy does not pickle for the workers still runs in the parent.
         """
         return self.whole_branches and self.branch_workers_apply()
-
-    def branch_send(
-        self,
-        worker: int,
-        jobs: list[tuple],
-        reset_keys: Sequence[NestedKey],
-        step_keys: Sequence[NestedKey],
-    ) -> None:
-        """Queue ``jobs`` (see :class:`~torchrl_grpo.branching.lanes.LaneRunner`) on ``worker``.
-
-        Its answer is read, in sending order, with :meth:`branch_receive`.
-        """
-        self.parent_channels[worker].send(("branch_jobs", ((jobs, reset_keys, step_keys), {})))
 
     def branch_run_send(self, worker: int, message: tuple) -> None:
         """Queue ``message`` for ``worker``'s ``BranchRunner`` (see ``branch_runner``).
@@ -369,21 +345,9 @@ class BranchParallelEnv(SnapshotParallelEnv):
         except (EOFError, OSError) as err:  # the worker's end closed, or reset
             raise RuntimeError(f"Cannot proceed, worker {worker} dead.") from err
 
-    def branch_receive(self, worker: int) -> list[dict[str, Any]]:
-        """The answer of ``worker`` to the oldest jobs not read yet (blocks until it comes).
 
-        Raises:
-            RuntimeError: the worker died, did not answer within ``BATCHED_PIPE_TIMEOUT``,
-                or raised (its traceback is in the message).
-        """
-        result = self.branch_answer(worker)
-        if isinstance(result, tuple):
-            raise RuntimeError(f"branch worker {worker} failed:\n{result[1]}")
-        return result
-
-
-def _with_lanes(make: Any) -> Any:
-    # An env instance is sent to its worker as it is: it gets no lanes.
+def _with_runner(make: Any) -> Any:
+    # An env instance is sent to its worker as it is: it gets no runner.
     return make if isinstance(make, EnvBase) else BranchWorkerFactory(make)
 
 

@@ -59,10 +59,9 @@ class EnvSlots:
         # A BranchParallelEnv, untransformed, restores and steps its workers directly
         # (transforms would be skipped otherwise).
         self._fast = isinstance(env, BranchParallelEnv) and env.branch_fast_paths_apply()
-        # Branch rollouts on it run whole branches in the workers (whole.py) when the
-        # policy can go there, else pipelined over the workers' lanes (pipelined.py).
+        # Branch rollouts on it run whole branches in the workers (worker_branches.py)
+        # when the policy can go there, else lock-step with the policy here (lockstep.py).
         self.whole_branches = self._fast and env.whole_branches_apply()
-        self.pipelined = self._fast and env.branch_lanes_apply()
         self._local: EnvBase | None = None
         self._warned_slow = False
 

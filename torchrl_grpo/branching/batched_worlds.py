@@ -8,8 +8,8 @@ one rollout: the roots' states are copied along the batch dimension, restored in
 being stepped with the others (its steps are masked out, and nothing resets it), so
 the rollout's shapes never change; with N > B, the branches run in waves of B rows.
 
-:func:`run_batched_branches` returns what the worker-slot engine returns (a
-:class:`~torchrl_grpo.branching.engine.BranchRun`), so
+:func:`run_batched_branches` returns what the worker-slot engines return (a
+:class:`~torchrl_grpo.branching.rollout_rows.BranchRun`), so
 :func:`~torchrl_grpo.branching.branch_rollout` labels both the same way.
 """
 
@@ -23,19 +23,11 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-from torchrl_grpo.branching.engine import (
-    BranchRun,
-    KeepStates,
-    Policy,
-    check_policy_actions,
-    run_branches,
-)
+from torchrl_grpo.branching.action_checks import check_policy_actions
 from torchrl_grpo.branching.keys import BRANCH, GROUP_ID, ROOT_STEP, STATE, STEP_COUNT
-from torchrl_grpo.branching.pipelined import run_pipelined
-from torchrl_grpo.branching.slots import EnvSlots, has_batched_worlds
-from torchrl_grpo.branching.whole import run_whole_branches
+from torchrl_grpo.branching.rollout_rows import BranchRun, KeepStates, Policy
 
-__all__ = ["run_batched_branches", "run_on"]
+__all__ = ["run_batched_branches"]
 
 
 def run_batched_branches(
@@ -54,7 +46,8 @@ def run_batched_branches(
     """Run one branch per row of ``states`` (``[N]``, validated) for up to ``horizon`` steps.
 
     Args:
-        env: an env with :func:`has_batched_worlds`, of batch ``[B]``.
+        env: an env with
+            :func:`~torchrl_grpo.branching.env_slots.has_batched_worlds`, of batch ``[B]``.
         policy: reads the ``[B]`` tensordict (observations, ``group_id``, ``branch``,
             ``root_step``, ``step_count``) and writes ``"action"``.
         states: ``[N]`` start states of the branches.
@@ -68,7 +61,7 @@ def run_batched_branches(
         on_wave: called with the number of branches of each wave (for progress).
 
     Returns:
-        The :class:`~torchrl_grpo.branching.engine.BranchRun`: ``[N, H]`` data (zeros
+        The :class:`~torchrl_grpo.branching.rollout_rows.BranchRun`: ``[N, H]`` data (zeros
         after each branch's end), mask, lengths, ended flags, final states.
 
     Example:
@@ -165,37 +158,3 @@ def _wave(env, policy, states, rows, horizon, labels, keep, mask, lengths, ended
         filler = data[:, :1].apply(torch.zeros_like).expand(k, horizon - data.shape[1])
         data = torch.cat([data, filler.clone()], 1)
     return data
-
-
-def run_on(
-    slots: EnvSlots, policy: Policy, states: TensorDictBase, horizon: int, **kwargs
-) -> BranchRun:
-    """Run branches on ``slots``' env: rows of one rollout for a batched simulator, else slots.
-
-    On a :class:`~torchrl_grpo.branching.BranchParallelEnv`, whole branches run in the
-    workers when the policy can be sent there (:mod:`~torchrl_grpo.branching.whole`),
-    else pipelined lanes run (:mod:`~torchrl_grpo.branching.pipelined`), else the
-    lock-step engine (:func:`~torchrl_grpo.branching.engine.run_branches`).
-
-    The arguments are :func:`run_batched_branches`' (``kwargs``: ``group_id``, ``branch``,
-    ``root_step``, ``keep``, ``exploration_type``).
-
-    Example:
-        >>> from torchrl_grpo.envs import TensorHighwayEnv
-        >>> env = TensorHighwayEnv(num_envs=2, seed=0)
-        >>> zero = torch.zeros(2, dtype=torch.int64)
-        >>> idle = lambda td: td.set("action", torch.ones(2, dtype=torch.int64))
-        >>> run = run_on(EnvSlots(env), idle, env.get_state(), 3, group_id=zero, branch=zero,
-        ...              root_step=zero)
-        >>> run.lengths.tolist()
-        [3, 3]
-    """
-    if has_batched_worlds(slots.env):
-        return run_batched_branches(slots.env, policy, states, horizon, **kwargs)
-    if slots.whole_branches:
-        run = run_whole_branches(slots, policy, states, horizon, **kwargs)
-        if run is not None:
-            return run
-    if slots.pipelined:
-        return run_pipelined(slots, policy, states, horizon, **kwargs)
-    return run_branches(slots, policy, states, horizon, **kwargs)

@@ -19,7 +19,8 @@ plain env: a policy that acts on a branch's own inputs gives bitwise the data of
 
 :func:`run_whole_branches` returns ``None`` when the policy cannot be sent (it does
 not pickle, holds tensors off the CPU, or a worker cannot unpickle it): the caller
-then runs the rollout with the policy in the parent.
+then runs the rollout with the policy in the parent
+(:func:`~torchrl_grpo.branching.lockstep.run_branches`).
 """
 
 from __future__ import annotations
@@ -32,10 +33,10 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType
 
 from torchrl_grpo.branching.branch_runner import RolloutSetup
-from torchrl_grpo.branching.engine import BranchRun, KeepStates, Policy, RolloutRows
-from torchrl_grpo.branching.lanes import STATE_ALWAYS, STATE_AT_END, STATE_NEVER, to_arrays
+from torchrl_grpo.branching.env_slots import EnvSlots
+from torchrl_grpo.branching.pipe_arrays import STATE_ALWAYS, STATE_AT_END, STATE_NEVER, to_arrays
 from torchrl_grpo.branching.policy_transport import pack_policy
-from torchrl_grpo.branching.slots import EnvSlots
+from torchrl_grpo.branching.rollout_rows import BranchRun, KeepStates, Policy, RolloutRows
 
 __all__ = ["run_whole_branches"]
 
@@ -56,7 +57,7 @@ def run_whole_branches(
 
     ``slots.env`` is a :class:`~torchrl_grpo.branching.BranchParallelEnv` whose
     :meth:`~torchrl_grpo.branching.BranchParallelEnv.whole_branches_apply` is true; the
-    other arguments and the result are :func:`~torchrl_grpo.branching.engine.run_branches`'.
+    other arguments and the result are :func:`~torchrl_grpo.branching.lockstep.run_branches`'.
 
     Example:
         >>> import functools
