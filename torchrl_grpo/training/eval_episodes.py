@@ -143,8 +143,7 @@ def run_episodes(
         if workers <= 1:
             outcomes = []
             for i in range(episodes):
-                data = play_episode(env, policy, seed + i, max_steps)
-                outcomes.append(_outcome(data, seed + i, keep_first_actions and i == 0))
+                outcomes.append(_episode(env, policy, seed, max_steps, keep_first_actions, i))
                 if bar is not None:
                     bar.update()
             return outcomes
@@ -180,10 +179,16 @@ def _init_worker() -> None:
     torch.set_num_threads(1)
 
 
-def _worker_episode(i: int) -> EpisodeOutcome:
-    env, policy, seed, max_steps, keep_first = _JOB
+def _episode(
+    env: EnvBase, policy: Callable, seed: int, max_steps: int, keep_first: bool, i: int
+) -> EpisodeOutcome:
+    # Episode i of an evaluation, the same code here and in a worker.
     data = play_episode(env, policy, seed + i, max_steps)
     return _outcome(data, seed + i, keep_first and i == 0)
+
+
+def _worker_episode(i: int) -> EpisodeOutcome:
+    return _episode(*_JOB, i)
 
 
 def _forked(
