@@ -14,6 +14,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+import torchrl_grpo.experimental  # noqa: F401  (reads algo=grpo_lab checkpoints)
 from torchrl_grpo.training import register_configs
 from torchrl_grpo.training.evaluation import evaluate_checkpoint
 

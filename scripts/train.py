@@ -15,6 +15,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+import torchrl_grpo.experimental  # noqa: F401  (registers algo=grpo_lab for docs/lab's commands)
 from torchrl_grpo.training import Trainer, register_configs
 from torchrl_grpo.training.compose import resume_config
 

@@ -21,6 +21,8 @@ FLOORS = {
     "branching": 2,
     "distributed": 3,
     "training": 4,
+    # The research variants, beside the library: they build on it, nothing imports them.
+    "experimental": 5,
 }
 
 

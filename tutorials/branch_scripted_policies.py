@@ -297,8 +297,7 @@ def main(argv: list[str] | None = None) -> None:
         print(
             f"note: the best branch crashed, at step {len(best.rewards)} of {args.horizon}: "
             "over a fixed horizon a late crash only costs the steps it cuts off. Training "
-            "prices in what a crash forfeits with the horizon bootstrap (algo.bootstrap, "
-            "docs/training.md)."
+            "prices in what a crash forfeits with the horizon bootstrap (docs/training.md)."
         )
 
     # 4. The same group in one call: branch g plays policy g. Same world, same bits.

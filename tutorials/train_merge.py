@@ -59,7 +59,6 @@ FULL = [
     "experiment.total_frames=4000",
     "logger=wandb",
     "experiment.eval_every=1",
-    "experiment.progress_bar=false",
 ]
 #: ``--quick``: experiment=smoke-sized (one in-process simulator, a tiny network).
 QUICK = [
@@ -70,7 +69,6 @@ QUICK = [
     "experiment.eval_every=1",
     "experiment.final_eval_episodes=1",
     "experiment.baselines=[slower]",
-    "experiment.plot_every=0",
 ]
 
 

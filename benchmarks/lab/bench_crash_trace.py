@@ -11,8 +11,8 @@ seeded and draw nothing from the training's generators, so the run trains exactl
 it would without them.
 
     python benchmarks/lab/bench_crash_trace.py --out runs/trace_s0 -- seed=0 \
-        algo=grpo_branch algo.distill_coeff=1 algo.distill_loss=regression \
-        algo.distill_temperature=1 model.crash_head=true model.crash_aversion=3 \
+        algo=grpo_branch algo.group_fit_coeff=1 algo.group_fit_loss=regression \
+        algo.group_fit_temperature=1 model.crash_head=true model.crash_aversion=3 \
         optim.ema_decay=0.9 experiment.total_frames=1000000
 """
 

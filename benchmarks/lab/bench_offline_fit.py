@@ -18,9 +18,9 @@ another does not crash, and drives 1,000 greedy episodes on the tensor simulator
 highway-env's starting worlds (the transfer gap is below 1e-6, so these are
 highway-env's figures):
 
-- ``ce``: cross-entropy to ``softmax(Q / tau)`` (``algo.distill_loss=cross_entropy``);
+- ``ce``: cross-entropy to ``softmax(Q / tau)`` (``algo.group_fit_loss=cross_entropy``);
 - ``reg``: the centred logits times ``tau`` regress the centred ``Q``
-  (``algo.distill_loss=regression``).
+  (``algo.group_fit_loss=regression``).
 
     python benchmarks/lab/bench_offline_fit.py collect --episodes 2000 --out /tmp/labels.pt
     python benchmarks/lab/bench_offline_fit.py fit --data /tmp/labels.pt --model scene --loss ce

@@ -11,7 +11,8 @@ from omegaconf import OmegaConf
 from torchrl_grpo.distributed import RayGroupCollector
 from torchrl_grpo.distributed.ray_setup import RAY_EXTRA_HINT, require_ray
 from torchrl_grpo.training.collect import make_collector
-from torchrl_grpo.training.config import Config, GRPOConfig, PPOConfig, RolloutConfig, check_config
+from torchrl_grpo.training.config import Config, GRPOConfig, PPOConfig, check_config
+from torchrl_grpo.training.group_schemas import RayRolloutConfig
 
 
 @pytest.fixture
@@ -40,7 +41,6 @@ def test_training_config_without_ray_names_the_extra(no_ray):
                 "horizon": 2,
                 "groups_per_batch": 2,
                 "decision_interval": 2,
-                "backend": "ray",
                 "ray": {"num_actors": 1},
             },
         }
@@ -51,7 +51,7 @@ def test_training_config_without_ray_names_the_extra(no_ray):
 
 def test_config_checks_the_ray_keys():
     def cfg(algo, **ray):
-        rollout = RolloutConfig(backend="ray", groups_per_batch=2)
+        rollout = RayRolloutConfig(groups_per_batch=2)
         for key, value in ray.items():
             setattr(rollout.ray, key, value)
         return OmegaConf.structured(Config(algo=algo, rollout=rollout))
@@ -61,5 +61,12 @@ def test_config_checks_the_ray_keys():
         check_config(cfg(PPOConfig(name="ppo")))
     with pytest.raises(ValueError, match="num_actors"):
         check_config(cfg(GRPOConfig(name="grpo_branch"), num_actors=3))
-    with pytest.raises(ValueError, match="workers_per_actor"):
-        check_config(cfg(GRPOConfig(name="grpo_branch"), workers_per_actor=2))
+    config = cfg(GRPOConfig(name="grpo_branch"))
+    config.rollout.num_workers = 2  # two workers per actor, each actor in one process
+    with pytest.raises(ValueError, match=r"num_workers \(workers per Ray actor\) must be 1"):
+        check_config(config)
+    config.rollout.backend = "serial"
+    check_config(config)
+    config.rollout.backend = "ray"  # the former spelling of rollout=ray
+    with pytest.raises(ValueError, match="rollout.backend=ray: choose rollout=ray"):
+        check_config(config)

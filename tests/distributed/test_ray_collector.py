@@ -302,13 +302,13 @@ TINY_RAY = [
     "logger=none",
     "experiment.eval_every=0",
     "experiment.final_eval_episodes=0",
-    "experiment.plot_every=0",
     "experiment.checkpoint_every=1",
-    "rollout.backend=ray",
+    "rollout=ray",
     "rollout.ray.num_actors=2",
     "rollout.ray.num_cpus_per_actor=0.5",
     # The default scripted tail and its replay are refused on Ray when the config loads.
     "algo.tail_policy=learner",
+    "algo.tail_learner_steps=0",
     "algo.replay_groups=null",
 ]
 

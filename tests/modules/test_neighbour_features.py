@@ -7,7 +7,7 @@ from omegaconf import OmegaConf
 from torchrl_grpo.envs import HighwayEnv
 from torchrl_grpo.modules import KinematicsLayout, RandomPolicy
 from torchrl_grpo.modules.neighbour_features import NeighbourFeatures, NeighbourMLP
-from torchrl_grpo.training.config import ModelConfig
+from torchrl_grpo.training.group_schemas import MLPModelConfig
 from torchrl_grpo.training.model_builder import make_policy
 
 
@@ -52,6 +52,6 @@ def test_features_ignore_the_order_of_the_other_vehicles():
 
 def test_neighbour_mlp_shapes_and_the_config_builds_it():
     assert NeighbourMLP(LAYOUT, 5, num_cells=(8,))(torch.zeros(2, 3, 5, 5)).shape == (2, 3, 5)
-    cfg = OmegaConf.structured(ModelConfig(kind="neighbours", num_cells=[16]))
+    cfg = OmegaConf.structured(MLPModelConfig(kind="neighbours", num_cells=[16]))
     actor = make_policy(cfg, HighwayEnv("highway-fast-v0", seed=0))
     assert isinstance(actor.module[0].module, NeighbourMLP)

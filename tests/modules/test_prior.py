@@ -8,10 +8,10 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_grpo.envs import HighwayEnv
+from torchrl_grpo.experimental.grpo_lab import GRPOLabModelConfig
 from torchrl_grpo.modules import KinematicsLayout, KinematicsMLP, RulePolicy, make_scripted_policy
 from torchrl_grpo.modules.prior import PriorLogits
 from torchrl_grpo.modules.scripted.actions import SLOWER
-from torchrl_grpo.training.config import ModelConfig
 from torchrl_grpo.training.model_builder import make_policy
 
 
@@ -72,7 +72,7 @@ def test_bad_arguments_are_refused_naming_the_problem():
 
 def test_greedy_policy_with_a_large_weight_drives_as_the_prior():
     """A reference run: the scripted policy itself, on the same seeded episode."""
-    cfg = OmegaConf.structured(ModelConfig(num_cells=[16], prior="rule", prior_weight=50.0))
+    cfg = OmegaConf.structured(GRPOLabModelConfig(num_cells=[16], prior="rule", prior_weight=50.0))
     env = HighwayEnv("highway-fast-v0", seed=3)
     actor = make_policy(cfg, env)
     assert isinstance(actor.module[0].module, PriorLogits)
@@ -92,7 +92,7 @@ def test_greedy_policy_with_a_large_weight_drives_as_the_prior():
     ],
 )
 def test_make_policy_refuses_a_prior_it_cannot_read(observation, problem):
-    cfg = OmegaConf.structured(ModelConfig(prior="rule"))
+    cfg = OmegaConf.structured(GRPOLabModelConfig(prior="rule"))
     env = HighwayEnv("highway-fast-v0", config={"observation": observation}, seed=0)
     with pytest.raises(ValueError, match=f"model.prior=rule.*{problem}"):
         make_policy(cfg, env)

@@ -8,7 +8,7 @@ from omegaconf import OmegaConf
 from torchrl_grpo.envs import HighwayEnv
 from torchrl_grpo.modules import KinematicsLayout, RandomPolicy, SceneMLP
 from torchrl_grpo.modules.scene_features import SceneFeatures
-from torchrl_grpo.training.config import ModelConfig
+from torchrl_grpo.training.group_schemas import MLPModelConfig
 from torchrl_grpo.training.model_builder import make_policy
 
 
@@ -51,7 +51,7 @@ def test_features_ignore_the_order_of_the_other_vehicles():
 
 def test_scene_mlp_shapes_and_the_config_builds_it():
     assert SceneMLP(LAYOUT, 5, num_cells=(8,))(torch.zeros(2, 3, 5, 5)).shape == (2, 3, 5)
-    cfg = OmegaConf.structured(ModelConfig(kind="scene", num_cells=[16]))
+    cfg = OmegaConf.structured(MLPModelConfig(kind="scene", num_cells=[16]))
     actor = make_policy(cfg, HighwayEnv("highway-fast-v0", seed=0))
     assert isinstance(actor.module[0].module, SceneMLP)
 
@@ -64,7 +64,7 @@ def test_scene_mlp_shapes_and_the_config_builds_it():
     ],
 )
 def test_the_config_refuses_a_scene_it_cannot_read(observation, problem):
-    cfg = OmegaConf.structured(ModelConfig(kind="scene"))
+    cfg = OmegaConf.structured(MLPModelConfig(kind="scene"))
     env = HighwayEnv("highway-fast-v0", config={"observation": observation}, seed=0)
     with pytest.raises(ValueError, match=f"model.kind=scene.*{problem}"):
         make_policy(cfg, env)
@@ -74,7 +74,7 @@ def test_the_speed_feature_is_centred_on_the_envs_target_speeds():
     from omegaconf import OmegaConf
 
     from torchrl_grpo.envs import HighwayEnv
-    from torchrl_grpo.training.config import ModelConfig
+    from torchrl_grpo.training.group_schemas import MLPModelConfig
     from torchrl_grpo.training.model_builder import make_net
 
     layout = KinematicsLayout()
@@ -86,7 +86,7 @@ def test_the_speed_feature_is_centred_on_the_envs_target_speeds():
     assert SceneFeatures(layout)(observation)[0].item() == 2.0  # the default 25 +- 5
     # The trainer's network takes them from the env's config.
     speeds = {"action": {"type": "DiscreteMetaAction", "target_speeds": [30, 35, 40]}}
-    cfg = OmegaConf.merge(OmegaConf.structured(ModelConfig), {"kind": "scene"})
+    cfg = OmegaConf.merge(OmegaConf.structured(MLPModelConfig), {"kind": "scene"})
     net = make_net(cfg, HighwayEnv(config=speeds), 5)
     assert (net.features.speed_centre, net.features.speed_scale) == (35.0, 5.0)
     assert make_net(cfg, HighwayEnv(), 5).features.speed_centre == 25.0

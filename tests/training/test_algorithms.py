@@ -23,7 +23,7 @@ from torchrl_grpo.training import (
     register_algorithm,
     register_configs,
 )
-from torchrl_grpo.training.algos.base import ALGORITHMS, algorithm_for
+from torchrl_grpo.training.algos.registry import ALGORITHMS, algorithm_for
 
 
 @dataclass

@@ -11,15 +11,25 @@ from omegaconf import OmegaConf
 from omegaconf.errors import ValidationError
 from train_setup import CONF, compose_config
 
+from torchrl_grpo.experimental.grpo_lab import GRPOLabConfig, GRPOLabRolloutConfig
 from torchrl_grpo.training import DistillConfig
+from torchrl_grpo.training.algos.registry import with_fixed_settings
 from torchrl_grpo.training.config import (
     Config,
     GRPOConfig,
     PPOConfig,
-    RolloutConfig,
     check_config,
     to_container,
 )
+from torchrl_grpo.training.group_schemas import GroupRolloutConfig, RayRolloutConfig
+
+# The settings the recipes fix are keys of the experimental algo=grpo_lab (model=lab).
+LAB_RUN = ["algo=grpo_lab", "model=lab"]
+
+
+def LAB(**kwargs) -> GRPOLabConfig:  # noqa: N802  (reads as the schema it builds)
+    return GRPOLabConfig(name="grpo_lab", **kwargs)
+
 
 GROUPS = ["env", "model", "algo", "optim", "logger", "experiment"]
 
@@ -41,7 +51,8 @@ def test_every_group_option_composes(group, option):
         assert cfg.env.name == option
     if group == "algo":
         assert str(cfg.algo.name) == option
-        schema = {"ppo": PPOConfig, "distill": DistillConfig}.get(option, GRPOConfig)
+        schemas = {"ppo": PPOConfig, "distill": DistillConfig, "grpo_lab": GRPOLabConfig}
+        schema = schemas.get(option, GRPOConfig)
         assert OmegaConf.get_type(cfg.algo) is schema
 
 
@@ -50,7 +61,10 @@ def test_rollout_follows_the_algorithm(algo):
     cfg = compose_config([f"algo={algo}"])
     expected = OmegaConf.load(CONF / "rollout" / f"{algo}.yaml")
     assert cfg.rollout.num_workers == expected.num_workers
-    if algo == "grpo_episode":
+    if algo in ("ppo", "distill"):  # batches of steps: no group shape
+        assert "horizon" not in cfg.rollout
+        assert cfg.rollout.frames_per_batch == expected.frames_per_batch
+    elif algo == "grpo_episode":
         assert cfg.rollout.horizon == cfg.env.max_episode_steps
     else:
         assert cfg.rollout.horizon == expected.horizon
@@ -58,7 +72,7 @@ def test_rollout_follows_the_algorithm(algo):
 
 def test_default_is_grpo_branch_on_highway_fast_with_offline_wandb():
     cfg = compose_config([])
-    assert (cfg.env.scenario, str(cfg.algo.name), str(cfg.algo.roots)) == (
+    assert (cfg.env.scenario, str(cfg.algo.name), with_fixed_settings(cfg).algo.roots) == (
         "highway-fast-v0",
         "grpo_branch",
         "trunk",
@@ -92,7 +106,7 @@ def test_misspelt_key_fails_naming_it(override, key):
     "override,key",
     [
         ("algo.group_size=eight", "group_size"),
-        ("algo.aggregation=mean", "aggregation"),
+        ("algo.tail_policy=rules", "tail_policy"),
         ("model.kind=transformer", "kind"),
         ("logger=csv", None),
     ],
@@ -119,13 +133,13 @@ def test_typo_inside_a_yaml_file_fails_at_load(tmp_path):
 
 
 def test_check_config_names_the_key():
-    cfg = OmegaConf.structured(Config(rollout=RolloutConfig(num_workers=2)))
+    cfg = OmegaConf.structured(Config(rollout=GroupRolloutConfig(num_workers=2)))
     with pytest.raises(ValueError, match="rollout.num_workers"):
         check_config(cfg)
-    cfg = OmegaConf.structured(Config(algo=GRPOConfig(group_size=1)))
+    cfg = OmegaConf.structured(Config(algo=GRPOConfig(name="grpo_branch", group_size=1)))
     with pytest.raises(ValueError, match="algo.group_size"):
         check_config(cfg)
-    cfg = OmegaConf.structured(Config(algo=GRPOConfig(first_action="enumerate")))
+    cfg = OmegaConf.structured(Config(algo=LAB(first_action="enumerate")))
     with pytest.raises(ValueError, match="algo.explore_steps"):
         check_config(cfg)
     cfg.algo.explore_steps = 1
@@ -133,7 +147,7 @@ def test_check_config_names_the_key():
 
 
 def test_learner_steps_need_a_scripted_tail():
-    cfg = OmegaConf.structured(Config(algo=GRPOConfig(explore_steps=1, tail_learner_steps=2)))
+    cfg = OmegaConf.structured(Config(algo=LAB(explore_steps=1, tail_learner_steps=2)))
     with pytest.raises(ValueError, match="algo.tail_learner_steps=2.*scripted algo.tail_policy"):
         check_config(cfg)
     cfg.algo.tail_policy = "rule"
@@ -144,7 +158,7 @@ def test_learner_steps_need_a_scripted_tail():
 
 
 def test_a_scripted_tail_needs_greedy_tail_branches_and_no_tail_sync():
-    cfg = OmegaConf.structured(Config(algo=GRPOConfig(tail_policy="slower")))
+    cfg = OmegaConf.structured(Config(algo=LAB(tail_policy="slower")))
     with pytest.raises(ValueError, match="algo.tail_policy=slower.*algo.explore_steps"):
         check_config(cfg)
     cfg.algo.explore_steps = 1
@@ -156,8 +170,8 @@ def test_a_scripted_tail_needs_greedy_tail_branches_and_no_tail_sync():
         cfg.algo.tail_policy = "slowr"
     on_ray = OmegaConf.structured(
         Config(
-            algo=GRPOConfig(explore_steps=1, tail_policy="slower"),
-            rollout=RolloutConfig(backend="ray"),
+            algo=LAB(explore_steps=1, tail_policy="slower"),
+            rollout=RayRolloutConfig(),
         )
     )
     with pytest.raises(ValueError, match="algo.tail_policy=slower is not supported with"):
@@ -165,7 +179,7 @@ def test_a_scripted_tail_needs_greedy_tail_branches_and_no_tail_sync():
 
 
 def test_replay_needs_policy_independent_advantages():
-    cfg = OmegaConf.structured(Config(algo=GRPOConfig(explore_steps=1, replay_groups=10)))
+    cfg = OmegaConf.structured(Config(algo=LAB(explore_steps=1, replay_groups=10)))
     with pytest.raises(ValueError, match="algo.first_action=enumerate and a scripted"):
         check_config(cfg)
     cfg.algo.first_action = "enumerate"
@@ -179,13 +193,15 @@ def test_replay_needs_policy_independent_advantages():
 
 
 def test_staggered_trunks_need_live_trunks():
-    cfg = OmegaConf.structured(Config(rollout=RolloutConfig(stagger_trunks=True)))
+    cfg = OmegaConf.structured(
+        Config(algo=LAB(), rollout=GRPOLabRolloutConfig(stagger_trunks=True))
+    )
     with pytest.raises(ValueError, match="rollout.stagger_trunks=true.*rollout.live_trunks=true"):
         check_config(cfg)
     cfg.rollout.live_trunks = True
     check_config(cfg)
     cfg = OmegaConf.structured(
-        Config(algo=GRPOConfig(roots="reset"), rollout=RolloutConfig(first_root_step=2))
+        Config(algo=LAB(roots="reset"), rollout=GRPOLabRolloutConfig(first_root_step=2))
     )
     with pytest.raises(ValueError, match="rollout.first_root_step.*needs algo.roots=trunk"):
         check_config(cfg)
@@ -194,7 +210,7 @@ def test_staggered_trunks_need_live_trunks():
 def test_the_trunk_schedule_names_an_empty_step_range():
     from torchrl_grpo.training.collect import trunk_schedule
 
-    rollout = OmegaConf.structured(RolloutConfig(horizon=8, full_horizon_roots=True))
+    rollout = OmegaConf.structured(GRPOLabRolloutConfig(horizon=8, full_horizon_roots=True))
     assert trunk_schedule(rollout, 30) == (0, 0, 23)
     rollout.stagger_trunks, rollout.first_root_step = True, 22
     assert trunk_schedule(rollout, 30) == (1, 22, 23)
@@ -207,11 +223,11 @@ def test_the_trunk_schedule_names_an_empty_step_range():
 
 
 def test_a_prior_policy_is_typed_and_its_weight_positive():
-    cfg = compose_config(["model.prior=rule", "model.prior_weight=3"])
+    cfg = compose_config([*LAB_RUN, "model.prior=rule", "model.prior_weight=3"])
     check_config(cfg)
     assert cfg.model.prior == "rule" and cfg.model.prior_weight == 3.0
     with pytest.raises(ConfigCompositionException) as info:
-        compose_config(["model.prior=rules"])
+        compose_config([*LAB_RUN, "model.prior=rules"])
     assert "prior" in str(info.value.__cause__)
     cfg.model.prior_weight = 0.0
     with pytest.raises(ValueError, match="model.prior_weight must be > 0, got 0.0"):
@@ -223,15 +239,15 @@ def test_a_null_sync_keeps_the_reference_frozen():
     from torchrl_grpo.training.loss_builder import make_loss, make_reference_sync
     from torchrl_grpo.training.model_builder import make_policy
 
-    cfg = compose_config(["algo.ref_model_sync_steps=null", "algo.kl_to_ref_coeff=0.01"])
+    cfg = compose_config([*LAB_RUN, "algo.ref_model_sync_steps=null", "algo.kl_to_ref_coeff=0.01"])
     loss = make_loss(cfg.algo, make_policy(cfg.model, HighwayEnv(seed=0)), None)
     assert make_reference_sync(cfg.algo, loss) is None
     cfg = compose_config(["algo.kl_to_ref_coeff=0.01"])  # the control: syncs every 64 updates
-    assert make_reference_sync(cfg.algo, loss) is not None
+    assert make_reference_sync(with_fixed_settings(cfg).algo, loss) is not None
 
 
 def test_policy_action_weights_need_enumerated_actions():
-    cfg = OmegaConf.structured(Config(algo=GRPOConfig(explore_steps=1, action_weights="policy")))
+    cfg = OmegaConf.structured(Config(algo=LAB(explore_steps=1, action_weights="policy")))
     with pytest.raises(ValueError, match="algo.action_weights=policy.*first_action=enumerate"):
         check_config(cfg)
     cfg.algo.first_action = "enumerate"
@@ -239,8 +255,10 @@ def test_policy_action_weights_need_enumerated_actions():
 
 
 def test_distillation_needs_one_roots_enumerated_actions():
-    cfg = OmegaConf.structured(Config(algo=GRPOConfig(explore_steps=1, distill_coeff=1.0)))
-    with pytest.raises(ValueError, match="algo.distill_coeff=1.0 distils.*first_action=enumerate"):
+    cfg = OmegaConf.structured(Config(algo=LAB(explore_steps=1, group_fit_coeff=1.0)))
+    with pytest.raises(
+        ValueError, match="algo.group_fit_coeff=1.0 distils.*first_action=enumerate"
+    ):
         check_config(cfg)
     cfg.algo.first_action = "enumerate"
     check_config(cfg)
@@ -248,22 +266,22 @@ def test_distillation_needs_one_roots_enumerated_actions():
     with pytest.raises(ValueError, match="explore_steps=1"):
         check_config(cfg)
     cfg.algo.explore_steps = 1
-    cfg.algo.distill_temperature = -0.5
-    with pytest.raises(ValueError, match="algo.distill_temperature must be a finite number >= 0"):
+    cfg.algo.group_fit_temperature = -0.5
+    with pytest.raises(ValueError, match="algo.group_fit_temperature must be a finite number >= 0"):
         check_config(cfg)
-    cfg.algo.distill_temperature = 0.0
-    cfg.algo.distill_loss = "regression"  # logits read as advantages / temperature
-    with pytest.raises(ValueError, match="distill_loss=regression.*temperature > 0"):
+    cfg.algo.group_fit_temperature = 0.0
+    cfg.algo.group_fit_loss = "regression"  # logits read as advantages / temperature
+    with pytest.raises(ValueError, match="group_fit_loss=regression.*temperature > 0"):
         check_config(cfg)
-    cfg.algo.distill_loss = "cross_entropy"
-    cfg.algo.distill_coeff = -1.0
-    with pytest.raises(ValueError, match="algo.distill_coeff must be a finite number >= 0"):
+    cfg.algo.group_fit_loss = "cross_entropy"
+    cfg.algo.group_fit_coeff = -1.0
+    with pytest.raises(ValueError, match="algo.group_fit_coeff must be a finite number >= 0"):
         check_config(cfg)
 
 
 @pytest.mark.parametrize("option", ["algo.bootstrap=survival", "algo.crash_label=bootstrap"])
 def test_a_survival_bootstrap_needs_a_crash_head(option):
-    cfg = compose_config(["experiment=drive", option, "model.crash_head=false"])
+    cfg = compose_config([*LAB_RUN, option, "model.crash_head=false"])
     with pytest.raises(ValueError, match=f"{option}.*model.crash_head=true"):
         check_config(cfg)
     cfg.model.crash_head = True
@@ -272,7 +290,7 @@ def test_a_survival_bootstrap_needs_a_crash_head(option):
 
 def test_the_crash_label_is_a_checked_choice():
     with pytest.raises(Exception, match="crash_label"):
-        compose_config(["algo.crash_label=episode"])
+        compose_config([*LAB_RUN, "algo.crash_label=episode"])
 
 
 def test_evaluate_config_composes():
@@ -282,11 +300,11 @@ def test_evaluate_config_composes():
 
 @pytest.mark.parametrize("spelling", ["continue", "continuation"])
 def test_roots_continue_keeps_its_older_spelling(spelling):
-    cfg = compose_config([f"algo.roots={spelling}"])
+    cfg = compose_config(["algo=grpo_lab", f"algo.roots={spelling}"])
     assert str(cfg.algo.roots) == "continue"
     assert to_container(cfg)["algo"]["roots"] == "continue"  # what checkpoints now record
     with pytest.raises(ConfigCompositionException):
-        compose_config(["algo.roots=continues"])
+        compose_config(["algo=grpo_lab", "algo.roots=continues"])
 
 
 def test_the_choices_are_the_librarys_literals():
@@ -299,7 +317,8 @@ def test_the_choices_are_the_librarys_literals():
     from torchrl_grpo.objectives.bootstrap import BootstrapMode
     from torchrl_grpo.objectives.grpo_loss import Aggregation
     from torchrl_grpo.objectives.kl import KLEstimator
-    from torchrl_grpo.training import config
+    from torchrl_grpo.training import choices as config
+    from torchrl_grpo.training.algos.grpo_config import TailPolicyName
 
     for enum, literal in [
         (config.RootKindName, RootKind),
@@ -315,9 +334,7 @@ def test_the_choices_are_the_librarys_literals():
     assert [m.value for m in config.ModelKind] == [*get_args(NetworkKind), "scene", "neighbours"]
     # The scripted base policies a prior or a greedy tail may name exist.
     assert {m.value for m in config.PriorName} < set(SCRIPTED_POLICIES)
-    assert {m.value for m in config.TailPolicyName} == {"learner"} | {
-        m.value for m in config.PriorName
-    }
+    assert {m.value for m in TailPolicyName} == {"learner"} | {m.value for m in config.PriorName}
 
 
 def test_no_overrides_run_the_recommended_recipe():
@@ -328,9 +345,9 @@ def test_no_overrides_run_the_recommended_recipe():
         "algo.tail_policy": "rule",
         "algo.tail_learner_steps": 7,
         "algo.replay_groups": 4096,
-        "algo.distill_coeff": 1.0,
-        "algo.distill_loss": "regression",
-        "algo.distill_temperature": 1.0,
+        "algo.group_fit_coeff": 1.0,
+        "algo.group_fit_loss": "regression",
+        "algo.group_fit_temperature": 1.0,
         "model.kind": "scene",
         "model.crash_head": True,
         "model.crash_aversion": 3.0,
@@ -339,9 +356,12 @@ def test_no_overrides_run_the_recommended_recipe():
         "optim.ema_decay": 0.995,
         "experiment.total_frames": 2_000_000,
     }
-    assert {key: OmegaConf.select(cfg, key) for key in recipe} == recipe
-    drive = to_container(compose_config(["experiment=drive"]))
-    drive["experiment"]["name"] = "default"  # the former name composes the same run
-    assert to_container(cfg) == drive
+    run = with_fixed_settings(cfg)  # what the trainer executes
+    assert {key: OmegaConf.select(run, key) for key in recipe} == recipe
+    assert to_container(cfg) == to_container(compose_config(["experiment=drive"]))
+    # algo=grpo_lab with no overrides is the same recipe, every setting a key.
+    lab = with_fixed_settings(compose_config(["algo=grpo_lab"]))
+    lab.algo.name = "grpo_branch"
+    assert OmegaConf.to_container(lab) == OmegaConf.to_container(run)
     # Other algorithms keep the model group's own settings: no crash head.
     assert compose_config(["algo=ppo"]).model.crash_head is False

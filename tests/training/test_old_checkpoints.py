@@ -16,8 +16,10 @@ import torch
 from omegaconf import OmegaConf
 from train_setup import ROOT, TINY, compose_config
 
+import torchrl_grpo.experimental  # noqa: F401  (v1's GRPO runs read as algo=grpo_lab)
 from torchrl_grpo.training import Trainer, evaluate, load_checkpoint, make_env, make_policy
-from torchrl_grpo.training.config import typed_config
+from torchrl_grpo.training.algos.registry import with_fixed_settings
+from torchrl_grpo.training.config import to_container, typed_config
 from torchrl_grpo.training.evaluation import evaluate_checkpoint
 
 HERE = Path(__file__).resolve().parent
@@ -48,18 +50,70 @@ def _assert_equal_optimizer(saved: dict, loaded: dict) -> None:
 def test_an_old_config_validates_against_todays_schemas(run):
     ckpt = load_checkpoint(DATA / f"v1_{run}.pt")
     cfg = typed_config(ckpt["config"])
-    schema = "PPOConfig" if run == "ppo" else "GRPOConfig"
+    # v1's GRPO defaults (scale_rewards=group, sampled first actions, ...) are not the
+    # settings the recipe fixes today: its runs read as the experimental grpo_lab's.
+    schema = "PPOConfig" if run == "ppo" else "GRPOLabConfig"
     assert OmegaConf.get_type(cfg.algo).__name__ == schema
     model, old = OmegaConf.to_container(cfg.model), ckpt["config"]["model"]
-    assert {key: model[key] for key in old} == old
+    kept = {key: old[key] for key in old if key in model}
+    assert {key: model[key] for key in kept} == kept
+    if run == "ppo":
+        # An MLP reads none of the attention sizes, and the prior was off: both retired.
+        assert old.keys() - model.keys() == {
+            "embed_dim",
+            "num_heads",
+            "encoder_cells",
+            "decoder_cells",
+            "prior",
+            "prior_weight",
+        }
     # Keys added since take defaults that keep the old behaviour: no crash head, one network.
     added = {key: model[key] for key in model.keys() - old.keys()}
-    assert added == {"crash_head": False, "crash_aversion": 0.0, "ensemble": 1, "bagging": False}
+    lab = {} if run == "ppo" else {"ensemble": 1, "bagging": False}
+    assert added == {"crash_head": False, "crash_aversion": 0.0, **lab}
     if run == "grpo_continuation":
         assert ckpt["config"]["algo"]["roots"] == "continuation"
         assert str(cfg.algo.roots) == "continue"
     # The run folder's config.yaml holds the same config.
     assert OmegaConf.load(DATA / f"v1_{run}.yaml") == OmegaConf.create(ckpt["config"])
+
+
+def _main_before_the_keys_retired() -> dict:
+    """The default run's config as main wrote it before #40 fixed the recipe's settings."""
+    cfg = OmegaConf.to_container(with_fixed_settings(compose_config([])))
+    algo = cfg["algo"]
+    for key in ("coeff", "loss", "temperature", "weighting"):
+        algo[f"distill_{key}"] = algo.pop(f"group_fit_{key}")
+    cfg["experiment"] |= {"name": "default", "transfer_gap": True, "plot_every": 0}
+    cfg["experiment"]["progress_bar"] = True
+    cfg["logger"] |= {"group": None, "tags": [], "group_plots": True}
+    cfg["rollout"] |= {"frames_per_batch": 512, "ray": {"num_actors": 2}}
+    cfg["model"] |= {"embed_dim": 64, "num_heads": 2, "encoder_cells": [64]}
+    return cfg
+
+
+def test_a_config_of_main_before_the_keys_retired_reads_as_todays_recipe():
+    old = _main_before_the_keys_retired()
+    assert old["algo"]["roots"] == "trunk" and old["optim"]["eps"] == 1e-8
+    cfg = typed_config(old)
+    assert OmegaConf.get_type(cfg.algo).__name__ == "GRPOConfig"
+    assert to_container(cfg) == to_container(compose_config([]))
+    # The control: one fixed setting with another value is a grpo_lab run.
+    old["rollout"]["stagger_trunks"] = False
+    lab = typed_config(old)
+    assert str(lab.algo.name) == "grpo_lab" and lab.rollout.stagger_trunks is False
+
+
+def test_a_retired_value_without_the_lab_is_refused_naming_the_key():
+    # A fresh interpreter without torchrl_grpo.experimental imported.
+    code = (
+        "from torchrl_grpo.training.config import typed_config\n"
+        "typed_config({'algo': {'name': 'grpo_branch', 'roots': 'continue'}})"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert proc.returncode == 1
+    assert "algo.roots='continue' (grpo_branch now fixes 'trunk')" in proc.stderr
+    assert "algo=grpo_lab" in proc.stderr and "import torchrl_grpo.experimental" in proc.stderr
 
 
 def resume_and_train_on(run: str, run_dir: str) -> None:
@@ -118,7 +172,9 @@ def test_an_old_checkpoint_evaluates_its_own_policy(tmp_path, run):
     report = evaluate_checkpoint(cfg, tmp_path)
     ckpt = load_checkpoint(path)
     trained = report.results[0]
-    assert trained.name == f"{ckpt['config']['algo']['name']} ({ckpt['frames']} frames)"
+    # v1's GRPO settings are not the recipe's: the run reads as an algo=grpo_lab run.
+    name = typed_config(ckpt["config"]).algo.name
+    assert trained.name == f"{name} ({ckpt['frames']} frames)"
     assert [r.name for r in report.results[1:]] == ["always-SLOWER"]
     # The same episodes driven by hand with the saved parameters.
     env_cfg = OmegaConf.create(ckpt["config"]["env"])

@@ -17,7 +17,6 @@ from torchrl_grpo.training.evaluation import evaluate_checkpoint
 _MAIN_JOB = [
     "experiment=smoke",
     "experiment.eval_every=0",
-    "experiment.plot_every=1",
     "experiment.total_frames=100",
     "logger=csv",
     "logger.video=false",
@@ -172,7 +171,6 @@ def test_a_frame_zero_evaluation_leaves_the_weights_and_the_table_as_they_were(
         "logger=none",
         "experiment.total_frames=120",
         "experiment.eval_every=1",
-        "experiment.plot_every=0",
         "experiment.final_eval_episodes=1",
     ]
     runs = {}

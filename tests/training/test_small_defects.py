@@ -26,8 +26,7 @@ def test_a_scripted_tail_on_ray_is_refused_when_the_config_loads(tail):
     cfg = compose_config(
         [
             *TINY,
-            "rollout.backend=ray",
-            "algo.explore_steps=1",
+            "rollout=ray",
             f"algo.tail_policy={tail}",
             "algo.replay_groups=null",  # refused on Ray on its own (next test)
         ]
@@ -35,14 +34,14 @@ def test_a_scripted_tail_on_ray_is_refused_when_the_config_loads(tail):
     with pytest.raises(ValueError, match=f"algo.tail_policy={tail} is not supported"):
         check_config(cfg)
     learner = ["algo.tail_policy=learner", "algo.tail_learner_steps=0", "algo.replay_groups=null"]
-    check_config(compose_config([*TINY, "rollout.backend=ray", *learner]))
+    check_config(compose_config([*TINY, "rollout=ray", *learner]))
 
 
 def test_replayed_groups_on_ray_are_refused_naming_them_when_the_config_loads():
     # replay needs a scripted tail, which Ray actors do not run: the error says so
-    scripted = ["algo.explore_steps=1", "algo.first_action=enumerate", "algo.tail_policy=rule"]
+    scripted = ["algo.tail_policy=rule"]  # greedy tails of enumerated first actions
     for tail in (scripted, ["algo.tail_policy=learner", "algo.tail_learner_steps=0"]):
-        cfg = compose_config([*TINY, "rollout.backend=ray", *tail, "algo.replay_groups=8"])
+        cfg = compose_config([*TINY, "rollout=ray", *tail, "algo.replay_groups=8"])
         with pytest.raises(ValueError, match="algo.replay_groups=8 is not supported with rollout"):
             check_config(cfg)
     check_config(compose_config([*TINY, *scripted, "algo.replay_groups=8"]))  # not on Ray: fine

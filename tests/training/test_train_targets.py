@@ -21,8 +21,8 @@ from torchrl_grpo.training.algos.branch_tails import crash_labels
 
 
 def test_distillation_stores_each_groups_target_and_trains_on_it(tmp_path):
-    overrides = [*REPLAY, "algo.distill_coeff=2.0", "algo.distill_loss=cross_entropy"]
-    overrides += ["algo.distill_temperature=0.0", "logger=csv"]
+    overrides = [*REPLAY, "algo.group_fit_coeff=2.0", "algo.group_fit_loss=cross_entropy"]
+    overrides += ["algo.group_fit_temperature=0.0", "logger=csv"]
     trainer = train_run(tmp_path, "distill", [*overrides, "experiment.total_frames=60"])
     stored = trainer.algo.replay[:]
     weight, advantage = stored["distill_weight"].squeeze(-1), stored["advantage"].squeeze(-1)
@@ -39,7 +39,7 @@ def test_distillation_stores_each_groups_target_and_trains_on_it(tmp_path):
     spread = train_run(
         tmp_path,
         "spread",
-        [*overrides, "algo.distill_weighting=spread", "experiment.total_frames=60"],
+        [*overrides, "algo.group_fit_weighting=spread", "experiment.total_frames=60"],
     )
     stored = spread.algo.replay[:]
     advantage = stored["advantage"].reshape(-1, 5)
@@ -50,17 +50,17 @@ def test_distillation_stores_each_groups_target_and_trains_on_it(tmp_path):
     )
     # Its replay holds targets: a resume without distillation is refused when it loads.
     resume = f"resume={tmp_path / 'distill' / 'last.pt'}"
-    plain = compose_config([*TINY, *REPLAY, resume, "algo.distill_coeff=0.0"])
-    with pytest.raises(ValueError, match="stored with distillation targets.*distill_coeff=0.0"):
+    plain = compose_config([*TINY, *REPLAY, resume, "algo.group_fit_coeff=0.0"])
+    with pytest.raises(ValueError, match="stored with distillation targets.*group_fit_coeff=0.0"):
         Trainer(plain, run_dir=tmp_path / "plain")
 
 
 def test_regression_stores_each_rows_advantage_and_trains_on_it(tmp_path):
     overrides = [
         *REPLAY,
-        "algo.distill_coeff=0.5",
-        "algo.distill_loss=regression",
-        "algo.distill_temperature=1.0",
+        "algo.group_fit_coeff=0.5",
+        "algo.group_fit_loss=regression",
+        "algo.group_fit_temperature=1.0",
         "algo.action_weights=policy",
         "logger=csv",
     ]
@@ -76,9 +76,9 @@ def test_regression_stores_each_rows_advantage_and_trains_on_it(tmp_path):
     # Its replay holds regression targets: a resume with the cross-entropy is refused.
     resume = f"resume={tmp_path / 'regression' / 'last.pt'}"
     other = compose_config(
-        [*TINY, *REPLAY, resume, "algo.distill_coeff=0.5", "algo.distill_loss=cross_entropy"]
+        [*TINY, *REPLAY, resume, "algo.group_fit_coeff=0.5", "algo.group_fit_loss=cross_entropy"]
     )
-    with pytest.raises(ValueError, match="distill_loss=regression targets.*cross_entropy"):
+    with pytest.raises(ValueError, match="group_fit_loss=regression targets.*cross_entropy"):
         Trainer(other, run_dir=tmp_path / "other")
 
 
@@ -97,7 +97,7 @@ def test_a_crash_head_learns_from_each_branchs_crash(tmp_path):
     for refused, match in (
         (["algo=ppo"], "model.crash_head is trained.*algo=ppo"),
         (
-            ["algo.explore_steps=2", "algo.distill_coeff=0"],
+            ["algo.explore_steps=2", "algo.group_fit_coeff=0"],
             "model.crash_head learns.*explore_steps=1",
         ),
     ):
@@ -158,8 +158,8 @@ def test_bootstrapped_crash_labels_are_the_heads_estimate_where_the_horizon_cut(
 
 def ensemble_run(tmp_path, name: str, extra: list[str]) -> tuple:
     """A tiny run of two members with a crash head and the regression: algo, ensemble, replay."""
-    overrides = [*REPLAY, "model.crash_head=true", "model.ensemble=2", "algo.distill_coeff=1"]
-    overrides += ["algo.distill_loss=regression", "algo.distill_temperature=1", *extra]
+    overrides = [*REPLAY, "model.crash_head=true", "model.ensemble=2", "algo.group_fit_coeff=1"]
+    overrides += ["algo.group_fit_loss=regression", "algo.group_fit_temperature=1", *extra]
     algo = train_run(tmp_path, name, [*overrides, "experiment.total_frames=60"]).algo
     [ensemble] = [m for m in algo.policy.modules() if isinstance(m, PolicyEnsemble)]
     return algo, ensemble, algo.current_log_probs(algo.replay[:])
@@ -227,8 +227,8 @@ def test_bagged_members_learn_from_their_own_half_of_the_groups(tmp_path):
 
 
 def test_the_losses_of_a_minibatch_run_the_network_once(tmp_path):
-    overrides = [*REPLAY, "model.crash_head=true", "algo.distill_coeff=1"]
-    overrides += ["algo.distill_loss=regression", "algo.distill_temperature=1"]
+    overrides = [*REPLAY, "model.crash_head=true", "algo.group_fit_coeff=1"]
+    overrides += ["algo.group_fit_loss=regression", "algo.group_fit_temperature=1"]
     trainer = train_run(tmp_path, "shared", [*overrides, "experiment.total_frames=60"])
     algo = trainer.algo
     [net] = shared_networks(algo.policy)

@@ -25,7 +25,6 @@ TINY = [
     "logger=none",
     "experiment.eval_every=0",
     "experiment.final_eval_episodes=0",
-    "experiment.plot_every=0",
 ]
 
 

@@ -1,7 +1,7 @@
 """One forward of the policy's network per minibatch, however many losses read it.
 
 GRPO with branching sums up to three losses on each minibatch: the clipped surrogate,
-the regression of the enumerated advantages (``algo.distill_coeff``) and the crash
+the regression of the enumerated advantages (``algo.group_fit_coeff``) and the crash
 head's cross-entropy (``model.crash_head``). Each is a TorchRL ``LossModule`` that runs
 the actor itself, so the network ran three times on the same observations, and
 backpropagated three times. Inside :func:`shared_forward` each network runs once per

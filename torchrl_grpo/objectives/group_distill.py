@@ -72,7 +72,7 @@ def group_spread(advantage: torch.Tensor, group_id: torch.Tensor) -> torch.Tenso
 
     A root whose actions all score alike (spread 0) has nothing to teach; one where an
     action crashes and another does not has a spread of the crash's cost. Used as a
-    root's weight in the distillation (``algo.distill_weighting=spread``).
+    root's weight in the distillation (``algo.group_fit_weighting=spread``).
 
     Args:
         advantage: one advantage per row, ``[N]`` or ``[N, 1]``.

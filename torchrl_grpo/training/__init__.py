@@ -4,9 +4,10 @@
 package. Nothing in the rest of the library imports it.
 """
 
-from torchrl_grpo.training.algos.base import AlgoConfig, Algorithm, register_algorithm
+from torchrl_grpo.training.algos.base import AlgoConfig, Algorithm
 from torchrl_grpo.training.algos.grpo import GRPO, GRPOConfig
 from torchrl_grpo.training.algos.ppo import PPO, PPOConfig
+from torchrl_grpo.training.algos.registry import register_algorithm
 from torchrl_grpo.training.algos.teacher_distill import DistillConfig, TeacherDistill
 from torchrl_grpo.training.baselines import evaluate_baselines
 from torchrl_grpo.training.checkpoint import load_checkpoint

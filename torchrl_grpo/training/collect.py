@@ -8,7 +8,7 @@ Also saves and restores a collector's exact position for checkpoints:
   worker) and every worker's simulator state, read from the carrier: PPO workers
   write their state after each step (``return_state=True``), so a resumed run
   continues the same episodes, mid-episode.
-- GRPO on Ray (``rollout.backend=ray``): the learner's counters and every actor's
+- GRPO on Ray (``rollout=ray``): the learner's counters and every actor's
   snapshot (see :class:`~torchrl_grpo.distributed.RayGroupCollector`).
 """
 
@@ -32,6 +32,7 @@ from torchrl_grpo.branching.roots import TrunkRoots
 from torchrl_grpo.distributed.ray_collector import RayGroupCollector
 from torchrl_grpo.modules.greedy_tail import GreedyTail
 from torchrl_grpo.training.env_builder import env_overrides
+from torchrl_grpo.training.group_schemas import collects_on_ray
 
 __all__ = [
     "collector_state",
@@ -61,7 +62,7 @@ def make_collector(
     """The collector of ``cfg.algo.name`` over ``env`` (which it owns and closes).
 
     The collector runs without a frame budget: the trainer stops it, counting trunk
-    steps too. With ``rollout.backend=ray`` the envs are built in the Ray actors:
+    steps too. With ``rollout=ray`` the envs are built in the Ray actors:
     pass ``env=None`` (a given env is closed). ``tail_policy`` is the actor greedy
     tails follow: a lagging copy of ``policy`` (``algo.tail_sync_batches``; greedy
     trunks follow it too) or a scripted base policy (``algo.tail_policy``; trunks follow
@@ -85,8 +86,7 @@ def make_collector(
         >>> collector.shutdown()
     """
     algo, rollout = cfg.algo, cfg.rollout
-    name = str(algo.name)
-    if name in ("grpo_branch", "grpo_episode"):
+    if algo.get("roots") is not None:  # GRPO: groups of branches from roots
         roots = str(algo.roots)
         learner = policy
         explore_steps = algo.get("explore_steps")
@@ -119,7 +119,7 @@ def make_collector(
                 live=live,
                 stagger=trunk_stagger,
             )
-        if str(rollout.get("backend")) == "ray":
+        if collects_on_ray(rollout):
             if env is not None:
                 env.close()
             return make_ray_collector(cfg, policy, source, seed)
@@ -183,10 +183,9 @@ def trunk_schedule(rollout: DictConfig, step_limit: int) -> tuple[int, int, int 
 def make_ray_collector(
     cfg: DictConfig, policy: TensorDictModuleBase, roots: Any, seed: int
 ) -> RayGroupCollector:
-    """The GRPO collector on Ray actors (``rollout.backend=ray``, settings in ``rollout.ray``).
+    """The GRPO collector on Ray actors (``rollout=ray``, settings in ``rollout.ray``).
 
-    Each actor builds ``rollout.ray.workers_per_actor`` env workers with
-    ``rollout.ray.env_backend``.
+    Each actor builds ``rollout.num_workers`` env workers with ``rollout.backend``.
     Ray is started on this machine (``num_cpus``, ``object_store_mb``) unless
     ``rollout.ray.address`` names a cluster (``auto``) or Ray already runs.
 
@@ -195,7 +194,7 @@ def make_ray_collector(
         >>> cfg = OmegaConf.create({"algo": {"group_size": 2, "select": "best"},
         ...     "env": {"scenario": "merge-v0", "config": {}},
         ...     "rollout": {"horizon": 2, "groups_per_batch": 2, "decision_interval": 2,
-        ...     "num_workers": 1, "ray": {"num_actors": 2, "env_backend": "single",
+        ...     "num_workers": 1, "backend": "single", "ray": {"num_actors": 2,
         ...     "num_cpus_per_actor": 0.5, "num_cpus": 2}}})
         >>> collector = make_ray_collector(cfg, None, "reset", seed=0)  # doctest: +SKIP
     """
@@ -204,9 +203,9 @@ def make_ray_collector(
     env_factory = functools.partial(
         make_branch_env,
         str(cfg.env.scenario),
-        int(ray_cfg.get("workers_per_actor", 1)),
+        int(rollout.get("num_workers", 1)),
         config=env_overrides(cfg.env),
-        backend=str(ray_cfg.get("env_backend", "single")),
+        backend=str(rollout.get("backend", "single")),
         snapshots=True,
         mp_start_method=rollout.get("mp_start_method"),
     )
@@ -326,7 +325,7 @@ def load_collector_state(collector: BaseCollector, state: dict[str, Any]) -> Non
     """
     if isinstance(collector, RayGroupCollector):
         if state["kind"] != "ray":
-            raise ValueError("this checkpoint was not written with rollout.backend=ray")
+            raise ValueError("this checkpoint was not written with rollout=ray")
         collector.load_state_dict(state["state"])
         return
     if isinstance(collector, GroupCollector):

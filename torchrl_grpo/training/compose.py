@@ -68,12 +68,12 @@ def user_keys(
 
     Group choices (``algo=ppo``, ``experiment=smoke``) count through the keys they change;
     a key named on its own counts even where it asks for the default value (a resume
-    must apply ``algo.distill_coeff=0.0`` over a checkpoint's 2.0). ``resume`` and
+    must apply ``algo.group_fit_coeff=0.0`` over a checkpoint's 2.0). ``resume`` and
     Hydra's own keys are left out.
 
     Example:
-        >>> user_keys(["algo.epochs=3", "seed=1", "resume=last.pt", "algo.gamma=1.0"])
-        {'algo.epochs': 3, 'seed': 1, 'algo.gamma': 1.0}
+        >>> user_keys(["algo.epochs=3", "seed=1", "resume=last.pt", "algo.group_size=5"])
+        {'algo.epochs': 3, 'seed': 1, 'algo.group_size': 5}
     """
     kept = [o for o in overrides if o.lstrip("+~").split("=")[0] not in ("resume", "hydra")]
     kept = [o for o in kept if not o.lstrip("+~").startswith("hydra.")]

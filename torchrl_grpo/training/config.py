@@ -28,86 +28,47 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 
-from torchrl_grpo.training.algos.base import ALGORITHMS, AlgoConfig, algorithm_for
-from torchrl_grpo.training.algos.grpo import (
-    ActionWeightsName,
-    GRPOConfig,
-    GRPOVariant,
-    TailPolicyName,
-    TrunkPolicyName,
-)
-from torchrl_grpo.training.algos.ppo import PPOConfig, PPOVariant
-from torchrl_grpo.training.choices import (
-    AggregationName,
-    Backend,
-    BaselineName,
-    BootstrapName,
-    EnvBackendName,
-    FirstActionName,
-    KLEstimatorName,
-    LoggerBackend,
-    ModelKind,
-    PriorName,
-    ReturnsName,
-    RootKindName,
-    ScaleRewards,
-    SelectionName,
-    WandbMode,
-    WorkerBackend,
-    choice_enum,
-)
+from torchrl_grpo.training.algos.base import AlgoConfig, Algorithm
+from torchrl_grpo.training.algos.grpo import GRPOConfig
+from torchrl_grpo.training.algos.ppo import PPOConfig
+from torchrl_grpo.training.algos.registry import ALGORITHMS, algorithm_for
+from torchrl_grpo.training.choices import EnvBackendName, LoggerBackend, WandbMode
 from torchrl_grpo.training.config_checks import check_config
+from torchrl_grpo.training.group_schemas import (
+    AttentionModelConfig,
+    GroupRolloutConfig,
+    MLPModelConfig,
+    ModelConfig,
+    RayRolloutConfig,
+    RolloutConfig,
+    StepRolloutConfig,
+)
 from torchrl_grpo.training.resolvers import CONF_DIR, register_resolvers
+from torchrl_grpo.training.retired_keys import SHARED_FIXED, LabRequired, migrate
 
 __all__ = [
-    "ActionWeightsName",
-    "AggregationName",
-    "AlgoConfig",
-    "AlgoName",
-    "Backend",
-    "BaselineName",
-    "BootstrapName",
     "CONF_DIR",
+    "AlgoConfig",
     "Config",
     "EnvConfig",
     "EvalConfig",
     "ExperimentConfig",
-    "FirstActionName",
     "GRPOConfig",
-    "KLEstimatorName",
-    "LoggerBackend",
     "LoggerConfig",
     "ModelConfig",
-    "ModelKind",
     "OptimConfig",
     "PPOConfig",
-    "PriorName",
-    "RayConfig",
-    "ReturnsName",
     "RolloutConfig",
-    "RootKindName",
-    "ScaleRewards",
-    "SelectionName",
-    "TailPolicyName",
-    "TrunkPolicyName",
-    "WandbMode",
-    "WorkerBackend",
     "check_config",
     "register_configs",
     "to_container",
     "typed_config",
 ]
-
-
-# Kept for code that names the built-in algorithms; each schema types its own name.
-AlgoName = choice_enum(
-    "AlgoName", Literal[GRPOVariant, PPOVariant], "The built-in algorithms.", module=__name__
-)
 
 
 @dataclass
@@ -133,91 +94,8 @@ class EnvConfig:
 
 
 @dataclass
-class ModelConfig:
-    """``model`` group: the policy (and PPO value) network.
-
-    Example:
-        >>> cfg = OmegaConf.structured(ModelConfig)
-        >>> print(cfg.kind, cfg.num_cells)
-        mlp [256, 256]
-        >>> cfg.kind = "ego_attention"  # a ModelKind, compared as a string
-        >>> cfg.kind == "ego_attention"
-        True
-        >>> try:
-        ...     cfg.kind = "transformer"
-        ... except Exception as err:
-        ...     print(type(err).__name__)
-        ValidationError
-    """
-
-    kind: ModelKind = ModelKind.mlp
-    num_cells: list[int] = field(default_factory=lambda: [256, 256])
-    embed_dim: int = 64
-    num_heads: int = 2
-    encoder_cells: list[int] = field(default_factory=lambda: [64])
-    decoder_cells: list[int] = field(default_factory=lambda: [64, 64])
-    prior: PriorName | None = None
-    prior_weight: float = 2.0
-    crash_head: bool = False
-    crash_aversion: float = 0.0
-    ensemble: int = 1
-    bagging: bool = False
-
-
-@dataclass
-class RayConfig:
-    """``rollout.ray``: the Ray backend (``rollout.backend=ray``, GRPO only).
-
-    ``groups_per_batch`` groups are split over ``num_actors`` actors, each running
-    ``workers_per_actor`` env workers with ``env_backend`` (``rollout.num_workers`` and
-    ``rollout.backend`` describe the local collector only).
-    """
-
-    num_actors: int = 2
-    workers_per_actor: int = 1
-    env_backend: WorkerBackend = WorkerBackend.single
-    num_cpus_per_actor: float = 1.0
-    memory_per_actor_mb: int | None = 1024
-    address: str | None = None
-    num_cpus: int | None = None
-    object_store_mb: int = 512
-    max_restarts: int = 3
-
-
-@dataclass
-class RolloutConfig:
-    """``rollout`` group: how experience is gathered.
-
-    Example:
-        >>> cfg = OmegaConf.structured(Config(rollout=RolloutConfig(num_workers=2)))
-        >>> print(cfg.rollout.backend, cfg.rollout.horizon, cfg.rollout.ray.num_actors)
-        single 8 2
-        >>> try:
-        ...     check_config(cfg)
-        ... except ValueError as err:
-        ...     print(err)
-        rollout.num_workers must be 1 with rollout.backend=single, got 2
-        >>> cfg.rollout.backend = "parallel"
-        >>> check_config(cfg)
-    """
-
-    horizon: int = 8
-    decision_interval: int = 4
-    groups_per_batch: int = 8
-    live_trunks: bool = False
-    stagger_trunks: bool = False
-    full_horizon_roots: bool = False
-    first_root_step: int = 0
-    frames_per_batch: int = 512
-    num_workers: int = 1
-    backend: Backend = Backend.single
-    mp_start_method: str | None = "fork"
-    ray: RayConfig = field(default_factory=RayConfig)
-
-
-@dataclass
 class OptimConfig:
-    """``optim`` group: Adam and gradient clipping.
+    """``optim`` group: Adam (epsilon 1e-8, no weight decay) and gradient clipping.
 
     Example:
         >>> cfg = OmegaConf.merge(OmegaConf.structured(OptimConfig),
@@ -227,8 +105,6 @@ class OptimConfig:
     """
 
     lr: float = 5e-4
-    weight_decay: float = 0.0
-    eps: float = 1e-8
     max_grad_norm: float = 1.0
     anneal_lr: bool = False
     ema_decay: float | None = None
@@ -237,6 +113,8 @@ class OptimConfig:
 @dataclass
 class LoggerConfig:
     """``logger`` group: TorchRL logger backend and media.
+
+    wandb reads a run's group and tags from ``WANDB_RUN_GROUP`` and ``WANDB_TAGS``.
 
     Example:
         >>> import tempfile
@@ -251,15 +129,15 @@ class LoggerConfig:
     backend: LoggerBackend = LoggerBackend.wandb
     mode: WandbMode = WandbMode.offline
     project: str = "torchrl_grpo"
-    group: str | None = None
-    tags: list[str] = field(default_factory=list)
     video: bool = True
-    group_plots: bool = True
 
 
 @dataclass
 class ExperimentConfig:
     """``experiment`` group: budgets and how often to evaluate and checkpoint.
+
+    Each periodic evaluation also plots a batch's most informative branch group (GRPO
+    with branching), and the run shows a progress bar when it writes to a terminal.
 
     Example:
         >>> cfg = OmegaConf.structured(ExperimentConfig(total_frames=2000, eval_every=0))
@@ -267,7 +145,6 @@ class ExperimentConfig:
         (2000, 0, ['random', 'idle', 'slower', 'rule'])
     """
 
-    name: str = "default"
     total_frames: int = 30_000
     eval_every: int = 10
     eval_episodes: int = 10
@@ -276,10 +153,7 @@ class ExperimentConfig:
     final_eval_seed: int = 20_000
     baselines: list[str] = field(default_factory=lambda: ["random", "idle", "slower", "rule"])
     baseline_cache: str | None = "outputs/baselines"
-    transfer_gap: bool = True
     checkpoint_every: int = 10
-    plot_every: int = 10
-    progress_bar: bool = True
     eval_workers: int | None = None
     out_dir: str | None = None
 
@@ -332,8 +206,11 @@ class EvalConfig:
 
 _SHARED_SCHEMAS: tuple[tuple[str, str, type], ...] = (
     ("env", "base_env", EnvConfig),
-    ("model", "base_model", ModelConfig),
-    ("rollout", "base_rollout", RolloutConfig),
+    ("model", "base_mlp_model", MLPModelConfig),
+    ("model", "base_attention_model", AttentionModelConfig),
+    ("rollout", "base_group_rollout", GroupRolloutConfig),
+    ("rollout", "base_ray_rollout", RayRolloutConfig),
+    ("rollout", "base_step_rollout", StepRolloutConfig),
     ("optim", "base_optim", OptimConfig),
     ("logger", "base_logger", LoggerConfig),
     ("experiment", "base_experiment", ExperimentConfig),
@@ -344,8 +221,9 @@ def register_configs() -> ConfigStore:
     """Register the schemas: ``base_config``, ``base_evaluate`` and ``base_<group>`` in each group.
 
     The ``algo`` group gets the schema of every registered algorithm
-    (:func:`~torchrl_grpo.training.register_algorithm`). The YAML files of ``conf/`` list
-    their schema first in their defaults, e.g. ``conf/algo/ppo.yaml`` starts from
+    (:func:`~torchrl_grpo.training.register_algorithm`), and an algorithm's own
+    ``model`` and ``rollout`` schemas where it has them. The YAML files of ``conf/``
+    list their schema first in their defaults, e.g. ``conf/algo/ppo.yaml`` starts from
     ``base_ppo``. Registers the resolvers ``conf/`` uses as well
     (:func:`~torchrl_grpo.training.resolvers.register_resolvers`). Idempotent.
 
@@ -354,8 +232,8 @@ def register_configs() -> ConfigStore:
 
     Example:
         >>> cs = register_configs()
-        >>> "base_ppo.yaml" in cs.list("algo")
-        True
+        >>> "base_ppo.yaml" in cs.list("algo"), "base_group_rollout.yaml" in cs.list("rollout")
+        (True, True)
     """
     register_resolvers()
     cs = ConfigStore.instance()
@@ -365,35 +243,114 @@ def register_configs() -> ConfigStore:
         cs.store(group=group, name=name, node=node)
     for algorithm in set(ALGORITHMS.values()):
         cs.store(group="algo", name=algorithm.config_name, node=algorithm.config_class)
+        for group, schema in algorithm.extra_schemas().items():
+            cs.store(group=group, name=schema.__name__, node=schema)
     return cs
+
+
+def _schemas(algorithm: type[Algorithm], container: Mapping[str, Any]) -> dict[str, type]:
+    """Each group's schema for a config of ``algorithm``."""
+    schemas: dict[str, type] = {"algo": algorithm.config_class}
+    model = container.get("model")
+    if isinstance(model, Mapping):
+        schemas["model"] = algorithm.model_schema(str(model.get("kind", "mlp")))
+    rollout = container.get("rollout")
+    if isinstance(rollout, Mapping):
+        ray = rollout.get("ray") is not None and algorithm.supports_ray
+        schemas["rollout"] = RayRolloutConfig if ray else algorithm.rollout_config_class
+    for group, schema in (("optim", OptimConfig), ("logger", LoggerConfig)):
+        schemas[group] = schema
+    schemas["experiment"] = ExperimentConfig
+    return schemas
+
+
+def _keys(schema: type) -> frozenset[str]:
+    return frozenset(OmegaConf.structured(schema).keys())
 
 
 def typed_config(container: Mapping[str, Any]) -> DictConfig:
     """A plain resolved config (a checkpoint's, a run's ``config.yaml``) typed by the schemas.
 
-    The ``algo`` group gets the schema of its algorithm. Older spellings of a choice
-    read as today's (``roots: continuation`` is ``continue``).
+    The ``algo`` group gets the schema of its algorithm, ``model`` its kind's and
+    ``rollout`` its algorithm's. A config written before keys retired is migrated
+    (:func:`~torchrl_grpo.training.retired_keys.migrate`): a GRPO run that used
+    values the recipe now fixes reads as an ``algo=grpo_lab`` run when
+    ``torchrl_grpo.experimental`` is imported. Older spellings of a choice read as
+    today's (``first_action: enumeration`` is ``enumerate``).
 
     Raises:
+        ValueError: a retired key holds a value only ``algo=grpo_lab`` has, and the
+            experimental package is not imported; naming the key.
         omegaconf.errors.ValidationError: a value does not fit its key's type.
 
     Example:
-        >>> cfg = typed_config({"algo": {"name": "grpo_branch", "roots": "continuation"}})
-        >>> OmegaConf.get_type(cfg.algo).__name__, str(cfg.algo.roots)
-        ('GRPOConfig', 'continue')
+        >>> cfg = typed_config({"algo": {"name": "grpo_branch", "group_size": 4},
+        ...                     "model": {"kind": "scene", "num_cells": [64]}})
+        >>> OmegaConf.get_type(cfg.algo).__name__, OmegaConf.get_type(cfg.model).__name__
+        ('GRPOConfig', 'MLPModelConfig')
     """
-    schema = OmegaConf.structured(Config)
     algo = container.get("algo")
-    if algo is not None:
-        schema.algo = OmegaConf.structured(algorithm_for(algo).config_class)
+    algorithm = None if algo is None else algorithm_for(algo)
+    if algorithm is not None:
+        container = _migrated(_ray_migrated(container), algorithm)
+        algorithm = algorithm_for(container["algo"])
+    schema = OmegaConf.structured(Config)
+    if algorithm is not None:
+        for group, node in _schemas(algorithm, container).items():
+            if group in container:
+                schema[group] = OmegaConf.structured(node)
     return OmegaConf.merge(schema, container)
+
+
+def _ray_migrated(container: Mapping[str, Any]) -> dict[str, Any]:
+    """A config written before ``rollout=ray``: Ray settings only where it ran on Ray.
+
+    ``rollout.backend=ray`` with ``rollout.ray.workers_per_actor`` and ``env_backend``
+    is today's ``rollout=ray`` with ``num_workers`` and ``backend``; any other backend
+    ran locally, and its (then always written) ``rollout.ray`` goes.
+    """
+    out = dict(container)
+    rollout = out.get("rollout")
+    ray = rollout.get("ray") if isinstance(rollout, Mapping) else None
+    if not isinstance(ray, Mapping) or "workers_per_actor" not in ray:
+        return out
+    rollout, ray = dict(rollout), dict(ray)
+    workers, backend = ray.pop("workers_per_actor"), ray.pop("env_backend", "single")
+    if str(rollout.get("backend")) == "ray":
+        rollout |= {"num_workers": workers, "backend": backend, "ray": ray}
+    else:
+        rollout.pop("ray")
+    out["rollout"] = rollout
+    return out
+
+
+def _migrated(container: Mapping[str, Any], algorithm: type[Algorithm]) -> dict[str, Any]:
+    """``container`` in today's keys; a GRPO run with values the recipe fixes: ``grpo_lab``."""
+    name = str(container["algo"]["name"])
+    fixed = {group: dict(values) for group, values in SHARED_FIXED.items()}
+    for group, values in algorithm.fixed_settings(name).items():
+        fixed.setdefault(group, {}).update(values)
+    keys = {group: _keys(schema) for group, schema in _schemas(algorithm, container).items()}
+    try:
+        return migrate(container, fixed, keys)
+    except LabRequired as err:
+        lab = ALGORITHMS.get("grpo_lab")
+        if lab is None or not issubclass(lab, algorithm) or lab is algorithm:
+            raise ValueError(
+                f"{err} (python -c 'import torchrl_grpo.experimental' registers it; "
+                "scripts/train.py and scripts/evaluate.py import it)"
+            ) from None
+        relabelled = {**container, "algo": {**container["algo"], "name": "grpo_lab"}}
+        relabelled["algo"].setdefault("roots", "reset" if name == "grpo_episode" else "trunk")
+        keys = {group: _keys(schema) for group, schema in _schemas(lab, relabelled).items()}
+        return migrate(relabelled, fixed={}, schema_keys=keys)
 
 
 def to_container(cfg: DictConfig) -> dict:
     """The resolved config as plain Python (enums as strings), for logging and checkpoints.
 
     Example:
-        >>> to_container(OmegaConf.structured(ModelConfig))["kind"]
+        >>> to_container(OmegaConf.structured(MLPModelConfig))["kind"]
         'mlp'
     """
     return OmegaConf.to_container(cfg, resolve=True, enum_to_str=True)

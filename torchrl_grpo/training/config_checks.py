@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_grpo.training.algos.base import algorithm_for
+from torchrl_grpo.training.algos.registry import algorithm_for, with_fixed_settings
 
 __all__ = ["check_config"]
 
@@ -24,14 +24,18 @@ def check_config(cfg: DictConfig) -> None:
 
     Example:
         >>> from torchrl_grpo.training import Config
-        >>> from torchrl_grpo.training.config import RolloutConfig
-        >>> cfg = OmegaConf.structured(Config(rollout=RolloutConfig(horizon=0)))
+        >>> from torchrl_grpo.training.group_schemas import GroupRolloutConfig
+        >>> cfg = OmegaConf.structured(Config(rollout=GroupRolloutConfig(horizon=0)))
         >>> try:
         ...     check_config(cfg)
         ... except ValueError as err:
         ...     print(err)
         rollout.horizon must be >= 1, got 0
     """
+    algo = _group(cfg, "algo")
+    if algo is not None and "name" in algo and not OmegaConf.is_missing(algo, "name"):
+        # The algorithm's checks read the settings its recipe fixes as well.
+        cfg = with_fixed_settings(cfg)
     for key, low in _LOWER_BOUNDS.items():
         group, name = key.split(".")
         node = _group(cfg, group)
@@ -69,7 +73,6 @@ _LOWER_BOUNDS = {
     "experiment.eval_episodes": 0,
     "experiment.final_eval_episodes": 0,
     "experiment.checkpoint_every": 0,
-    "experiment.plot_every": 0,
     "algo.epochs": 1,
     "algo.minibatch_size": 1,
 }
@@ -82,20 +85,28 @@ def _group(cfg: DictConfig, group: str) -> DictConfig | None:
 
 
 def _check_rollout(rollout: DictConfig) -> None:
-    """The ``rollout`` keys, ``rollout.ray`` only with ``rollout.backend=ray``."""
+    """The ``rollout`` keys; the Ray settings (``rollout=ray``)."""
     backend = str(rollout.backend)
-    if backend == "single" and rollout.num_workers != 1:
+    on_ray = rollout.get("ray") is not None
+    if backend == "ray":
         raise ValueError(
-            f"rollout.num_workers must be 1 with rollout.backend=single, got {rollout.num_workers}"
+            "rollout.backend=ray: choose rollout=ray, GRPO's groups on Ray actors "
+            "(rollout.backend is then how each actor runs its env workers; docs/distributed.md)"
+        )
+    if backend == "single" and rollout.num_workers != 1:
+        where = " (workers per Ray actor)" if on_ray else ""
+        raise ValueError(
+            f"rollout.num_workers{where} must be 1 with rollout.backend=single, "
+            f"got {rollout.num_workers}"
         )
     if rollout.get("stagger_trunks") and not rollout.get("live_trunks"):
         raise ValueError(
             "rollout.stagger_trunks=true spreads the episodes of live trunks: set "
             "rollout.live_trunks=true too (with algo.roots=trunk)"
         )
-    ray = rollout.get("ray")
-    if backend != "ray" or ray is None:
+    if not on_ray:
         return
+    ray = rollout.ray
     if ray.num_actors < 1:
         raise ValueError(f"rollout.ray.num_actors must be >= 1, got {ray.num_actors}")
     if ray.num_actors > rollout.groups_per_batch:
@@ -106,13 +117,6 @@ def _check_rollout(rollout: DictConfig) -> None:
     if ray.num_cpus_per_actor <= 0:
         raise ValueError(
             f"rollout.ray.num_cpus_per_actor must be > 0, got {ray.num_cpus_per_actor}"
-        )
-    if ray.workers_per_actor < 1:
-        raise ValueError(f"rollout.ray.workers_per_actor must be >= 1, got {ray.workers_per_actor}")
-    if str(ray.env_backend) == "single" and ray.workers_per_actor != 1:
-        raise ValueError(
-            f"rollout.ray.workers_per_actor must be 1 with rollout.ray.env_backend=single, "
-            f"got {ray.workers_per_actor}"
         )
 
 

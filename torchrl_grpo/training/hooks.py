@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import logging
+import sys
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -127,7 +128,7 @@ def _parallel(cfg: DictConfig) -> dict[str, Any]:
     exp = cfg.experiment
     return {
         "workers": eval_workers(exp.get("eval_workers")),
-        "progress": bool(exp.get("progress_bar", True)),
+        "progress": sys.stderr.isatty(),
     }
 
 
@@ -136,11 +137,11 @@ def _every(trainer: TrainerView, every: int) -> bool:
 
 
 class GroupPlotHook(Hook):
-    """Every ``experiment.plot_every`` iterations, plot the batch's most informative group.
+    """At the first iteration and each evaluation's (``experiment.eval_every``), plot a group.
 
     The group with the widest spread of returns goes to ``<run>/plots/`` and, as a
-    video, to the logger (``collect/branch_group``, in the iteration's row), with
-    ``logger.group_plots``. Only batches of branch groups are plotted.
+    video, to the logger (``collect/branch_group``, in the iteration's row). Only
+    batches of branch groups are plotted.
 
     Example:
         >>> GroupPlotHook().phase
@@ -150,14 +151,13 @@ class GroupPlotHook(Hook):
     phase = "plot"
 
     def due(self, trainer: TrainerView, batch: TensorDictBase) -> bool:  # noqa: D102
-        every = int(trainer.cfg.experiment.plot_every)
-        return every > 0 and BRANCH_RETURN in batch.keys() and _every(trainer, every)
+        every = int(trainer.cfg.experiment.eval_every)
+        first = trainer.progress.iteration == 1
+        return BRANCH_RETURN in batch.keys() and (first or _every(trainer, every))
 
     def on_iteration(  # noqa: D102
         self, trainer: TrainerView, batch: TensorDictBase, result: Any
     ) -> dict[str, Any]:
-        if not trainer.cfg.logger.group_plots:
-            return {}
         returns = batch.get(BRANCH_RETURN)[:, :, 0, 0]
         group = int(returns.std(1).argmax())
         iteration = trainer.progress.iteration
@@ -280,7 +280,7 @@ class EvaluationHook(Hook):
             **_parallel(cfg),
         )
         summary = res.summary()
-        if bool(cfg.experiment.get("transfer_gap", True)) and tensor_covers(cfg.env):
+        if tensor_covers(cfg.env):
             tensor = evaluate_on_tensor(cfg.env, trainer.eval_policy, episodes=episodes, seed=seed)
             summary |= {f"transfer_{k}": v for k, v in paired_gap(res, tensor).items()}
         progress = trainer.progress

@@ -80,8 +80,9 @@ def make_logger(
             offline=offline,
             save_dir=str(run_dir),
             project=logger_cfg.get("project"),
-            group=logger_cfg.get("group"),
-            tags=list(logger_cfg.get("tags") or []),
+            # wandb reads WANDB_RUN_GROUP and WANDB_TAGS from the environment itself.
+            group=os.environ.get("WANDB_RUN_GROUP"),
+            tags=[t for t in os.environ.get("WANDB_TAGS", "").split(",") if t],
             config=config,
             log_env_packages=False,
         )

@@ -14,8 +14,8 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import LossModule
 
 from torchrl_grpo.objectives.reference import ReferenceSync
-from torchrl_grpo.training.algos.base import algorithm_for
 from torchrl_grpo.training.algos.grpo import GRPO, TRAIN_REWARD
+from torchrl_grpo.training.algos.registry import algorithm_for
 from torchrl_grpo.training.optim_builder import make_optimizer
 
 __all__ = [
@@ -46,15 +46,17 @@ def make_loss(
 
     Example:
         >>> from omegaconf import OmegaConf
-        >>> from torchrl_grpo.training.config import GRPOConfig, ModelConfig
+        >>> from torchrl_grpo.training.config import GRPOConfig
+        >>> from torchrl_grpo.training.group_schemas import MLPModelConfig
         >>> from torchrl_grpo.training.model_builder import make_policy
         >>> from torchrl_grpo.envs import HighwayEnv
-        >>> policy = make_policy(OmegaConf.structured(ModelConfig), HighwayEnv(seed=0))
+        >>> policy = make_policy(OmegaConf.structured(MLPModelConfig), HighwayEnv(seed=0))
         >>> loss = make_loss(OmegaConf.structured(GRPOConfig(name="grpo_branch")), policy)
         >>> type(loss).__name__, loss.aggregation
         ('GRPOLoss', 'dapo')
     """
-    return algorithm_for(algo_cfg).make_loss(algo_cfg, policy, value)
+    algorithm = algorithm_for(algo_cfg)
+    return algorithm.make_loss(algorithm.algo_with_fixed(algo_cfg), policy, value)
 
 
 def make_advantage(
@@ -69,7 +71,8 @@ def make_advantage(
         >>> adv.returns, adv.in_keys[2]
         ('branch', ('next', 'train_reward'))
     """
-    return algorithm_for(algo_cfg).make_advantage(algo_cfg, value)
+    algorithm = algorithm_for(algo_cfg)
+    return algorithm.make_advantage(algorithm.algo_with_fixed(algo_cfg), value)
 
 
 def make_reference_sync(algo_cfg: DictConfig, loss: LossModule) -> ReferenceSync | None:
@@ -83,4 +86,5 @@ def make_reference_sync(algo_cfg: DictConfig, loss: LossModule) -> ReferenceSync
         >>> make_reference_sync(OmegaConf.create({"name": "ppo"}), None) is None
         True
     """
-    return algorithm_for(algo_cfg).make_reference_sync(algo_cfg, loss)
+    algorithm = algorithm_for(algo_cfg)
+    return algorithm.make_reference_sync(algorithm.algo_with_fixed(algo_cfg), loss)

@@ -52,9 +52,9 @@ def make_net(model_cfg: DictConfig, env: EnvBase, out_features: int) -> nn.Modul
 
     Example:
         >>> from omegaconf import OmegaConf
-        >>> from torchrl_grpo.training.config import ModelConfig
+        >>> from torchrl_grpo.training.group_schemas import MLPModelConfig
         >>> from torchrl_grpo.envs import HighwayEnv
-        >>> net = make_net(OmegaConf.structured(ModelConfig), HighwayEnv(seed=0), 5)
+        >>> net = make_net(OmegaConf.structured(MLPModelConfig), HighwayEnv(seed=0), 5)
         >>> type(net).__name__
         'KinematicsMLP'
     """
@@ -104,10 +104,10 @@ def make_policy(model_cfg: DictConfig, env: EnvBase) -> ProbabilisticActor:
 
     Example:
         >>> from omegaconf import OmegaConf
-        >>> from torchrl_grpo.training.config import ModelConfig
+        >>> from torchrl_grpo.training.group_schemas import MLPModelConfig
         >>> from torchrl_grpo.envs import HighwayEnv
         >>> env = HighwayEnv(seed=0)
-        >>> policy = make_policy(OmegaConf.structured(ModelConfig), env)
+        >>> policy = make_policy(OmegaConf.structured(MLPModelConfig), env)
         >>> policy(env.reset())["action"].shape
         torch.Size([])
     """
@@ -163,10 +163,10 @@ def make_value(model_cfg: DictConfig, env: EnvBase) -> ValueOperator:
 
     Example:
         >>> from omegaconf import OmegaConf
-        >>> from torchrl_grpo.training.config import ModelConfig
+        >>> from torchrl_grpo.training.group_schemas import MLPModelConfig
         >>> from torchrl_grpo.envs import HighwayEnv
         >>> env = HighwayEnv(seed=0)
-        >>> make_value(OmegaConf.structured(ModelConfig), env)(env.reset())["state_value"].shape
+        >>> make_value(OmegaConf.structured(MLPModelConfig), env)(env.reset())["state_value"].shape
         torch.Size([1])
     """
     return make_value_net(make_net(model_cfg, env, 1))

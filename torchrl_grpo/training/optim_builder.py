@@ -16,8 +16,7 @@ def make_optimizer(optim_cfg: DictConfig, loss: nn.Module) -> torch.optim.Optimi
 
     Example:
         >>> from omegaconf import OmegaConf
-        >>> opt = make_optimizer(OmegaConf.create({"lr": 1e-3, "weight_decay": 0.0,
-        ...                                       "eps": 1e-8}), torch.nn.Linear(2, 2))
+        >>> opt = make_optimizer(OmegaConf.create({"lr": 1e-3}), torch.nn.Linear(2, 2))
         >>> type(opt).__name__
         'Adam'
     """
@@ -25,8 +24,8 @@ def make_optimizer(optim_cfg: DictConfig, loss: nn.Module) -> torch.optim.Optimi
     return torch.optim.Adam(
         params,
         lr=float(optim_cfg.lr),
-        weight_decay=float(optim_cfg.weight_decay),
-        eps=float(optim_cfg.eps),
+        weight_decay=float(optim_cfg.get("weight_decay", 0.0)),
+        eps=float(optim_cfg.get("eps", 1e-8)),
     )
 
 

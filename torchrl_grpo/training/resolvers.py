@@ -51,7 +51,7 @@ def config_choices(*groups: str, conf_dir: str | Path | None = None) -> str:
 
     Example:
         >>> print(config_choices().splitlines()[0])
-        algo: distill, grpo_branch, grpo_episode, ppo
+        algo: distill, grpo_branch, grpo_episode, grpo_lab, ppo
         >>> print(config_choices("env"))
         env: highway, highway_fast, merge, roundabout
     """

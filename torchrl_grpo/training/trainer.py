@@ -16,6 +16,7 @@ import logging
 import os
 import random
 import signal
+import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -28,7 +29,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 from torchrl.collectors import BaseCollector
 
-from torchrl_grpo.training.algos.base import algorithm_for
+from torchrl_grpo.training.algos.registry import algorithm_for
 from torchrl_grpo.training.averaging import PolicyAverage
 from torchrl_grpo.training.checkpoint import (
     Progress,
@@ -136,8 +137,12 @@ class Trainer:
         self, cfg: DictConfig, run_dir: str | Path | None = None, hooks: Sequence[Hook] = ()
     ) -> None:
         check_config(cfg)
-        self.cfg = cfg
+        # What the user composed is saved and logged; the run executes it with the
+        # settings its algorithm fixes filled in.
         self.config = to_container(cfg)
+        composed = cfg
+        cfg = algorithm_for(cfg.algo).with_fixed_settings(cfg)
+        self.cfg = cfg
         self.run_dir = Path(run_dir or cfg.experiment.get("out_dir") or "outputs/run")
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.seed = int(cfg.seed)
@@ -165,7 +170,7 @@ class Trainer:
             self._load(str(cfg.resume))
         name = f"{cfg.algo.name}_{cfg.env.name}_s{self.seed}"
         self.logger = make_logger(cfg.logger, self.run_dir, name, self.config)
-        OmegaConf.save(cfg, self.run_dir / "config.yaml", resolve=True)
+        OmegaConf.save(composed, self.run_dir / "config.yaml", resolve=True)
 
     @property
     def iteration(self) -> int:
@@ -230,7 +235,7 @@ class Trainer:
         # Installed before the workers fork: they inherit the handler, so Ctrl-C in a
         # terminal (SIGINT to the whole process group) cannot kill a worker mid-step.
         previous = signal.signal(signal.SIGINT, self._on_sigint)
-        pbar = progress_bar(exp.progress_bar, total, self.frames)
+        pbar = progress_bar(sys.stderr.isatty(), total, self.frames)
         self.collector = None
         try:
             # Before the collector: building it runs the policy once (a random draw).

@@ -32,13 +32,18 @@ from torchrl_grpo.modules.ensemble import PolicyEnsemble, member_halves
 from torchrl_grpo.modules.forward_sharing import shared_forward
 from torchrl_grpo.training.collect import make_collector
 from torchrl_grpo.training.env_builder import make_rollout_env
+from torchrl_grpo.training.group_schemas import (
+    MODEL_SCHEMAS,
+    ModelConfig,
+    StepRolloutConfig,
+    collects_on_ray,
+)
 from torchrl_grpo.training.metrics import PhaseTimer, metric_name
 from torchrl_grpo.training.optim_builder import make_optimizer
+from torchrl_grpo.training.retired_keys import SHARED_FIXED, with_fixed
 
-__all__ = ["ALGORITHMS", "AlgoConfig", "Algorithm", "algorithm_for", "register_algorithm"]
+__all__ = ["AlgoConfig", "Algorithm"]
 
-#: The registered algorithms by ``algo.name`` (:func:`register_algorithm` fills it).
-ALGORITHMS: dict[str, type[Algorithm]] = {}
 
 
 @dataclass
@@ -65,7 +70,6 @@ class AlgoConfig:
     entropy_coeff: float = 0.01
     epochs: int = 4
     minibatch_size: int = 256
-    max_minibatches: int | None = None
 
 
 class Algorithm:
@@ -82,7 +86,7 @@ class Algorithm:
     ``config_class``, its schema (a subclass of :class:`AlgoConfig`); ``config_name``,
     the schema's name in Hydra's ConfigStore, which the defaults of
     ``conf/algo/<name>.yaml`` start from; ``supports_ray``, whether it collects with
-    ``rollout.backend=ray``; ``trains_crash_head``, whether it trains a
+    ``rollout=ray``; ``trains_crash_head``, whether it trains a
     ``model.crash_head``; ``has_groups``, whether its batches carry group ids
     (``model.bagging`` splits them between ensemble members).
 
@@ -93,7 +97,7 @@ class Algorithm:
 
     Example:
         >>> from torchrl_grpo.training import Algorithm
-        >>> from torchrl_grpo.training.algos.base import algorithm_for
+        >>> from torchrl_grpo.training.algos.registry import algorithm_for
         >>> cls = algorithm_for(OmegaConf.create({"name": "grpo_episode"}))
         >>> cls.__name__, cls.config_name, issubclass(cls, Algorithm)
         ('GRPO', 'base_grpo', True)
@@ -102,11 +106,13 @@ class Algorithm:
     names: ClassVar[tuple[str, ...]] = ()
     config_class: ClassVar[type[AlgoConfig]] = AlgoConfig
     config_name: ClassVar[str] = ""
+    rollout_config_class: ClassVar[type] = StepRolloutConfig
     supports_ray: ClassVar[bool] = False
     trains_crash_head: ClassVar[bool] = False
     has_groups: ClassVar[bool] = False
 
     def __init__(self, cfg: DictConfig, policy: ProbabilisticActor, env: EnvBase) -> None:
+        cfg = self.with_fixed_settings(cfg)
         self.cfg = cfg
         self.policy = policy
         self.env = env
@@ -125,6 +131,47 @@ class Algorithm:
         self.loss = self.make_loss(cfg.algo, policy, self.value)
         self.optimizer = make_optimizer(cfg.optim, self.loss)
         self.updates = 0
+
+    # ---------------------------------------------------------------- schemas
+    @classmethod
+    def fixed_settings(cls, name: str) -> dict[str, dict[str, Any]]:
+        """``{group: {key: value}}``: what a run of ``algo.name=name`` uses for keys it lacks.
+
+        The recipe's values of settings that are not keys of the algorithm's schema
+        (:mod:`~torchrl_grpo.training.retired_keys`); the code reads them from the
+        config :func:`with_fixed_settings` completes.
+        """
+        return {}
+
+    @classmethod
+    def with_fixed_settings(cls, cfg: DictConfig) -> DictConfig:
+        """The config a run of this algorithm executes: ``cfg`` plus its fixed settings.
+
+        The keys a composed config has are what a user sets; the settings the
+        recommended recipe fixes (:meth:`fixed_settings` and
+        :data:`~torchrl_grpo.training.retired_keys.SHARED_FIXED`) are filled in where
+        the config lacks them. Idempotent; the result is a plain (untyped) config.
+        """
+        container = OmegaConf.to_container(cfg, resolve=True, enum_to_str=True)
+        container = with_fixed(container, cls.fixed_settings(str(cfg.algo.name)))
+        return OmegaConf.create(with_fixed(container, SHARED_FIXED))
+
+    @classmethod
+    def algo_with_fixed(cls, algo_cfg: DictConfig) -> DictConfig:
+        """An ``algo`` config with the settings :meth:`fixed_settings` gives it filled in."""
+        algo = OmegaConf.to_container(algo_cfg, resolve=True, enum_to_str=True)
+        fixed = cls.fixed_settings(str(algo["name"])).get("algo", {})
+        return OmegaConf.create({**fixed, **algo})
+
+    @classmethod
+    def model_schema(cls, kind: str) -> type[ModelConfig]:
+        """The ``model`` schema of a network ``kind`` for this algorithm."""
+        return MODEL_SCHEMAS[kind]
+
+    @classmethod
+    def extra_schemas(cls) -> dict[str, type]:
+        """``{group: schema}`` the algorithm registers beside its ``algo`` schema."""
+        return {}
 
     # ---------------------------------------------------------------- builders
     @classmethod
@@ -159,10 +206,8 @@ class Algorithm:
             ValueError: naming the offending key.
         """
         rollout = cfg.get("rollout")
-        if not cls.supports_ray and rollout is not None and str(rollout.backend) == "ray":
-            raise ValueError(
-                f"rollout.backend=ray collects GRPO groups; algo={cfg.algo.name} is not GRPO"
-            )
+        if not cls.supports_ray and collects_on_ray(rollout):
+            raise ValueError(f"rollout=ray collects GRPO groups; algo={cfg.algo.name} is not GRPO")
         cap = cfg.algo.get("max_minibatches")
         if cap is not None and cap < 1:
             raise ValueError(f"algo.max_minibatches must be >= 1 (or null), got {cap}")
@@ -322,73 +367,3 @@ class Algorithm:
             self.value.load_state_dict(checkpoint["value"])
         self.optimizer.load_state_dict(checkpoint["optimizer"])
         self.updates = int(checkpoint["updates"])
-
-
-def register_algorithm(cls: type[Algorithm]) -> type[Algorithm]:
-    """Registers an :class:`Algorithm` under its ``names`` (a class decorator).
-
-    Call :func:`~torchrl_grpo.training.register_configs` after it, so that Hydra knows
-    its schema. Registering the same class again is a no-op.
-
-    Raises:
-        ValueError: the class has no names or config name, or a name is taken.
-
-    Example:
-        >>> from dataclasses import dataclass
-        >>> from torchrl_grpo.training import PPO, PPOConfig
-        >>> from torchrl_grpo.training.algos.base import ALGORITHMS
-        >>> @dataclass
-        ... class MyPPOConfig(PPOConfig):
-        ...     name: str = "my_ppo"
-        >>> @register_algorithm
-        ... class MyPPO(PPO):
-        ...     names = ("my_ppo",)
-        ...     config_class = MyPPOConfig
-        ...     config_name = "base_my_ppo"
-        >>> ALGORITHMS["my_ppo"] is MyPPO
-        True
-        >>> del ALGORITHMS["my_ppo"]  # leave the registry as it was
-    """
-    if not cls.names or not cls.config_name:
-        raise ValueError(f"{cls.__name__} needs names and a config_name to be registered")
-    for name in cls.names:
-        taken = ALGORITHMS.get(name)
-        if taken is not None and _qualified(taken) != _qualified(cls):
-            raise ValueError(f"algo.name={name!r} is taken by {_qualified(taken)}")
-    for name in cls.names:
-        ALGORITHMS[name] = cls
-    return cls
-
-
-def _qualified(cls: type) -> str:
-    return f"{cls.__module__}.{cls.__qualname__}"
-
-
-def algorithm_for(algo_cfg: Any) -> type[Algorithm]:
-    """The registered algorithm of an ``algo`` config: by its name, else by its schema.
-
-    Raises:
-        ValueError: no registered algorithm has that name (or schema).
-
-    Example:
-        >>> algorithm_for(OmegaConf.create({"name": "ppo"})).__name__
-        'PPO'
-    """
-    name = None
-    if isinstance(algo_cfg, DictConfig):
-        if "name" in algo_cfg and not OmegaConf.is_missing(algo_cfg, "name"):
-            name = str(algo_cfg.name)
-        schema = OmegaConf.get_type(algo_cfg)
-    else:
-        name = algo_cfg.get("name")
-        schema = type(algo_cfg)
-    if name is None:
-        found = {cls for cls in ALGORITHMS.values() if cls.config_class is schema}
-        if len(found) == 1:
-            return found.pop()
-    elif name in ALGORITHMS:
-        return ALGORITHMS[name]
-    raise ValueError(
-        f"algo.name={name!r} is not a registered algorithm "
-        f"({', '.join(sorted(ALGORITHMS))}); see register_algorithm"
-    )

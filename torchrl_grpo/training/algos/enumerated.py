@@ -35,35 +35,35 @@ __all__ = [
     "ActionWeights",
     "ActionWeightsName",
     "DistillLoss",
-    "DistillLossName",
+    "GroupFitLossName",
     "DistillWeighting",
-    "DistillWeightingName",
+    "GroupFitWeightingName",
     "branch_crashed",
     "check_distill",
     "check_replay_targets",
     "distill_targets",
-    "make_distill_loss",
+    "make_group_fit_loss",
     "make_replay",
     "policy_weighted",
     "replay_rows",
 ]
 
-#: Each trained step's weight in its root's distillation target (``algo.distill_coeff``).
+#: Each trained step's weight in its root's distillation target (``algo.group_fit_coeff``).
 DISTILL_WEIGHT = "distill_weight"
 #: Whether each trained step's branch ended in a crash (the env terminated it): the label
 #: of a crash head (``model.crash_head``).
 BRANCH_CRASHED = "branch_crashed"
 #: Each trained step's advantage as its group gave it, the target of
-#: ``algo.distill_loss=regression`` (the surrogate's advantage may be reweighted).
+#: ``algo.group_fit_loss=regression`` (the surrogate's advantage may be reweighted).
 DISTILL_TARGET = "distill_target"
 
 #: Weight of each enumerated first action in the objective (``algo.action_weights``):
 #: once each, or ``n * pi(a|s)`` (the expected clipped surrogate over all actions).
 ActionWeights = Literal["uniform", "policy"]
-#: Weight of each root in the distillation (``algo.distill_weighting``): the same for
+#: Weight of each root in the distillation (``algo.group_fit_weighting``): the same for
 #: all, or its group's spread (best minus worst advantage: ties teach nothing).
 DistillWeighting = Literal["uniform", "spread"]
-#: What the distillation fits (``algo.distill_loss``): each root's softmax target by
+#: What the distillation fits (``algo.group_fit_loss``): each root's softmax target by
 #: cross-entropy, or its advantages by the policy's centred logits (squared error).
 DistillLoss = Literal["cross_entropy", "regression"]
 
@@ -73,14 +73,14 @@ ActionWeightsName = choice_enum(
     "Weight of an enumerated first action in the objective.",
     module=__name__,
 )
-DistillWeightingName = choice_enum(
-    "DistillWeightingName",
+GroupFitWeightingName = choice_enum(
+    "GroupFitWeightingName",
     DistillWeighting,
     "Weight of a root in the distillation.",
     module=__name__,
 )
-DistillLossName = choice_enum(
-    "DistillLossName",
+GroupFitLossName = choice_enum(
+    "GroupFitLossName",
     DistillLoss,
     "What the distillation fits.",
     module=__name__,
@@ -163,25 +163,25 @@ def check_distill(algo: DictConfig) -> None:
 
     Example:
         >>> from omegaconf import OmegaConf
-        >>> check_distill(OmegaConf.create({"distill_coeff": 1.0, "distill_temperature": 0.1,
+        >>> check_distill(OmegaConf.create({"group_fit_coeff": 1.0, "group_fit_temperature": 0.1,
         ...                                 "first_action": "sample", "explore_steps": 1}))
         Traceback (most recent call last):
         ...
-        ValueError: algo.distill_coeff=1.0 distils each root's enumerated actions: set algo.first_action=enumerate and algo.explore_steps=1
+        ValueError: algo.group_fit_coeff=1.0 distils each root's enumerated actions: set algo.first_action=enumerate and algo.explore_steps=1
     """  # noqa: E501 - a doctest's expected output is one line
-    coeff, tau = float(algo.distill_coeff), float(algo.distill_temperature)
+    coeff, tau = float(algo.group_fit_coeff), float(algo.group_fit_temperature)
     if not 0 <= coeff < float("inf"):
-        raise ValueError(f"algo.distill_coeff must be a finite number >= 0, got {coeff}")
+        raise ValueError(f"algo.group_fit_coeff must be a finite number >= 0, got {coeff}")
     if not 0 <= tau < float("inf"):
-        raise ValueError(f"algo.distill_temperature must be a finite number >= 0, got {tau}")
-    if str(algo.get("distill_loss", "cross_entropy")) == "regression" and tau == 0:
+        raise ValueError(f"algo.group_fit_temperature must be a finite number >= 0, got {tau}")
+    if str(algo.get("group_fit_loss", "cross_entropy")) == "regression" and tau == 0:
         raise ValueError(
-            "algo.distill_loss=regression reads the logits as advantages / "
-            "algo.distill_temperature: set a temperature > 0 (e.g. 0.1)"
+            "algo.group_fit_loss=regression reads the logits as advantages / "
+            "algo.group_fit_temperature: set a temperature > 0 (e.g. 0.1)"
         )
     if coeff > 0 and (str(algo.first_action) != "enumerate" or algo.explore_steps != 1):
         raise ValueError(
-            f"algo.distill_coeff={coeff} distils each root's enumerated actions: set "
+            f"algo.group_fit_coeff={coeff} distils each root's enumerated actions: set "
             "algo.first_action=enumerate and algo.explore_steps=1"
         )
 
@@ -235,7 +235,7 @@ def distill_targets(
 def check_replay_targets(saved: DictConfig, algo: DictConfig, source: str = "") -> None:
     """Refuse a resume whose replayed steps hold targets this config does not, or lack them.
 
-    A replay stores :data:`DISTILL_WEIGHT` with each step when ``algo.distill_coeff > 0``:
+    A replay stores :data:`DISTILL_WEIGHT` with each step when ``algo.group_fit_coeff > 0``:
     the first write of steps with other keys would fail mid-run.
 
     Args:
@@ -248,46 +248,47 @@ def check_replay_targets(saved: DictConfig, algo: DictConfig, source: str = "") 
 
     Example:
         >>> from omegaconf import OmegaConf
-        >>> check_replay_targets(OmegaConf.create({}), OmegaConf.create({"distill_coeff": 1.0}))
+        >>> check_replay_targets(OmegaConf.create({}), OmegaConf.create({"group_fit_coeff": 1.0}))
         Traceback (most recent call last):
         ...
-        ValueError: resume= replays steps stored without distillation targets and this config has algo.distill_coeff=1.0: resume with the run's algo.distill_coeff (0 or > 0)
+        ValueError: resume= replays steps stored without distillation targets and this config has algo.group_fit_coeff=1.0: resume with the run's algo.group_fit_coeff (0 or > 0)
     """  # noqa: E501 - a doctest's expected output is one line
-    saved_on = float(saved.get("distill_coeff", 0.0)) > 0
-    coeff = float(algo.distill_coeff)
+    saved_on = float(saved.get("group_fit_coeff", 0.0)) > 0
+    coeff = float(algo.group_fit_coeff)
     if saved_on != (coeff > 0):
         stored = "with" if saved_on else "without"
         raise ValueError(
             f"resume={source} replays steps stored {stored} distillation targets and this "
-            f"config has algo.distill_coeff={coeff}: resume with the run's algo.distill_coeff "
+            f"config has algo.group_fit_coeff={coeff}: resume with the run's algo.group_fit_coeff "
             "(0 or > 0)"
         )
-    saved_loss = str(saved.get("distill_loss", "cross_entropy"))
-    loss = str(algo.get("distill_loss", "cross_entropy"))
+    saved_loss = str(saved.get("group_fit_loss", "cross_entropy"))
+    loss = str(algo.get("group_fit_loss", "cross_entropy"))
     if saved_on and saved_loss != loss:
         raise ValueError(
-            f"resume={source} replays steps stored with algo.distill_loss={saved_loss} targets "
-            f"and this config has algo.distill_loss={loss}: resume with the run's algo.distill_loss"
+            f"resume={source} replays steps stored with algo.group_fit_loss={saved_loss} "
+            f"targets and this config has algo.group_fit_loss={loss}: resume with the run's "
+            "algo.group_fit_loss"
         )
 
 
-def make_distill_loss(algo: DictConfig, policy: nn.Module) -> LossModule | None:
-    """The loss of ``algo.distill_*`` beside the surrogate, or ``None`` (``distill_coeff=0``).
+def make_group_fit_loss(algo: DictConfig, policy: nn.Module) -> LossModule | None:
+    """The loss of ``algo.distill_*`` beside the surrogate, or ``None`` (``group_fit_coeff=0``).
 
     Example:
         >>> from omegaconf import OmegaConf
         >>> from torchrl_grpo.modules import KinematicsMLP, make_discrete_actor
         >>> actor = make_discrete_actor(KinematicsMLP(5, 5, out_features=5), 5)
-        >>> algo = OmegaConf.create({"distill_coeff": 1.0, "distill_temperature": 0.1,
-        ...                          "distill_loss": "regression"})
-        >>> type(make_distill_loss(algo, actor)).__name__
+        >>> algo = OmegaConf.create({"group_fit_coeff": 1.0, "group_fit_temperature": 0.1,
+        ...                          "group_fit_loss": "regression"})
+        >>> type(make_group_fit_loss(algo, actor)).__name__
         'AdvantageRegressionLoss'
     """
-    coeff = float(algo.distill_coeff)
+    coeff = float(algo.group_fit_coeff)
     if coeff == 0:
         return None
-    if str(algo.distill_loss) == "regression":
+    if str(algo.group_fit_loss) == "regression":
         return AdvantageRegressionLoss(
-            policy, coeff=coeff, temperature=float(algo.distill_temperature)
+            policy, coeff=coeff, temperature=float(algo.group_fit_temperature)
         )
     return GroupDistillLoss(policy, coeff=coeff)

@@ -7,11 +7,11 @@ trunk episodes, ``grpo_episode`` rolls whole episodes from one reset. A batch is
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Literal, get_args
+import copy
+from typing import Any, get_args
 
 import torch
-from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from torchrl.collectors import BaseCollector
 from torchrl.envs import EnvBase
@@ -25,7 +25,7 @@ from torchrl_grpo.objectives.bootstrap import HorizonBootstrap
 from torchrl_grpo.objectives.crash_head_loss import CrashHeadLoss
 from torchrl_grpo.objectives.grpo_loss import GRPOLoss
 from torchrl_grpo.objectives.reference import ReferenceSync
-from torchrl_grpo.training.algos.base import AlgoConfig, Algorithm, register_algorithm
+from torchrl_grpo.training.algos.base import Algorithm
 from torchrl_grpo.training.algos.branch_tails import (
     crash_labels,
     make_tail_policy,
@@ -33,44 +33,26 @@ from torchrl_grpo.training.algos.branch_tails import (
 )
 from torchrl_grpo.training.algos.enumerated import (
     BRANCH_CRASHED,
-    ActionWeightsName,
-    DistillLossName,
-    DistillWeightingName,
     check_replay_targets,
     distill_targets,
-    make_distill_loss,
+    make_group_fit_loss,
     make_replay,
     policy_weighted,
     replay_rows,
 )
 from torchrl_grpo.training.algos.grpo_checks import check_grpo_config
-from torchrl_grpo.training.choices import (
-    AggregationName,
-    BaselineName,
-    BootstrapName,
-    CrashLabelName,
-    FirstActionName,
-    KLEstimatorName,
-    ReturnsName,
-    RootKindName,
-    ScaleRewards,
-    SelectionName,
-    choice_enum,
+from torchrl_grpo.training.algos.grpo_config import (
+    FIXED_SETTINGS,
+    GRPOConfig,
+    GRPOVariant,
 )
+from torchrl_grpo.training.algos.registry import register_algorithm
 from torchrl_grpo.training.collect import make_collector, trunk_schedule
 from torchrl_grpo.training.env_builder import episode_step_limit, make_rollout_env
+from torchrl_grpo.training.group_schemas import GroupRolloutConfig, collects_on_ray
 from torchrl_grpo.training.metrics import PhaseTimer, group_metrics
-from torchrl_grpo.training.model_builder import BasePolicyName
 
 __all__ = ["GRPO", "TRAIN_REWARD", "GRPOConfig", "GRPOVariant", "make_replay", "policy_weighted"]
-
-#: The GRPO variants (``algo.name``).
-GRPOVariant = Literal["grpo_branch", "grpo_episode"]
-#: Who acts on greedy-tail branches after their explored steps (``algo.tail_policy``):
-#: the learner, or a scripted base policy whose ``Q(s, a)`` the groups then score.
-TailPolicy = Literal["learner", BasePolicyName]
-#: How the policy acts on the trunks decision points are taken from (``algo.trunk``).
-TrunkPolicy = Literal["sample", "greedy"]
 
 #: The reward GRPO advantages are computed from: the env's reward plus, on the last step
 #: of a branch cut by the horizon, the bootstrap of the episode steps left.
@@ -83,62 +65,6 @@ MEMBER_LOG_PROB = "member_action_log_prob"
 _TRAINED_KEYS = ("observation", "action", "action_log_prob", "advantage", MASK, GROUP_ID, "branch")
 
 
-def _choices(name: str, choices: Any, doc: str) -> Any:
-    return choice_enum(name, choices, doc, module=__name__)
-
-
-GRPOName = _choices("GRPOName", GRPOVariant, "The GRPO variant.")
-TrunkPolicyName = _choices("TrunkPolicyName", TrunkPolicy, "How the policy acts on trunks.")
-TailPolicyName = _choices("TailPolicyName", TailPolicy, "Who acts on greedy-tail branches.")
-
-
-@dataclass
-class GRPOConfig(AlgoConfig):
-    """GRPO (``grpo_branch``, ``grpo_episode``): group-relative advantage, no critic.
-
-    Example:
-        >>> from torchrl_grpo.training import GRPOConfig
-        >>> cfg = OmegaConf.structured(GRPOConfig(name="grpo_branch", group_size=4))
-        >>> print(cfg.group_size, cfg.roots, cfg.clip_epsilon_low, cfg.clip_epsilon_high)
-        4 trunk 0.2 0.28
-        >>> cfg.roots = "continuation"  # the older spelling of "continue"
-        >>> print(cfg.roots)
-        continue
-    """
-
-    name: GRPOName = MISSING
-    group_size: int = 8
-    roots: RootKindName = RootKindName["trunk"]
-    select: SelectionName = SelectionName["best"]
-    returns: ReturnsName = ReturnsName["branch"]
-    bootstrap: BootstrapName = BootstrapName["batch_mean"]
-    crash_penalty: float = 0.0
-    baseline: BaselineName = BaselineName["mean"]
-    scale_rewards: ScaleRewards = ScaleRewards["group"]
-    gamma: float = 1.0
-    clip_epsilon_low: float = 0.2
-    clip_epsilon_high: float = 0.28
-    dual_clip: float | None = None
-    kl_to_ref_coeff: float | None = 0.01
-    kl_estimator: KLEstimatorName = KLEstimatorName["k3"]
-    aggregation: AggregationName = AggregationName["dapo"]
-    ref_model_sync_steps: int | None = 64
-    ref_model_mixup_alpha: float = 1.0
-    explore_steps: int | None = None
-    first_action: FirstActionName = FirstActionName["sample"]
-    action_weights: ActionWeightsName = ActionWeightsName["uniform"]
-    tail_sync_batches: int | None = None
-    tail_policy: TailPolicyName = TailPolicyName["learner"]
-    tail_learner_steps: int = 0
-    replay_groups: int | None = None
-    trunk: TrunkPolicyName = TrunkPolicyName["sample"]
-    distill_coeff: float = 0.0
-    distill_temperature: float = 0.1
-    distill_weighting: DistillWeightingName = DistillWeightingName["uniform"]
-    distill_loss: DistillLossName = DistillLossName["cross_entropy"]
-    crash_head_coeff: float = 1.0
-    crash_label: CrashLabelName = CrashLabelName["branch"]
-
 
 @register_algorithm
 class GRPO(Algorithm):
@@ -149,8 +75,7 @@ class GRPO(Algorithm):
 
     Example:
         >>> from torchrl_grpo.training import GRPO, compose_config
-        >>> cfg = compose_config(["experiment=smoke", "algo.explore_steps=1",
-        ...                       "algo.tail_sync_batches=2"])
+        >>> cfg = compose_config(["experiment=smoke"])  # greedy tails of the rule policy
         >>> from torchrl_grpo.training import make_env, make_policy
         >>> env = make_env(cfg.env, seed=0)
         >>> grpo = GRPO(cfg, make_policy(cfg.model, env), env)
@@ -161,12 +86,14 @@ class GRPO(Algorithm):
     names = get_args(GRPOVariant)
     config_class = GRPOConfig
     config_name = "base_grpo"
+    rollout_config_class = GroupRolloutConfig
     supports_ray = True
     trains_crash_head = True
     has_groups = True
 
     def __init__(self, cfg: DictConfig, policy: ProbabilisticActor, env: EnvBase) -> None:
         super().__init__(cfg, policy, env)
+        cfg = self.cfg  # with the settings the variant fixes
         algo = cfg.algo
         self.advantage = self.make_advantage(algo)
         self.bootstrap = HorizonBootstrap(
@@ -177,12 +104,17 @@ class GRPO(Algorithm):
         self.ref_sync = self.make_reference_sync(algo, self.loss)
         self.tail_policy = make_tail_policy(algo, policy, env)
         self.replay = make_replay(algo)
-        self.distill = make_distill_loss(algo, policy)
+        self.distill = make_group_fit_loss(algo, policy)
         head = self.trained_head
         self.crash_head = (
             None if head is None else CrashHeadLoss(head, coeff=float(algo.crash_head_coeff))
         )
         self.tail_survival = make_tail_survival(algo, head)
+
+    @classmethod
+    def fixed_settings(cls, name: str) -> dict[str, dict[str, Any]]:
+        """The recipe's values of the variant's settings that are not keys (see GRPOConfig)."""
+        return copy.deepcopy(FIXED_SETTINGS.get(name, {}))
 
     @classmethod
     def make_loss(
@@ -236,10 +168,10 @@ class GRPO(Algorithm):
         check_grpo_config(cfg)
 
     def make_collector(self, seed: int) -> BaseCollector:
-        """A ``GroupCollector`` (``RayGroupCollector`` with ``rollout.backend=ray``)."""
+        """A ``GroupCollector`` (``RayGroupCollector`` with ``rollout=ray``)."""
         cfg = self.cfg
         env = None
-        if str(cfg.rollout.backend) != "ray":
+        if not collects_on_ray(cfg.rollout):
             # With the Ray backend every actor builds its own env workers.
             env = make_rollout_env(
                 cfg.env, cfg.rollout, snapshots=True, device=cfg.device, seed=seed
@@ -281,9 +213,9 @@ class GRPO(Algorithm):
                 algo = self.cfg.algo
                 data = distill_targets(
                     data,
-                    float(algo.distill_temperature),
-                    str(algo.distill_weighting),
-                    str(algo.distill_loss),
+                    float(algo.group_fit_temperature),
+                    str(algo.group_fit_weighting),
+                    str(algo.group_fit_loss),
                 )
         adv = data.get("advantage")
         shape = batch.get(MASK).shape

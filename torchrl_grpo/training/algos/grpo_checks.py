@@ -5,6 +5,8 @@ from __future__ import annotations
 from omegaconf import DictConfig
 
 from torchrl_grpo.training.algos.enumerated import check_distill
+from torchrl_grpo.training.algos.registry import with_fixed_settings
+from torchrl_grpo.training.group_schemas import collects_on_ray
 
 __all__ = ["check_grpo_config", "check_crash_head_needed"]
 
@@ -24,6 +26,7 @@ def check_grpo_config(cfg: DictConfig) -> None:
         ...
         ValueError: algo.replay_groups=8 replays old groups, which is sound only when their advantages do not depend on the policy that collected them: set algo.first_action=enumerate and a scripted algo.tail_policy (e.g. rule)
     """  # noqa: E501 - a doctest's expected output is one line
+    cfg = with_fixed_settings(cfg)  # the checks read the settings the recipe fixes too
     algo = cfg.algo
     if algo.group_size < 2:
         raise ValueError(f"algo.group_size must be >= 2, got {algo.group_size}")
@@ -55,16 +58,16 @@ def check_grpo_config(cfg: DictConfig) -> None:
             f"rollout.{set_keys[0]} places decision points along trunks: it needs "
             f"algo.roots=trunk, got algo.roots={algo.roots}"
         )
-    on_ray = rollout is not None and str(rollout.backend) == "ray"
+    on_ray = collects_on_ray(rollout)
     replay = algo.replay_groups
     if replay is not None:
         if replay < 1:
             raise ValueError(f"algo.replay_groups must be >= 1, got {replay}")
         if on_ray:
             raise ValueError(
-                f"algo.replay_groups={replay} is not supported with rollout.backend=ray: "
-                "replay needs a scripted algo.tail_policy, which the Ray actors do not run "
-                "yet; set algo.replay_groups=null or use the parallel, serial or single backend"
+                f"algo.replay_groups={replay} is not supported with rollout=ray: replay needs "
+                "a scripted algo.tail_policy, which the Ray actors do not run yet; set "
+                "algo.replay_groups=null or collect locally (rollout=grpo_branch)"
             )
         if str(algo.first_action) != "enumerate" or tail_policy == "learner":
             raise ValueError(
@@ -86,8 +89,8 @@ def check_grpo_config(cfg: DictConfig) -> None:
         )
     if on_ray and tail_policy != "learner":
         raise ValueError(
-            f"algo.tail_policy={tail_policy} is not supported with rollout.backend=ray "
-            "yet; use the parallel, serial or single backend"
+            f"algo.tail_policy={tail_policy} is not supported with rollout=ray yet; "
+            "collect locally (rollout=grpo_branch)"
         )
     model = cfg.get("model")
     has_head = model is not None and bool(model.get("crash_head", False))

@@ -18,8 +18,9 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from torchrl_grpo.training.algos.base import AlgoConfig, register_algorithm
+from torchrl_grpo.training.algos.base import AlgoConfig
 from torchrl_grpo.training.algos.episodes import TrunkEpisodes
+from torchrl_grpo.training.algos.registry import register_algorithm
 from torchrl_grpo.training.choices import choice_enum
 from torchrl_grpo.training.metrics import PhaseTimer
 from torchrl_grpo.training.model_builder import make_value

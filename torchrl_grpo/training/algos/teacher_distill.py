@@ -24,9 +24,10 @@ from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, ValueOperator
 
 from torchrl_grpo.objectives.teacher_losses import TeacherCrashLoss, TeacherDistillLoss
-from torchrl_grpo.training.algos.base import AlgoConfig, register_algorithm
+from torchrl_grpo.training.algos.base import AlgoConfig
 from torchrl_grpo.training.algos.episodes import TrunkEpisodes
 from torchrl_grpo.training.algos.labelled import LabelledStates
+from torchrl_grpo.training.algos.registry import register_algorithm
 from torchrl_grpo.training.choices import choice_enum
 from torchrl_grpo.training.metrics import PhaseTimer
 from torchrl_grpo.training.teacher_loading import load_teachers

@@ -1,0 +1,148 @@
+"""``algo=grpo_lab``: GRPO with every research setting as a config key.
+
+The recommended GRPO recipes fix most of GRPO's settings
+(:data:`~torchrl_grpo.training.algos.grpo_config.FIXED_SETTINGS`); the lab's schemas
+make each of them a key again, with the defaults the schemas had before they were
+fixed, so that the commands of ``docs/lab/`` run with ``algo=grpo_lab`` (and
+``model=lab`` for ensembles and priors). A checkpoint of a GRPO run that used other
+values than the recipe's reads as a ``grpo_lab`` run
+(:func:`~torchrl_grpo.training.config.typed_config`).
+
+Example:
+    >>> import torchrl_grpo.experimental  # registers algo=grpo_lab
+    >>> from torchrl_grpo.training import compose_config
+    >>> cfg = compose_config(["experiment=smoke", "algo=grpo_lab", "algo.roots=continue"])
+    >>> print(cfg.algo.name, cfg.algo.roots, cfg.algo.first_action)
+    grpo_lab continue enumerate
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from omegaconf import MISSING
+
+from torchrl_grpo.training.algos.enumerated import (
+    ActionWeightsName,
+    GroupFitLossName,
+    GroupFitWeightingName,
+)
+from torchrl_grpo.training.algos.grpo import GRPO
+from torchrl_grpo.training.algos.grpo_config import GRPOConfig, TrunkPolicyName
+from torchrl_grpo.training.algos.registry import register_algorithm
+from torchrl_grpo.training.choices import (
+    AggregationName,
+    BaselineName,
+    BootstrapName,
+    CrashLabelName,
+    FirstActionName,
+    KLEstimatorName,
+    PriorName,
+    ReturnsName,
+    RootKindName,
+    ScaleRewards,
+    SelectionName,
+    choice_enum,
+)
+from torchrl_grpo.training.group_schemas import GroupRolloutConfig, ModelConfig
+
+__all__ = ["GRPOLab", "GRPOLabConfig", "GRPOLabModelConfig", "GRPOLabRolloutConfig"]
+
+GRPOLabName = choice_enum(
+    "GRPOLabName", Literal["grpo_lab"], "The experimental GRPO.", module=__name__
+)
+
+
+@dataclass
+class GRPOLabConfig(GRPOConfig):
+    """``algo=grpo_lab``: GRPOConfig plus every setting the recipes fix.
+
+    Example:
+        >>> from omegaconf import OmegaConf
+        >>> cfg = OmegaConf.structured(GRPOLabConfig(name="grpo_lab"))
+        >>> print(cfg.roots, cfg.first_action, cfg.group_fit_loss)
+        trunk sample cross_entropy
+    """
+
+    name: GRPOLabName = MISSING
+    roots: RootKindName = RootKindName["trunk"]
+    select: SelectionName = SelectionName["best"]
+    returns: ReturnsName = ReturnsName["branch"]
+    bootstrap: BootstrapName = BootstrapName["batch_mean"]
+    crash_penalty: float = 0.0
+    baseline: BaselineName = BaselineName["mean"]
+    scale_rewards: ScaleRewards = ScaleRewards["group"]
+    gamma: float = 1.0
+    dual_clip: float | None = None
+    kl_estimator: KLEstimatorName = KLEstimatorName["k3"]
+    aggregation: AggregationName = AggregationName["dapo"]
+    ref_model_sync_steps: int | None = 64
+    ref_model_mixup_alpha: float = 1.0
+    explore_steps: int | None = None
+    first_action: FirstActionName = FirstActionName["sample"]
+    action_weights: ActionWeightsName = ActionWeightsName["uniform"]
+    tail_sync_batches: int | None = None
+    trunk: TrunkPolicyName = TrunkPolicyName["sample"]
+    group_fit_temperature: float = 0.1
+    group_fit_weighting: GroupFitWeightingName = GroupFitWeightingName["uniform"]
+    group_fit_loss: GroupFitLossName = GroupFitLossName["cross_entropy"]
+    crash_head_coeff: float = 1.0
+    crash_label: CrashLabelName = CrashLabelName["branch"]
+    max_minibatches: int | None = None
+
+
+@dataclass
+class GRPOLabRolloutConfig(GroupRolloutConfig):
+    """``rollout`` of ``algo=grpo_lab``: how trunks run, as keys."""
+
+    live_trunks: bool = False
+    stagger_trunks: bool = False
+    full_horizon_roots: bool = False
+    first_root_step: int = 0
+
+
+@dataclass
+class GRPOLabModelConfig(ModelConfig):
+    """``model=lab``: any network kind's sizes, a scripted prior, an ensemble."""
+
+    num_cells: list[int] = field(default_factory=lambda: [256, 256])
+    embed_dim: int = 64
+    num_heads: int = 2
+    encoder_cells: list[int] = field(default_factory=lambda: [64])
+    decoder_cells: list[int] = field(default_factory=lambda: [64, 64])
+    prior: PriorName | None = None
+    prior_weight: float = 2.0
+    ensemble: int = 1
+    bagging: bool = False
+
+
+@register_algorithm
+class GRPOLab(GRPO):
+    """GRPO whose settings are all keys (``algo=grpo_lab``); nothing is fixed.
+
+    Example:
+        >>> from torchrl_grpo.training.algos.registry import algorithm_for
+        >>> algorithm_for({"name": "grpo_lab"}) is GRPOLab, GRPOLab.fixed_settings("grpo_lab")
+        (True, {})
+    """
+
+    names = ("grpo_lab",)
+    config_class = GRPOLabConfig
+    config_name = "base_grpo_lab"
+    rollout_config_class = GRPOLabRolloutConfig
+
+    @classmethod
+    def fixed_settings(cls, name: str) -> dict[str, dict[str, Any]]:
+        """None: the lab's schemas have every setting."""
+        return {}
+
+    @classmethod
+    def model_schema(cls, kind: str) -> type[ModelConfig]:
+        """``model=lab``'s schema, whatever the kind."""
+        return GRPOLabModelConfig
+
+    @classmethod
+    def extra_schemas(cls) -> dict[str, type]:
+        """The lab's ``rollout`` and ``model`` schemas."""
+        return {"rollout": GRPOLabRolloutConfig, "model": GRPOLabModelConfig}
