@@ -154,12 +154,15 @@ def test_config_reference_defaults_come_from_the_dataclasses(site):
         assert type_cell == type(default).__name__, key
 
     # None, enums (with every choice listed), nested dataclasses.
-    assert schema_row(site, "dual_clip")[1:3] == ["float | None", "null"]
-    aggregation = schema_row(site, "aggregation")
-    assert aggregation[2] == dataclass_default(config.GRPOConfig, "aggregation").value
-    assert all(member.value in aggregation[1] for member in config.AggregationName)
+    from torchrl_grpo.training.algos.grpo_config import TailPolicyName
+    from torchrl_grpo.training.group_schemas import RayConfig
+
+    assert schema_row(site, "replay_groups")[1:3] == ["int | None", "null"]
+    tail = schema_row(site, "tail_policy")
+    assert tail[2] == dataclass_default(config.GRPOConfig, "tail_policy").value
+    assert all(member.value in tail[1] for member in TailPolicyName)
     num_actors = schema_row(site, "ray.num_actors")
-    assert num_actors[2] == str(dataclass_default(config.RayConfig, "num_actors"))
+    assert num_actors[2] == str(dataclass_default(RayConfig, "num_actors"))
 
 
 def test_config_reference_meanings_and_options_come_from_the_yaml(site):
@@ -179,7 +182,7 @@ def test_config_reference_meanings_and_options_come_from_the_yaml(site):
 
 
 def test_config_reference_lists_every_schema_key(site):
-    from torchrl_grpo.training import config
+    from torchrl_grpo.training import config, group_schemas
 
     keys = {
         row[0]
@@ -187,13 +190,14 @@ def test_config_reference_lists_every_schema_key(site):
         for row in table[1:]
     }
     schemas = [
-        getattr(config, name)
-        for name in config.__all__
-        if dataclasses.is_dataclass(getattr(config, name))
+        getattr(module, name)
+        for module in (config, group_schemas)
+        for name in module.__all__
+        if dataclasses.is_dataclass(getattr(module, name))
     ]
     for schema in schemas:
         hints = typing.get_type_hints(schema)
-        prefix = "ray." if schema is config.RayConfig else ""
+        prefix = "ray." if schema is group_schemas.RayConfig else ""
         for f in dataclasses.fields(schema):
             if schema in (config.Config, config.EvalConfig) and dataclasses.is_dataclass(
                 hints[f.name]

@@ -111,7 +111,9 @@ def test_a_registered_algorithm_trains_from_its_yaml(tmp_path, conf_with_pg):
 
 
 def test_the_registry_names_every_built_in_algorithm():
-    assert {name: cls for name, cls in ALGORITHMS.items() if name != "pg"} == {
+    # grpo_lab: the experimental package's, registered when it is imported (conftest).
+    built_in = {name: cls for name, cls in ALGORITHMS.items() if name not in ("pg", "grpo_lab")}
+    assert built_in == {
         "grpo_branch": GRPO,
         "grpo_episode": GRPO,
         "ppo": PPO,

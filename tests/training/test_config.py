@@ -365,3 +365,25 @@ def test_no_overrides_run_the_recommended_recipe():
     assert OmegaConf.to_container(lab) == OmegaConf.to_container(run)
     # Other algorithms keep the model group's own settings: no crash head.
     assert compose_config(["algo=ppo"]).model.crash_head is False
+
+
+def _leaf_keys(node: dict, prefix: str = "") -> list[str]:
+    out = []
+    for key, value in node.items():
+        if isinstance(value, dict) and value and key != "config":  # env.config: one key
+            out += _leaf_keys(value, f"{prefix}{key}.")
+        else:
+            out.append(prefix + key)
+    return out
+
+
+@pytest.mark.parametrize(
+    "overrides,count",
+    [([], 50), (["algo=grpo_episode"], 50), (["algo=ppo"], 46), (["algo=distill"], 44)],
+)
+def test_a_run_composes_at_most_fifty_keys(overrides, count):
+    keys = _leaf_keys(OmegaConf.to_container(compose_config(overrides)))
+    assert len(keys) == count <= 50, sorted(keys)
+    # The control: the experimental algorithm makes the fixed settings keys again.
+    lab = _leaf_keys(OmegaConf.to_container(compose_config(LAB_RUN)))
+    assert {"algo.roots", "rollout.live_trunks", "model.ensemble"} <= set(lab)

@@ -64,7 +64,8 @@ def test_weights_of_another_network_or_env_and_a_missing_file_are_refused(traine
         no_head = [*TINY, *TENSOR, "model.crash_head=false", f"init_from={trained}"]
         Trainer(compose_config(no_head), run_dir=tmp_path)
     # Same parameters, another prior: refused as a resume refuses it.
-    prior = [*TINY, *TENSOR, *CRASH_HEAD, "model.prior=rule", f"init_from={trained}"]
+    lab = ["algo=grpo_lab", "model=lab"]  # a prior is a setting of the experimental algo
+    prior = [*TINY, *TENSOR, *CRASH_HEAD, *lab, "model.prior=rule", f"init_from={trained}"]
     with pytest.raises(ValueError, match=r"model.prior=None, not 'rule'"):
         Trainer(compose_config(prior), run_dir=tmp_path)
 

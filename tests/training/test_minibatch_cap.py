@@ -76,6 +76,6 @@ def test_the_epochs_still_bound_a_large_cap():
 
 
 def test_a_cap_below_one_is_refused():
-    cfg = compose_config([*TINY, "algo.max_minibatches=0"])
+    cfg = compose_config([*TINY, "algo=grpo_lab", "algo.max_minibatches=0"])
     with pytest.raises(ValueError, match="algo.max_minibatches must be >= 1"):
         Algorithm.check_config(cfg)

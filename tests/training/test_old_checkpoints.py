@@ -87,7 +87,8 @@ def _main_before_the_keys_retired() -> dict:
     cfg["experiment"] |= {"name": "default", "transfer_gap": True, "plot_every": 0}
     cfg["experiment"]["progress_bar"] = True
     cfg["logger"] |= {"group": None, "tags": [], "group_plots": True}
-    cfg["rollout"] |= {"frames_per_batch": 512, "ray": {"num_actors": 2}}
+    ray = {"num_actors": 2, "workers_per_actor": 1, "env_backend": "single"}
+    cfg["rollout"] |= {"frames_per_batch": 512, "ray": ray}
     cfg["model"] |= {"embed_dim": 64, "num_heads": 2, "encoder_cells": [64]}
     return cfg
 

@@ -137,7 +137,8 @@ def test_a_student_learns_its_teachers_crash_odds_and_grpo_continues_from_it(tea
     # The student keeps a crash head: GRPO with the survival bootstrap starts from it.
     student = tmp_path / "student" / "last.pt"
     grpo = compose_config(
-        [*TINY, *TENSOR, *CRASH_HEAD, "algo.bootstrap=survival", f"init_from={student}"]
+        [*TINY, *TENSOR, *CRASH_HEAD, "algo=grpo_lab", "algo.bootstrap=survival"]
+        + [f"init_from={student}"]
     )
     continued = Trainer(grpo, run_dir=tmp_path / "grpo")
     saved = load_checkpoint(student)["policy"]

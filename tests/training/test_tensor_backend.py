@@ -78,7 +78,9 @@ def test_a_tensor_smoke_run_trains_on_the_simulator_and_is_evaluated_on_highway_
     ids=["queued_trunks", "live_staggered_trunks"],
 )
 def test_resume_on_the_tensor_simulator_continues_exactly(tmp_path, live):
-    common = [*TINY, *TENSOR, f"rollout.live_trunks={live}", "experiment.checkpoint_every=1"]
+    # How trunks run is a setting of the experimental algo=grpo_lab.
+    common = [*TINY, *TENSOR, "algo=grpo_lab", f"rollout.live_trunks={live}"]
+    common += ["experiment.checkpoint_every=1"]
     if live:
         # Spread, bounded trunks: a resumed run continues them, it does not spread them again.
         common += [

@@ -15,7 +15,7 @@ import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
-from train_helpers import REPLAY, csv_scalars, train_run
+from train_helpers import LAB, REPLAY, csv_scalars, train_run
 from train_setup import ROOT, TINY, compose_config
 
 from torchrl_grpo.modules.greedy_tail import EXPLORED
@@ -114,6 +114,7 @@ def test_resume_continues_exactly(tmp_path, algo, extra, first, total):
 
 def test_resume_restores_the_lagging_tail_policy(tmp_path):
     common = [
+        *LAB,
         "algo.group_size=5",
         "rollout.horizon=2",
         "algo.explore_steps=1",
@@ -143,6 +144,7 @@ def test_resume_restores_the_lagging_tail_policy(tmp_path):
 
 def test_a_scripted_tail_scores_every_first_action_from_the_learners_trunks(tmp_path):
     overrides = [
+        *LAB,
         "algo.group_size=5",
         "rollout.horizon=3",
         "algo.explore_steps=1",
@@ -242,16 +244,15 @@ def test_resume_refuses_another_algorithm_or_model(tmp_path):
     resume = f"resume={tmp_path / 'grpo' / 'last.pt'}"
     with pytest.raises(ValueError, match="algo=grpo_branch"):
         compose_config([*TINY, "algo=ppo", resume])
-    # Same parameter shapes, another policy: the prior would change it silently.
-    with pytest.raises(ValueError, match="model.prior=None, not 'rule'"):
-        compose_config([*TINY, "model.prior=rule", resume])
+    with pytest.raises(ValueError, match="algo=grpo_branch, not algo=grpo_lab"):
+        compose_config([*TINY, *LAB, resume])  # the lab's GRPO is another algorithm
     with pytest.raises(ValueError, match="model.kind='scene', not 'mlp'"):
         compose_config([*TINY, "model=mlp", resume])
     # The Trainer checks as well, for configs composed elsewhere.
     cfg = compose_config([*TINY, resume])
-    cfg.model.prior = "rule"
-    with pytest.raises(ValueError, match="model.prior=None, not 'rule'"):
-        Trainer(cfg, run_dir=tmp_path / "prior")
+    cfg.model.num_cells = [16]
+    with pytest.raises(ValueError, match=r"model.num_cells=\[32\], not \[16\]"):
+        Trainer(cfg, run_dir=tmp_path / "cells")
     # The run's own model resumes.
     Trainer(compose_config([*TINY, resume]), run_dir=tmp_path / "same")
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 from torch import nn
-from train_helpers import REPLAY, csv_scalars, logged_ratios, train_run
+from train_helpers import LAB, REPLAY, csv_scalars, logged_ratios, train_run
 from train_setup import TINY, compose_config
 
 from torchrl_grpo.modules import CrashHead, PolicyEnsemble
@@ -97,7 +97,7 @@ def test_a_crash_head_learns_from_each_branchs_crash(tmp_path):
     for refused, match in (
         (["algo=ppo"], "model.crash_head is trained.*algo=ppo"),
         (
-            ["algo.explore_steps=2", "algo.group_fit_coeff=0"],
+            [*LAB, "algo.explore_steps=2", "algo.group_fit_coeff=0"],
             "model.crash_head learns.*explore_steps=1",
         ),
     ):
@@ -199,7 +199,7 @@ def test_each_member_of_an_ensemble_learns_from_its_own_outputs(tmp_path):
     obs = batch["observation"][:3]
     torch.testing.assert_close(ensemble(obs), (first(obs) + second(obs)) / 2)
     with pytest.raises(ValueError, match="model.ensemble must be >= 1"):
-        Trainer(compose_config([*TINY, "model.ensemble=0"]), run_dir=tmp_path / "refused")
+        Trainer(compose_config([*TINY, *LAB, "model.ensemble=0"]), run_dir=tmp_path / "refused")
 
 
 def test_bagged_members_learn_from_their_own_half_of_the_groups(tmp_path):
@@ -220,7 +220,7 @@ def test_bagged_members_learn_from_their_own_half_of_the_groups(tmp_path):
         # Each member's gradient is that of its own groups' loss, halved by the mean.
         for mixed, alone in zip(bagged, own, strict=True):
             torch.testing.assert_close(mixed, alone / 2)
-    for refused in (["model.ensemble=1"], ["algo=ppo"]):
+    for refused in ([*LAB, "model.ensemble=1"], ["model=lab", "algo=ppo"]):
         cfg = compose_config([*TINY, "model.ensemble=2", "model.bagging=true", *refused])
         with pytest.raises(ValueError, match="model.bagging gives each ensemble member"):
             Trainer(cfg, run_dir=tmp_path / "refused")

@@ -37,8 +37,13 @@ def train_run(tmp_path, name: str, overrides: list[str]) -> Trainer:
     return trainer
 
 
+# The settings the recipes fix are keys of the experimental algo=grpo_lab (model=lab);
+# with experiment=smoke it runs whole trunks, queued, as the smoke runs did before.
+LAB = ["algo=grpo_lab", "model=lab"]
+
 # Enumerated groups scored by a scripted tail, replayed for 50 groups.
 REPLAY = [
+    *LAB,
     "algo.group_size=5",
     "rollout.horizon=2",
     "rollout.decision_interval=2",

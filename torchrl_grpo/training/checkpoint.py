@@ -27,6 +27,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from torchrl_grpo.training.retired_keys import SHARED_FIXED
+
 __all__ = [
     "CHECKPOINT_VERSION",
     "Progress",
@@ -239,6 +241,8 @@ def model_changes(
         ...                "crash_aversion": 5.0}, free={"crash_aversion"})
         "model.kind='mlp', not 'scene'"
     """
+    # A key one side lacks holds the value every run now uses (a prior: none).
+    saved, current = {**SHARED_FIXED["model"], **saved}, {**SHARED_FIXED["model"], **current}
     return ", ".join(
         f"model.{k}={a!r}, not {b!r}"
         for k, (a, b) in changed_keys(saved, current).items()

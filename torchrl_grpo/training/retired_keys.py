@@ -24,7 +24,16 @@ import copy
 from collections.abc import Mapping
 from typing import Any
 
-__all__ = ["DROPPED", "OLD_DEFAULTS", "SHARED_FIXED", "LabRequired", "migrate", "with_fixed"]
+__all__ = [
+    "DROPPED",
+    "OLD_DEFAULTS",
+    "RENAMED",
+    "SHARED_FIXED",
+    "LabRequired",
+    "migrate",
+    "renamed",
+    "with_fixed",
+]
 
 #: The value every run now uses, for keys no algorithm's schema has.
 SHARED_FIXED: dict[str, dict[str, Any]] = {
@@ -90,6 +99,20 @@ RENAMED: dict[str, dict[str, str]] = {
 }
 
 
+def renamed(group: str, node: Mapping[str, Any]) -> dict[str, Any]:
+    """A group's plain config with its renamed keys (:data:`RENAMED`) under today's names.
+
+    Example:
+        >>> renamed("algo", {"name": "grpo_branch", "distill_coeff": 1.0})
+        {'name': 'grpo_branch', 'group_fit_coeff': 1.0}
+    """
+    out = dict(node)
+    for old, new in RENAMED.get(group, {}).items():
+        if old in out:
+            out.setdefault(new, out.pop(old))
+    return out
+
+
 class LabRequired(ValueError):
     """A config holds values of retired keys that only ``algo=grpo_lab`` runs."""
 
@@ -150,9 +173,7 @@ def migrate(
         node = out.get(group)
         if not isinstance(node, dict):
             continue
-        for old, new in RENAMED.get(group, {}).items():
-            if old in node:
-                node.setdefault(new, node.pop(old))
+        node = out[group] = renamed(group, node)
         group_fixed = fixed.get(group, {})
         # A config that holds none of a group's retired keys was written with today's.
         defaults = OLD_DEFAULTS.get(group, {}) if node.keys() - keys else {}
@@ -161,9 +182,7 @@ def migrate(
                 continue
             value = node.pop(key, defaults.get(key))
             if key in group_fixed and _differs(value, group_fixed[key]):
-                differing.append(
-                    f"{group}.{key}={value!r} ({name} now fixes {group_fixed[key]!r})"
-                )
+                differing.append(f"{group}.{key}={value!r} ({name} now fixes {group_fixed[key]!r})")
     if differing:
         raise LabRequired(", ".join(differing) + ": a key of algo=grpo_lab")
     return out

@@ -45,7 +45,6 @@ from torchrl_grpo.training.retired_keys import SHARED_FIXED, with_fixed
 __all__ = ["AlgoConfig", "Algorithm"]
 
 
-
 @dataclass
 class AlgoConfig:
     """``algo`` group: fields every algorithm has.
@@ -153,7 +152,9 @@ class Algorithm:
         the config lacks them. Idempotent; the result is a plain (untyped) config.
         """
         container = OmegaConf.to_container(cfg, resolve=True, enum_to_str=True)
-        container = with_fixed(container, cls.fixed_settings(str(cfg.algo.name)))
+        name = (container.get("algo") or {}).get("name")
+        if name is not None:
+            container = with_fixed(container, cls.fixed_settings(str(name)))
         return OmegaConf.create(with_fixed(container, SHARED_FIXED))
 
     @classmethod

@@ -51,6 +51,7 @@ from torchrl_grpo.training.collect import make_collector, trunk_schedule
 from torchrl_grpo.training.env_builder import episode_step_limit, make_rollout_env
 from torchrl_grpo.training.group_schemas import GroupRolloutConfig, collects_on_ray
 from torchrl_grpo.training.metrics import PhaseTimer, group_metrics
+from torchrl_grpo.training.retired_keys import renamed
 
 __all__ = ["GRPO", "TRAIN_REWARD", "GRPOConfig", "GRPOVariant", "make_replay", "policy_weighted"]
 
@@ -63,7 +64,6 @@ MEMBER_LOG_PROB = "member_action_log_prob"
 
 # Keys the updates read: everything else of a batch (states, positions) is dropped early.
 _TRAINED_KEYS = ("observation", "action", "action_log_prob", "advantage", MASK, GROUP_ID, "branch")
-
 
 
 @register_algorithm
@@ -307,7 +307,12 @@ class GRPO(Algorithm):
         if self.tail_policy is not None and checkpoint.get("tail_policy") is not None:
             self.tail_policy.load_state_dict(checkpoint["tail_policy"])
         if self.replay is not None and checkpoint.get("replay") is not None:
-            saved_algo = OmegaConf.create(checkpoint["config"]["algo"])
+            # The saved run's settings, in today's names, with those its variant fixes.
+            saved_algo = renamed("algo", checkpoint["config"]["algo"])
+            name = str(saved_algo.get("name", self.cfg.algo.name))
+            saved_algo = OmegaConf.create(
+                {**self.fixed_settings(name).get("algo", {}), **saved_algo}
+            )
             check_replay_targets(saved_algo, self.cfg.algo, source)
             saved = replay_rows(saved_algo)
             if saved != self.replay.storage.max_size:

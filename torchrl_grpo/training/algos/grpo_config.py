@@ -35,6 +35,7 @@ TailPolicy = Literal["learner", BasePolicyName]
 #: How the policy acts on the trunks decision points are taken from (``algo.trunk``).
 TrunkPolicy = Literal["sample", "greedy"]
 
+
 def _choices(name: str, choices: Any, doc: str) -> Any:
     return choice_enum(name, choices, doc, module=__name__)
 
