@@ -15,7 +15,8 @@ printed beside.
 With ``--on tensor`` (the episodes are worlds of the tensor simulator) or ``--batched``
 (highway-env episodes), one run measures side by side today's planner (one 5-row rollout
 per decision, a handful of episodes: ``--old-episodes``) and the batched one
-(``--episodes``, all at once), both on ``--workers`` forked processes of one thread:
+(``--episodes``, all at once), both on ``--workers`` processes of one thread (today's
+planner on the tensor simulator runs in one, its time divided by ``--workers``):
 episodes/s, the time for 1,000 episodes (projected, or measured with ``--episodes
 1000``) and the returns of the episodes both played, which must be equal.
 
@@ -30,6 +31,7 @@ import logging
 import os
 import time
 
+import torch
 from bench_crash_rates import trained
 from claims import claim
 from omegaconf import OmegaConf
@@ -42,6 +44,7 @@ from torchrl_grpo.training import evaluate, make_env, search_policy
 from torchrl_grpo.training.env_builder import env_overrides, tensor_covers
 from torchrl_grpo.training.results import format_table
 from torchrl_grpo.training.search_eval import evaluate_search
+from torchrl_grpo.training.transfer import evaluate_on_tensor
 
 logging.basicConfig(level=logging.INFO, format="%(message)s")
 log = logging.getLogger("bench_lookahead")
@@ -59,7 +62,7 @@ p.add_argument("--old-episodes", type=int, default=4, help="side by side: today'
 p.add_argument("--workers", type=int, default=2, help="side by side: forked processes")
 args = p.parse_args()
 
-env_cfg = OmegaConf.create({"scenario": args.scenario, "config": {}})
+env_cfg = OmegaConf.create({"scenario": args.scenario, "config": {}, "max_episode_steps": 40})
 if args.checkpoint:
     env_cfg, base = trained(args.checkpoint)
     base, label = DeterministicActor(base), args.checkpoint
@@ -73,19 +76,29 @@ def side_by_side(on: str) -> None:
     if not tensor_covers(env_cfg):
         raise SystemExit(f"--on {on}: the tensor simulator does not cover {args.scenario}")
     log.info("load before: %s", os.getloadavg())
+    n_old, n_new, w = args.old_episodes, args.episodes, args.workers
+    t0 = time.perf_counter()
     if on == "tensor":
+        # Today's search on the tensor simulator (evaluate_on_tensor, as
+        # bench_crash_rates.py runs it) with a planning env of 5 rows: the episodes are
+        # rows, each row's decision one rollout of its 5 branches. One process of one
+        # thread; 1,000 episodes are projected on `w` such processes.
         plan = TensorHighwayEnv(args.scenario, env_overrides(env_cfg), num_envs=5, seed=0)
-        old = LookaheadPolicy(plan, base, args.horizon)
-        driven = TensorHighwayEnv(args.scenario, env_overrides(env_cfg), return_state=True)
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        res_old = evaluate_on_tensor(
+            env_cfg, LookaheadPolicy(plan, base, args.horizon), episodes=n_old, seed=args.seed,
+            name="today's planner", return_state=True,
+        )  # fmt: skip
+        torch.set_num_threads(threads)
+        t_old = (time.perf_counter() - t0) / w
     else:
         old = search_policy(env_cfg, base, args.horizon)
         driven = make_env(env_cfg, return_state=True)
-    n_old, n_new, w = args.old_episodes, args.episodes, args.workers
-    t0 = time.perf_counter()
-    res_old, _ = evaluate(
-        driven, old, episodes=n_old, seed=args.seed, workers=w, name="today's planner"
-    )
-    t_old = time.perf_counter() - t0
+        res_old, _ = evaluate(
+            driven, old, episodes=n_old, seed=args.seed, workers=w, name="today's planner"
+        )
+        t_old = time.perf_counter() - t0
     t0 = time.perf_counter()
     res_new = evaluate_search(
         env_cfg, base, args.horizon, episodes=n_new, seed=args.seed, on=on, workers=w,

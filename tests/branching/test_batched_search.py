@@ -1,8 +1,9 @@
 """search_episodes: all episodes planned at once play what the one-state planner plays.
 
 The reference is today's planner, :class:`LookaheadPolicy` deciding one state at a time
-(one rollout of five rows per decision), driving each episode alone through the
-evaluation's own episode loop. The batched planner must give the same actions and the
+(one rollout of five rows per decision), driving the evaluation's episodes through the
+evaluation's own code (``play_episode`` on highway-env, ``tensor_episodes`` on the
+tensor simulator). The batched planner must give the same actions and the
 same returns, episode for episode.
 """
 
@@ -10,12 +11,14 @@ from __future__ import annotations
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from torchrl_grpo.branching import LookaheadPolicy
-from torchrl_grpo.branching.batched_search import search_episodes, seeded_worlds
-from torchrl_grpo.envs import HighwayEnv, TensorHighwayEnv
+from torchrl_grpo.branching.batched_search import highway_starts, search_episodes
+from torchrl_grpo.envs import HighwayEnv, TensorHighwayEnv, states_equal
 from torchrl_grpo.modules import make_scripted_policy
 from torchrl_grpo.training.eval_episodes import play_episode
+from torchrl_grpo.training.transfer import tensor_episodes
 
 SCENARIO = "highway-fast-v0"
 SEEDS = [10_000, 10_001, 10_002]
@@ -36,9 +39,12 @@ def _compare(reference: list, out) -> None:
 
 def test_batched_search_on_the_tensor_simulator_plays_the_one_state_planners_episodes():
     rule = make_scripted_policy("rule")
+    # Today's planner on the tensor simulator: the evaluation's episodes as rows, each
+    # row's decision one rollout of its 5 branches (a planning env of 5 rows).
     old = LookaheadPolicy(TensorHighwayEnv(SCENARIO, num_envs=5), rule, HORIZON)
-    one_world = TensorHighwayEnv(SCENARIO, num_envs=1, return_state=True)
-    reference = [play_episode(one_world, old, seed, STEPS) for seed in SEEDS]
+    cfg = OmegaConf.create({"scenario": SCENARIO, "config": {}, "max_episode_steps": STEPS})
+    data, steps = tensor_episodes(cfg, old, episodes=len(SEEDS), seed=SEEDS[0], return_state=True)
+    reference = [data[i][steps[i]] for i in range(len(SEEDS))]
     plan = TensorHighwayEnv(SCENARIO, num_envs=5 * len(SEEDS))
     new = LookaheadPolicy(plan, rule, HORIZON)
     worlds = TensorHighwayEnv(SCENARIO, num_envs=len(SEEDS), return_state=True)
@@ -88,15 +94,16 @@ def test_an_ended_episode_drops_out_of_the_planning():
     assert plan.world_steps == 10 * (HORIZON + HORIZON + 1)
 
 
-def test_seeded_worlds_start_the_episodes_of_a_one_world_env():
-    one = TensorHighwayEnv(SCENARIO, num_envs=1)
-    starts = seeded_worlds(TensorHighwayEnv(SCENARIO, num_envs=3), [5, 6, 7])
+def test_the_tensor_episodes_start_where_highway_envs_episodes_start():
+    # In float64 the bridge is exact: the imported starts, exported back, are bitwise
+    # highway-env's own episode starts.
+    sim = TensorHighwayEnv(SCENARIO, num_envs=3, dtype=torch.float64)
+    starts = highway_starts(sim, [5, 6, 7])
+    highway = HighwayEnv(SCENARIO)
     for i, seed in enumerate([5, 6, 7]):
-        one.set_seed(seed)
-        expected = one.reset()["state"]
-        got = starts["state"][i : i + 1]
-        assert torch.equal(got["vehicles", "x"], expected["vehicles", "x"])
-        assert torch.equal(got["rng", "counter"], expected["rng", "counter"])
+        highway.set_seed(seed)
+        highway.reset()
+        assert states_equal(sim.state_to_highway(starts["state"])[i], highway.get_state())
     assert not torch.equal(starts["observation"][0], starts["observation"][1])
 
 
@@ -111,5 +118,5 @@ def test_refusals_name_the_problem():
         search_episodes(planner, TensorHighwayEnv(SCENARIO, num_envs=1), [0], 2)
     with pytest.raises(ValueError, match="2 seeds need as many envs"):
         search_episodes(planner, [HighwayEnv(SCENARIO, return_state=True)], [0, 1], 2)
-    with pytest.raises(ValueError, match="batched simulator of 2 worlds"):
+    with pytest.raises(ValueError, match="tensor simulator of 2 worlds"):
         search_episodes(planner, worlds, [0, 1], 2)

@@ -1,4 +1,4 @@
-"""evaluate_search: today's search row, episode for episode, with all episodes at once."""
+"""evaluate_search: today's search, episode for episode, with all episodes at once."""
 
 from __future__ import annotations
 
@@ -10,8 +10,9 @@ from train_setup import compose_config
 from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.modules.actors import DeterministicActor
-from torchrl_grpo.training import evaluate, make_env, make_policy
+from torchrl_grpo.training import make_env, make_policy
 from torchrl_grpo.training.search_eval import evaluate_search
+from torchrl_grpo.training.transfer import evaluate_on_tensor
 
 
 def test_on_two_workers_it_gives_the_one_state_planners_table_on_the_tensor_simulator():
@@ -21,10 +22,12 @@ def test_on_two_workers_it_gives_the_one_state_planners_table_on_the_tensor_simu
     planner = LookaheadPolicy(
         TensorHighwayEnv(cfg.env.scenario, num_envs=5), DeterministicActor(policy), horizon=2
     )
-    one_world = TensorHighwayEnv(cfg.env.scenario, num_envs=1, return_state=True)
-    reference, _ = evaluate(one_world, planner, episodes=3, seed=30_000, max_steps=5)
+    # Today's search on the tensor simulator: the episodes as rows, each row's decision
+    # one rollout of its 5 branches.
+    env_cfg = OmegaConf.merge(cfg.env, {"max_episode_steps": 5})
+    reference = evaluate_on_tensor(env_cfg, planner, episodes=3, seed=30_000, return_state=True)
     got = evaluate_search(
-        cfg.env, policy, 2, episodes=3, seed=30_000, max_steps=5, on="tensor", workers=2
+        env_cfg, policy, 2, episodes=3, seed=30_000, max_steps=5, on="tensor", workers=2
     )
     assert got.seeds == reference.seeds == [30_000, 30_001, 30_002]
     assert got.returns == pytest.approx(reference.returns, abs=1e-5)

@@ -9,11 +9,11 @@ episode plays :func:`~torchrl_grpo.branching.lookahead.best_actions`' choice: th
 scores and the same tie-breaking as the one-state planner, so the same episodes. An
 episode that ends drops out of the planning; its env rows are stepped on and ignored.
 
-The episodes are either the N worlds of one batched simulator
-(:class:`~torchrl_grpo.envs.TensorHighwayEnv`, every tensor of an episode's step in one
-call) or N snapshot envs (:class:`~torchrl_grpo.envs.HighwayEnv`) stepped in lock-step,
-whose N states reach the planner in one batch (its ``import_state`` converts them in one
-bridge call).
+The episodes are either the N worlds of one tensor simulator
+(:class:`~torchrl_grpo.envs.TensorHighwayEnv`, started from highway-env's episode
+starts: :func:`highway_starts`) or N snapshot envs (:class:`~torchrl_grpo.envs.HighwayEnv`)
+stepped in lock-step, whose N states reach the planner in one batch (its
+``import_state`` converts them in one bridge call).
 """
 
 from __future__ import annotations
@@ -28,50 +28,52 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from torchrl_grpo.branching.env_slots import has_batched_worlds
 from torchrl_grpo.branching.keys import STATE
 from torchrl_grpo.branching.lookahead import LookaheadPolicy, best_actions
-from torchrl_grpo.sim.rng import seed_keys
+from torchrl_grpo.envs.highway.wrapper import HighwayEnv
 
-__all__ = ["search_episodes", "seeded_worlds"]
+__all__ = ["highway_starts", "search_episodes"]
 
 # What each step keeps of an episode (the evaluation's outcome is computed from them).
 _KEPT = ("reward", "crashed", "speed")
 
 
-def seeded_worlds(env: EnvBase, seeds: Sequence[int]) -> TensorDictBase:
-    """Reset world ``i`` of a batched simulator to the episode that ``seeds[i]`` starts.
+def highway_starts(env: EnvBase, seeds: Sequence[int]) -> TensorDictBase:
+    """Restore world ``i`` of a tensor simulator to highway-env's episode start of ``seeds[i]``.
 
-    The episode a one-world env starts after ``env.set_seed(seeds[i])`` and
-    ``env.reset()`` (how :func:`~torchrl_grpo.training.evaluate` seeds episode ``i``): a
-    world's draws depend on its own stream only, never on the other rows.
+    The evaluation's episodes on the tensor simulator: episode ``i`` starts where
+    highway-env's episode from ``env.set_seed(seeds[i])`` starts, imported through the
+    bridge (as :func:`~torchrl_grpo.training.transfer.evaluate_on_tensor` starts them),
+    so that its figures pair with highway-env's.
 
     Args:
         env: a :class:`~torchrl_grpo.envs.TensorHighwayEnv` of ``len(seeds)`` worlds.
-        seeds: one seed per world.
+        seeds: one highway-env seed per world.
 
     Returns:
-        The reset's output ``[len(seeds)]``.
+        The restore's output ``[len(seeds)]``.
 
     Example:
-        >>> from torchrl_grpo.envs import TensorHighwayEnv
-        >>> one = TensorHighwayEnv(num_envs=1)
-        >>> _ = one.set_seed(7)
-        >>> first = one.reset()
-        >>> many = seeded_worlds(TensorHighwayEnv(num_envs=2), [3, 7])
-        >>> torch.equal(many["observation"][1], first["observation"][0])
+        >>> from torchrl_grpo.envs import HighwayEnv, TensorHighwayEnv
+        >>> highway = HighwayEnv("highway-fast-v0")
+        >>> _ = highway.set_seed(7)
+        >>> first = highway.reset()
+        >>> many = highway_starts(TensorHighwayEnv(num_envs=2), [3, 7])
+        >>> torch.allclose(many["observation"][1], first["observation"], atol=1e-6)
         True
     """
     n = env.batch_size[0] if env.batch_dims == 1 else 0
-    if not has_batched_worlds(env) or n != len(seeds):
+    if not hasattr(env, "state_from_highway") or n != len(seeds):
         raise ValueError(
-            f"seeded_worlds needs a batched simulator of {len(seeds)} worlds (one per seed); "
+            f"highway_starts needs a tensor simulator of {len(seeds)} worlds (one per seed); "
             f"got {type(env).__name__} of batch {tuple(env.batch_size)}"
         )
-    one = torch.zeros(1, dtype=torch.int64, device=env.device)
-    keys = torch.cat([seed_keys(one, int(s)) for s in seeds])
-    state = env.get_state()
-    state.set(("rng", "key"), keys)
-    state.set(("rng", "counter"), torch.zeros_like(keys))
-    env.reset(TensorDict({STATE: state}, batch_size=env.batch_size), set_state=True)
-    return env.reset()
+    highway = HighwayEnv(env.scenario, env.overrides)
+    states = []
+    for seed in seeds:
+        highway.set_seed(int(seed))
+        highway.reset()
+        states.append(highway.get_state())
+    start = env.state_from_highway(torch.stack(states))
+    return env.reset(TensorDict({STATE: start}, batch_size=[n]), set_state=True)
 
 
 @torch.no_grad()
@@ -83,16 +85,17 @@ def search_episodes(
 ) -> TensorDict:
     """Play one episode per seed with ``planner``'s actions, all episodes in lock-step.
 
-    Episode ``i`` starts as :func:`~torchrl_grpo.training.evaluate` starts it from
-    ``seeds[i]``, and plays what ``planner`` would play from each of its states: the
-    per-decision planner's actions and returns, episode for episode, with one planning
+    Episode ``i`` starts where highway-env's episode from ``seeds[i]`` starts (on the
+    tensor simulator: imported, :func:`highway_starts`), and plays what ``planner``
+    plays from each of its states: the per-decision planner's actions and returns,
+    episode for episode, with one planning
     rollout of ``N x n_actions`` rows per step instead of ``N`` rollouts of
     ``n_actions``. The planner's env should hold ``n_actions`` rows per episode (more
     episodes run in waves of its rows).
 
     Args:
         planner: the lookahead planner; its env must be a batched simulator.
-        episodes: where the episodes run: a batched simulator of ``len(seeds)`` worlds
+        episodes: where the episodes run: a tensor simulator of ``len(seeds)`` worlds
             (:class:`~torchrl_grpo.envs.TensorHighwayEnv`), or ``len(seeds)`` snapshot
             envs (:class:`~torchrl_grpo.envs.HighwayEnv`), all built with
             ``return_state=True``.
@@ -156,7 +159,7 @@ class _Worlds:
     def __init__(self, env: EnvBase, seeds: Sequence[int]) -> None:
         _check_returns_state(env)
         self.env = env
-        self.td = seeded_worlds(env, seeds)
+        self.td = highway_starts(env, seeds)
 
     def observe(self, rows: torch.Tensor) -> TensorDictBase:
         return self.td[rows.to(self.env.device)]

@@ -67,8 +67,8 @@ def evaluate_search(
     """The lookahead planner over ``policy``, episodes ``seed, seed + 1, ...`` all at once.
 
     Episode ``i`` is the one :func:`~torchrl_grpo.training.evaluate` plays from
-    ``seed + i`` with :func:`~torchrl_grpo.training.search_policy`, with the same
-    actions and returns; the episodes advance together and each step plans all live
+    ``seed + i`` with :func:`~torchrl_grpo.training.search_policy` (on highway-env), with
+    the same actions and returns; the episodes advance together and each step plans all live
     episodes in one rollout of ``episodes x n_actions`` rows of the tensor simulator.
 
     Args:
@@ -82,8 +82,9 @@ def evaluate_search(
         name: the label in the results.
         on: ``"highway"``: the episodes run on highway-env (the evaluation's reference),
             their states imported into the planner in one batch per step; ``"tensor"``:
-            they are worlds of the tensor simulator (a one-world
-            :class:`~torchrl_grpo.envs.TensorHighwayEnv` seeded with ``seed + i``).
+            they are worlds of the tensor simulator, started where highway-env's
+            episodes start (as :func:`~torchrl_grpo.training.transfer.evaluate_on_tensor`
+            starts them).
         workers: forked processes, each playing a contiguous share of the episodes with
             one thread (the same results as one process, episode for episode).
 
