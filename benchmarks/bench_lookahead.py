@@ -91,7 +91,9 @@ def side_by_side(on: str) -> None:
             name="today's planner", return_state=True,
         )  # fmt: skip
         torch.set_num_threads(threads)
-        t_old = (time.perf_counter() - t0) / w
+        t_old = time.perf_counter() - t0
+        log.info("today's planner: %d episodes in %.1f s in one process", n_old, t_old)
+        t_old /= w
     else:
         old = search_policy(env_cfg, base, args.horizon)
         driven = make_env(env_cfg, return_state=True)
@@ -115,9 +117,9 @@ def side_by_side(on: str) -> None:
     )
     log.info(
         "%s episodes, H=%d over %s, %d workers of one thread: today's planner %d episodes in "
-        "%.1f s (%.3f episodes/s, 1,000 episodes: %.0f s projected); batched %d episodes in %.1f s "
-        "(%.2f episodes/s, 1,000 episodes: %.0f s %s); equal on the %d episodes both played: "
-        "max |return difference| %.2g, lengths and crashes %s",
+        "%.1f s on them (%.3f episodes/s, 1,000 episodes: %.0f s projected); batched %d "
+        "episodes in %.1f s (%.2f episodes/s, 1,000 episodes: %.0f s %s); equal on the %d "
+        "episodes both played: max |return difference| %.2g, lengths and crashes %s",
         on, args.horizon, label, w, n_old, t_old, n_old / t_old, 1000 * t_old / n_old, n_new,
         t_new, n_new / t_new, 1000 * t_new / n_new,
         "measured" if n_new == 1000 else "projected", both, gap,
