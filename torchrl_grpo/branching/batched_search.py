@@ -18,7 +18,7 @@ stepped in lock-step, whose N states reach the planner in one batch (its
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -82,6 +82,7 @@ def search_episodes(
     episodes: EnvBase | Sequence[EnvBase],
     seeds: Sequence[int],
     max_steps: int,
+    on_step: Callable[[int], None] | None = None,
 ) -> TensorDict:
     """Play one episode per seed with ``planner``'s actions, all episodes in lock-step.
 
@@ -101,6 +102,8 @@ def search_episodes(
             ``return_state=True``.
         seeds: the episodes' seeds.
         max_steps: cap on an episode's length.
+        on_step: called after every step with the number of episodes still running
+            (for progress).
 
     Returns:
         ``[N, max_steps]``: ``"action"`` (-1 after an episode's end), ``"reward"``,
@@ -150,6 +153,8 @@ def search_episodes(
             out.get("action")[rows, t] = actions
             out.get("mask")[rows, t] = True
             live[rows] = ~step.get("done").reshape(-1).cpu()
+            if on_step is not None:
+                on_step(int(live.sum()))
     return out
 
 

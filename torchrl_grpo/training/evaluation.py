@@ -336,7 +336,7 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
                     seed=seed,
                     max_steps=max_steps,
                     name=label,
-                    workers=par["workers"],
+                    **par,
                 )
             else:
                 res, _ = evaluate(

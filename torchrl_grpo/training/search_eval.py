@@ -16,6 +16,7 @@ import logging
 import multiprocessing as mp
 import signal
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from typing import Literal
 
 import torch
@@ -63,6 +64,7 @@ def evaluate_search(
     name: str = "search",
     on: EpisodesOn = "highway",
     workers: int = 1,
+    progress: bool = False,
 ) -> EvalResult:
     """The lookahead planner over ``policy``, episodes ``seed, seed + 1, ...`` all at once.
 
@@ -87,6 +89,7 @@ def evaluate_search(
             starts them).
         workers: forked processes, each playing a contiguous share of the episodes with
             one thread (the same results as one process, episode for episode).
+        progress: a tqdm bar over the steps (of the first worker's share).
 
     Raises:
         ValueError: a scenario or config the tensor simulator does not cover, fewer than
@@ -117,17 +120,17 @@ def evaluate_search(
     workers = max(1, min(int(workers), episodes))
     if workers > 1 and "fork" not in mp.get_all_start_methods():
         workers = 1
-    job = (env_cfg, policy, int(horizon), int(max_steps), on)
+    job = (env_cfg, policy, int(horizon), int(max_steps), on, name)
     if workers == 1:
-        outs = [_play(job, seeds)]
+        outs = [_play(job, seeds, progress)]
     else:
-        outs = _forked(job, seeds, workers)
+        outs = _forked(job, seeds, workers, progress)
     return _result(name, torch.cat(outs), seeds)
 
 
-def _play(job: tuple, seeds: list[int]) -> TensorDict:
+def _play(job: tuple, seeds: list[int], progress: bool = False) -> TensorDict:
     """The episodes of ``seeds`` in lock-step, with a planner of one row per action of each."""
-    env_cfg, policy, horizon, max_steps, on = job
+    env_cfg, policy, horizon, max_steps, on, name = job
     scenario, overrides = str(env_cfg.scenario), env_overrides(env_cfg)
     n_actions = 5  # the tensor simulator's DiscreteMetaAction
     sim = TensorHighwayEnv(scenario, overrides, num_envs=n_actions * len(seeds), seed=0)
@@ -139,9 +142,28 @@ def _play(job: tuple, seeds: list[int]) -> TensorDict:
         episodes = TensorHighwayEnv(
             scenario, overrides, num_envs=len(seeds), seed=0, return_state=True
         )
-    out = search_episodes(planner, episodes, seeds, max_steps)
-    log.info("searched %d episodes: %d planned frames", len(seeds), planner.frames)
+    if not progress:
+        out = search_episodes(planner, episodes, seeds, max_steps)
+    else:
+        bar = _bar(name, len(seeds), max_steps)
+
+        def on_step(live: int) -> None:
+            bar.update(1)
+            bar.set_postfix(live=live)
+
+        try:
+            out = search_episodes(planner, episodes, seeds, max_steps, on_step=on_step)
+        finally:
+            bar.close()
+    log.debug("searched %d episodes: %d planned frames", len(seeds), planner.frames)
     return out
+
+
+def _bar(name: str, episodes: int, max_steps: int):  # noqa: ANN202 (tqdm is imported lazily)
+    from tqdm.auto import tqdm
+
+    desc = f"{name} ({episodes} episodes at once)"
+    return tqdm(total=max_steps, desc=desc, unit="step", dynamic_ncols=True, leave=False)
 
 
 # What the forked workers play: set before the fork, inherited by the children.
@@ -155,11 +177,11 @@ def _init_worker() -> None:
     torch.set_num_threads(1)
 
 
-def _worker(seeds: list[int]) -> TensorDict:
-    return _play(_JOB, seeds)
+def _worker(seeds: list[int], progress: bool) -> TensorDict:
+    return _play(_JOB, seeds, progress)
 
 
-def _forked(job: tuple, seeds: list[int], workers: int) -> list[TensorDict]:
+def _forked(job: tuple, seeds: list[int], workers: int, progress: bool) -> list[TensorDict]:
     global _JOB
     _JOB = job
     share = -(-len(seeds) // workers)
@@ -167,7 +189,14 @@ def _forked(job: tuple, seeds: list[int], workers: int) -> list[TensorDict]:
     ctx = mp.get_context("fork")
     try:
         with ProcessPoolExecutor(len(chunks), mp_context=ctx, initializer=_init_worker) as pool:
-            return list(pool.map(_worker, chunks))
+            # The first share's worker shows the progress: the shares advance together.
+            shown = [progress and i == 0 for i in range(len(chunks))]
+            return list(pool.map(_worker, chunks, shown))
+    except BrokenProcessPool as e:
+        raise RuntimeError(
+            f"evaluation of {job[-1]}: a worker process died (killed, or out of memory?) "
+            f"while searching episodes from seed {seeds[0]}; eval_workers=1 runs them here"
+        ) from e
     finally:
         _JOB = None
 
