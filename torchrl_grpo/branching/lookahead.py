@@ -23,7 +23,27 @@ from torchrl_grpo.branching.rollout import branch_rollout
 from torchrl_grpo.branching.root_builders import as_roots
 from torchrl_grpo.envs.core.bits import to_bits
 
-__all__ = ["ActionThenBase", "LookaheadPolicy"]
+__all__ = ["ActionThenBase", "LookaheadPolicy", "best_actions"]
+
+
+def best_actions(scores: torch.Tensor) -> torch.Tensor:
+    """The planner's choice: the action of the highest branch return, per row.
+
+    The one selection rule of every lookahead path (a state at a time, or all of an
+    evaluation's episodes at once): ties go to the lowest action index.
+
+    Args:
+        scores: branch returns ``[..., n_actions]`` (:meth:`LookaheadPolicy.returns`).
+
+    Returns:
+        int64 actions ``[...]``.
+
+    Example:
+        >>> best_actions(torch.tensor([[1.0, 3.0, 3.0], [2.0, 0.0, 1.0]])).tolist()
+        [1, 0]
+    """
+    # argmax returns the first maximum: ties go to the lowest action index.
+    return scores.argmax(-1).to(torch.int64)
 
 
 class LookaheadPolicy(TensorDictModuleBase):
@@ -115,7 +135,7 @@ class LookaheadPolicy(TensorDictModuleBase):
         flat = tensordict.reshape(-1)
         if has_batched_worlds(self.env):
             # Every row's branches are rows of one batched rollout.
-            actions = self.returns(flat).argmax(-1).to(torch.int64)
+            actions = best_actions(self.returns(flat))
         else:
             actions = torch.stack([self._plan(flat[i]) for i in range(flat.shape[0])])
         return tensordict.set("action", actions.reshape(tensordict.batch_size))
@@ -143,8 +163,7 @@ class LookaheadPolicy(TensorDictModuleBase):
         return scores if tensordict.batch_dims else scores[0]
 
     def _plan(self, tensordict: TensorDictBase) -> torch.Tensor:
-        # argmax returns the first maximum: ties go to the lowest action index.
-        return self.returns(tensordict).argmax().to(torch.int64)
+        return best_actions(self.returns(tensordict))
 
 
 class ActionThenBase(TensorDictModuleBase):

@@ -34,6 +34,7 @@ from torchrl_grpo.training.eval_episodes import eval_workers, run_episodes
 from torchrl_grpo.training.model_builder import make_policy
 from torchrl_grpo.training.results import EvalResult, format_table, paired_verdicts
 from torchrl_grpo.training.run_plots import plot_comparison, plot_run_curve, save_gif
+from torchrl_grpo.training.search_eval import evaluate_search, is_stochastic
 
 __all__ = [
     "BASELINE_LABELS",
@@ -109,7 +110,7 @@ def search_policy(
         >>> type(planner.env).__name__, res.lengths, planner.frames <= 3 * 5 * 2
         ('TensorHighwayEnv', [3], True)
     """
-    if isinstance(policy, TensorDictModuleBase) and _is_stochastic(policy):
+    if isinstance(policy, TensorDictModuleBase) and is_stochastic(policy):
         policy = DeterministicActor(policy)
     highway = make_env(env_cfg)
     if not tensor_covers(env_cfg):
@@ -161,7 +162,7 @@ def evaluate(
         >>> res.lengths
         [3]
     """
-    if deterministic and isinstance(policy, TensorDictModuleBase) and _is_stochastic(policy):
+    if deterministic and isinstance(policy, TensorDictModuleBase) and is_stochastic(policy):
         policy = DeterministicActor(policy)
     outcomes = run_episodes(
         env,
@@ -185,12 +186,6 @@ def evaluate(
     if record is not None and outcomes:
         video = _replay_video(record, outcomes[0].actions, outcomes[0].seed)
     return result, video
-
-
-def _is_stochastic(policy: TensorDictModuleBase) -> bool:
-    return hasattr(policy, "get_dist") or any(
-        hasattr(m, "get_dist") for m in policy.modules() if m is not policy
-    )
 
 
 @torch.no_grad()
@@ -262,7 +257,9 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
             the network come from the checkpoint's own config; without, only the
             baselines run on ``cfg.env``. With ``search_horizon=H > 0``, the lookahead
             planner over the trained policy (:func:`search_policy`) is evaluated too,
-            in the row after it. Episodes run on ``eval_workers`` forked processes
+            in the row after it; where the tensor simulator covers the env, all its
+            episodes at once (:func:`~torchrl_grpo.training.search_eval.evaluate_search`:
+            the same episodes). Episodes run on ``eval_workers`` forked processes
             (``None``: the cores), each policy with a progress bar.
         out_dir: where the table, JSON, plots and video go.
 
@@ -327,15 +324,30 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
         if video is not None:
             files["video"] = save_gif(video, out_dir / "eval_episode.gif")
         if horizon > 0:
-            res, _ = evaluate(
-                make_env(env_cfg, seed=seed, return_state=True),
-                search_policy(env_cfg, policy, horizon),
-                episodes=episodes,
-                seed=seed,
-                max_steps=max_steps,
-                **par,
-                name=f"lookahead H={horizon} over the policy",
-            )
+            label = f"lookahead H={horizon} over the policy"
+            if tensor_covers(env_cfg):
+                # All episodes in lock-step, one planning rollout per step: the same
+                # episodes as the planner deciding one state at a time.
+                res = evaluate_search(
+                    env_cfg,
+                    policy,
+                    horizon,
+                    episodes=episodes,
+                    seed=seed,
+                    max_steps=max_steps,
+                    name=label,
+                    **par,
+                )
+            else:
+                res, _ = evaluate(
+                    make_env(env_cfg, seed=seed, return_state=True),
+                    search_policy(env_cfg, policy, horizon),
+                    episodes=episodes,
+                    seed=seed,
+                    max_steps=max_steps,
+                    **par,
+                    name=label,
+                )
             results.append(res)
     layout = make_layout(env)
     n_actions = int(env.action_spec.n)

@@ -16,13 +16,14 @@ from collections.abc import Callable
 
 import torch
 from omegaconf import DictConfig
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from torchrl_grpo.branching.batched_search import highway_starts
 from torchrl_grpo.envs.highway.tensor_env import TensorHighwayEnv
 from torchrl_grpo.modules.actors import DeterministicActor
-from torchrl_grpo.training.env_builder import env_overrides, make_env
+from torchrl_grpo.training.env_builder import env_overrides
 from torchrl_grpo.training.results import EvalResult
 
 __all__ = ["evaluate_on_tensor", "paired_gap", "tensor_episodes"]
@@ -107,12 +108,6 @@ def tensor_episodes(
         (torch.Size([2, 4]), torch.Size([2, 4]))
     """
     max_steps = int(env_cfg.get("max_episode_steps", 1000))
-    highway = make_env(env_cfg)
-    states = []
-    for i in range(episodes):
-        highway.set_seed(seed + i)
-        highway.reset()
-        states.append(highway.get_state())
     # Seeded: an env drawn without a seed takes one from torch's generator, and an
     # evaluation must not move the training's random stream.
     env = TensorHighwayEnv(
@@ -122,8 +117,7 @@ def tensor_episodes(
         seed=seed,
         return_state=return_state,
     )
-    start = env.state_from_highway(torch.stack(states))
-    td = env.reset(TensorDict(state=start, batch_size=[episodes]), set_state=True)
+    td = highway_starts(env, range(seed, seed + episodes))
     if isinstance(policy, TensorDictModuleBase) and hasattr(policy, "get_dist"):
         policy = DeterministicActor(policy)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
