@@ -18,6 +18,7 @@ from omegaconf import DictConfig
 import torchrl_grpo.experimental  # noqa: F401  (registers algo=grpo_lab for docs/lab's commands)
 from torchrl_grpo.training import Trainer, register_configs
 from torchrl_grpo.training.compose import resume_config
+from torchrl_grpo.training.teacher_runs import train_with_teachers
 
 register_configs()
 CONF = str(Path(__file__).resolve().parents[1] / "conf")
@@ -35,7 +36,11 @@ def main(cfg: DictConfig) -> float:
     run_dir = cfg.experiment.out_dir or (
         Path(cfg.resume).parent if cfg.get("resume") else hydra_cfg.runtime.output_dir
     )
-    result = Trainer(cfg, run_dir=run_dir).train()
+    if cfg.algo.get("teacher_runs"):
+        # The teachers first (experiment=best), then the student: one command.
+        result = train_with_teachers(cfg, run_dir, conf_dir=CONF)
+    else:
+        result = Trainer(cfg, run_dir=run_dir).train()
     status = "interrupted (Ctrl-C)" if result.interrupted else "done"
     print(f"\n{status}: {result.frames} env frames, {result.iterations} iterations")
     if result.final:

@@ -160,6 +160,8 @@ class Trainer:
         self.progress = Progress()
         self.collector: BaseCollector | None = None
         self.stop_requested = False
+        #: A progress bar over frames, on a terminal (a pipeline of runs shows its own).
+        self.show_progress = sys.stderr.isatty()
         # Env workers fork with the SIGINT handler: only this process acts on it.
         self._pid = os.getpid()
         self._iteration_start: float | None = None
@@ -235,7 +237,7 @@ class Trainer:
         # Installed before the workers fork: they inherit the handler, so Ctrl-C in a
         # terminal (SIGINT to the whole process group) cannot kill a worker mid-step.
         previous = signal.signal(signal.SIGINT, self._on_sigint)
-        pbar = progress_bar(sys.stderr.isatty(), total, self.frames)
+        pbar = progress_bar(self.show_progress, total, self.frames)
         self.collector = None
         try:
             # Before the collector: building it runs the policy once (a random draw).

@@ -1,0 +1,79 @@
+"""experiment=best's pipeline: teachers trained first, then the student; a rerun resumes."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from train_setup import TINY, compose_config
+
+from torchrl_grpo.training import load_checkpoint
+from torchrl_grpo.training.config import check_config
+from torchrl_grpo.training.hooks import Hook
+from torchrl_grpo.training.teacher_runs import DONE, teacher_configs, train_with_teachers
+
+TEACHER = " ".join(TINY)
+STUDENT = [*TINY, "algo=distill", "experiment.total_frames=20", "algo.replay_frames=64"]
+
+
+def _student(*teacher_frames: int, extra: tuple[str, ...] = ()) -> list[str]:
+    runs = ",".join(
+        f"'{TEACHER} seed={i} experiment.total_frames={n}'" for i, n in enumerate(teacher_frames)
+    )
+    return [*STUDENT, f"algo.teacher_runs=[{runs}]", *extra]
+
+
+def test_the_teachers_train_first_and_the_student_learns_from_their_checkpoints(tmp_path):
+    result = train_with_teachers(compose_config(_student(20, 20)), tmp_path)
+    assert not result.interrupted and result.frames >= 20
+    teachers = [tmp_path / "teachers" / str(i) for i in range(2)]
+    for folder in teachers:
+        assert (folder / DONE).exists() and load_checkpoint(folder / "last.pt")["frames"] >= 20
+    student = load_checkpoint(tmp_path / "last.pt")
+    assert student["config"]["algo"]["teachers"] == [str(f / "last.pt") for f in teachers]
+    assert (tmp_path / DONE).exists()
+    # Two seeds: two different teachers (the control that the runs are distinct).
+    a, b = (load_checkpoint(f / "last.pt")["policy"] for f in teachers)
+    assert any(not torch.equal(a[k], b[k]) for k in a)
+
+
+def test_a_rerun_skips_finished_teachers_and_resumes_the_unfinished_one(tmp_path):
+    train_with_teachers(compose_config(_student(20, 20)), tmp_path)
+    first = tmp_path / "teachers" / "0" / "last.pt"
+    untouched = first.read_bytes()
+    # Teacher 1 as if interrupted after its first batch of a 200-frame budget.
+    (tmp_path / "teachers" / "1" / DONE).unlink()
+    (tmp_path / DONE).unlink()
+    stopped = load_checkpoint(tmp_path / "teachers" / "1" / "last.pt")
+    train_with_teachers(compose_config(_student(20, 200)), tmp_path)
+    assert first.read_bytes() == untouched  # a finished teacher is not trained again
+    resumed = load_checkpoint(tmp_path / "teachers" / "1" / "last.pt")
+    assert resumed["frames"] >= 200 and resumed["iteration"] > stopped["iteration"]
+    assert (tmp_path / "teachers" / "1" / DONE).exists() and (tmp_path / DONE).exists()
+
+
+class _StopTeacher(Hook):
+    def due(self, trainer, batch):
+        return trainer.run_dir.name == "0"
+
+    def on_iteration(self, trainer, batch, result):
+        trainer.stop_requested = True  # as Ctrl-C does
+        return {}
+
+
+def test_an_interrupted_teacher_stops_the_pipeline_before_the_student(tmp_path):
+    result = train_with_teachers(compose_config(_student(60, 20)), tmp_path, hooks=[_StopTeacher()])
+    assert result.interrupted
+    assert not (tmp_path / "teachers" / "0" / DONE).exists()
+    assert not (tmp_path / "teachers" / "1").exists() and not (tmp_path / "last.pt").exists()
+
+
+def test_experiment_best_composes_nine_teachers_of_the_documented_recipe(tmp_path):
+    cfg = compose_config(["experiment=best"])
+    check_config(cfg)  # teacher_runs stand for algo.teachers
+    runs = teacher_configs(cfg, tmp_path)
+    assert len(runs) == 9 and str(cfg.algo.name) == "distill"
+    assert [int(t.experiment.total_frames) for _, t in runs] == [4_000_000] * 6 + [2_000_000] * 3
+    assert {str(t.algo.bootstrap) for _, t in runs} == {"survival"}
+    assert [t.model.get("ensemble", 1) for _, t in runs] == [1] * 6 + [3, 3, 1]
+    with pytest.raises(ValueError, match=r"algo.teacher_runs\[0\]"):
+        teacher_configs(compose_config([*STUDENT, "algo.teacher_runs=['algo.nope=1']"]), tmp_path)
