@@ -24,6 +24,7 @@ from omegaconf import OmegaConf
 
 from torchrl_grpo.training import plot_learning_curve
 from torchrl_grpo.training.evaluation import evaluate_checkpoint
+from torchrl_grpo.training.resolvers import env_name
 
 logging.basicConfig(level=logging.INFO, format="%(message)s")
 log = logging.getLogger("bench_training")
@@ -77,7 +78,7 @@ for run in sorted(args.runs):
     history = [json.loads(line) for line in hist_path.read_text().splitlines() if line]
     if not history:
         continue
-    env, algo = str(cfg.env.name), labels.get(run, str(cfg.algo.name))
+    env, algo = env_name(cfg.env.scenario), labels.get(run, str(cfg.algo.name))
     envs[env] = cfg.env
     curves[env][algo].append(history)
     # The final evaluation drives another seed set: only the periodic rows meet the

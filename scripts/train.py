@@ -54,7 +54,7 @@ def main(cfg: DictConfig) -> float:
     print(f"checkpoint:  {result.checkpoint}")
     if result.logs is not None:
         print(f"logs:        {result.logs}")
-        if str(cfg.logger.backend) == "wandb" and str(cfg.logger.mode) == "offline":
+        if str(cfg.logger.backend) == "wandb":  # offline
             print(f"             upload with: wandb sync {result.logs}")
     for label, path in (
         ("results:", result.results_table),

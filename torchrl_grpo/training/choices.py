@@ -20,7 +20,6 @@ from collections.abc import Mapping
 from enum import StrEnum
 from typing import Any
 
-from torchrl_grpo.branching.branch_env import Backend as BranchBackend
 from torchrl_grpo.branching.continuation import Selection
 from torchrl_grpo.branching.group_collector import RootKind
 from torchrl_grpo.modules.greedy_tail import FirstAction
@@ -30,7 +29,7 @@ from torchrl_grpo.objectives.grpo_loss import Aggregation
 from torchrl_grpo.objectives.kl import KLEstimator
 from torchrl_grpo.objectives.survival import CrashLabel
 from torchrl_grpo.training.env_builder import EnvBackend, RolloutBackend
-from torchrl_grpo.training.logging_builder import LoggerKind, WandbRunMode
+from torchrl_grpo.training.logging_builder import LoggerKind
 from torchrl_grpo.training.model_builder import BasePolicyName, ModelArchitecture
 
 __all__ = [
@@ -49,8 +48,6 @@ __all__ = [
     "RootKindName",
     "ScaleRewards",
     "SelectionName",
-    "WandbMode",
-    "WorkerBackend",
     "choice_enum",
 ]
 
@@ -157,8 +154,4 @@ EnvBackendName = _choices(
     EnvBackend,
     "The simulator training runs on: tensor, highway, or auto (tensor where it covers the config).",
 )
-WorkerBackend = _choices("WorkerBackend", BranchBackend, "How each Ray actor runs its workers.")
 LoggerBackend = _choices("LoggerBackend", LoggerKind, "Where metrics go.")
-WandbMode = _choices(
-    "WandbMode", WandbRunMode, "wandb's mode: ``offline`` writes a run folder to sync later."
-)

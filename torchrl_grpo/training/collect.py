@@ -186,7 +186,7 @@ def make_ray_collector(
     """The GRPO collector on Ray actors (``rollout=ray``, settings in ``rollout.ray``).
 
     Each actor builds ``rollout.num_workers`` env workers with ``rollout.backend``.
-    Ray is started on this machine (``num_cpus``, ``object_store_mb``) unless
+    Ray is started on this machine (its cores, a 512 MiB object store) unless
     ``rollout.ray.address`` names a cluster (``auto``) or Ray already runs.
 
     Example:
@@ -209,8 +209,8 @@ def make_ray_collector(
         snapshots=True,
         mp_start_method=rollout.get("mp_start_method"),
     )
-    memory_mb = ray_cfg.get("memory_per_actor_mb")
-    object_store_mb = ray_cfg.get("object_store_mb")
+    memory_mb = ray_cfg.get("memory_per_actor_mb", 1024)
+    object_store_mb = ray_cfg.get("object_store_mb", 512)
     return RayGroupCollector(
         env_factory,
         policy,

@@ -37,13 +37,14 @@ from torchrl_grpo.training.algos.base import AlgoConfig, Algorithm
 from torchrl_grpo.training.algos.grpo import GRPOConfig
 from torchrl_grpo.training.algos.ppo import PPOConfig
 from torchrl_grpo.training.algos.registry import ALGORITHMS, algorithm_for
-from torchrl_grpo.training.choices import EnvBackendName, LoggerBackend, WandbMode
+from torchrl_grpo.training.choices import EnvBackendName, LoggerBackend
 from torchrl_grpo.training.config_checks import check_config
 from torchrl_grpo.training.group_schemas import (
     AttentionModelConfig,
     GroupRolloutConfig,
     MLPModelConfig,
     ModelConfig,
+    RayConfig,
     RayRolloutConfig,
     RolloutConfig,
     StepRolloutConfig,
@@ -79,13 +80,12 @@ class EnvConfig:
         >>> cfg = OmegaConf.structured(EnvConfig)
         >>> OmegaConf.is_missing(cfg, "scenario")  # a YAML file of conf/env/ must set it
         True
-        >>> cfg = OmegaConf.merge(cfg, {"name": "merge", "scenario": "merge-v0",
+        >>> cfg = OmegaConf.merge(cfg, {"scenario": "merge-v0",
         ...                             "config": {"collision_reward": -2.0}})
         >>> cfg.scenario, cfg.config.collision_reward, cfg.max_episode_steps
         ('merge-v0', -2.0, 1000)
     """
 
-    name: str = MISSING
     scenario: str = MISSING
     config: dict[str, Any] = field(default_factory=dict)
     max_episode_steps: int = 1000
@@ -114,7 +114,9 @@ class OptimConfig:
 class LoggerConfig:
     """``logger`` group: TorchRL logger backend and media.
 
-    wandb reads a run's group and tags from ``WANDB_RUN_GROUP`` and ``WANDB_TAGS``.
+    ``wandb`` runs offline (a folder to ``wandb sync`` later), ``wandb_online`` streams;
+    wandb reads the project, group and tags from ``WANDB_PROJECT`` (``torchrl_grpo``
+    when unset), ``WANDB_RUN_GROUP`` and ``WANDB_TAGS``.
 
     Example:
         >>> import tempfile
@@ -127,8 +129,6 @@ class LoggerConfig:
     """
 
     backend: LoggerBackend = LoggerBackend.wandb
-    mode: WandbMode = WandbMode.offline
-    project: str = "torchrl_grpo"
     video: bool = True
 
 
@@ -258,9 +258,9 @@ def _schemas(algorithm: type[Algorithm], container: Mapping[str, Any]) -> dict[s
     if isinstance(rollout, Mapping):
         ray = rollout.get("ray") is not None and algorithm.supports_ray
         schemas["rollout"] = RayRolloutConfig if ray else algorithm.rollout_config_class
-    for group, schema in (("optim", OptimConfig), ("logger", LoggerConfig)):
+    shared = (("env", EnvConfig), ("optim", OptimConfig), ("logger", LoggerConfig))
+    for group, schema in (*shared, ("experiment", ExperimentConfig)):
         schemas[group] = schema
-    schemas["experiment"] = ExperimentConfig
     return schemas
 
 
@@ -292,7 +292,7 @@ def typed_config(container: Mapping[str, Any]) -> DictConfig:
     algo = container.get("algo")
     algorithm = None if algo is None else algorithm_for(algo)
     if algorithm is not None:
-        container = _migrated(_ray_migrated(container), algorithm)
+        container = _migrated(_restructured(container), algorithm)
         algorithm = algorithm_for(container["algo"])
     schema = OmegaConf.structured(Config)
     if algorithm is not None:
@@ -302,14 +302,19 @@ def typed_config(container: Mapping[str, Any]) -> DictConfig:
     return OmegaConf.merge(schema, container)
 
 
-def _ray_migrated(container: Mapping[str, Any]) -> dict[str, Any]:
-    """A config written before ``rollout=ray``: Ray settings only where it ran on Ray.
+def _restructured(container: Mapping[str, Any]) -> dict[str, Any]:
+    """A config written before ``rollout=ray`` and ``logger=wandb_online``, in today's shape.
 
     ``rollout.backend=ray`` with ``rollout.ray.workers_per_actor`` and ``env_backend``
-    is today's ``rollout=ray`` with ``num_workers`` and ``backend``; any other backend
-    ran locally, and its (then always written) ``rollout.ray`` goes.
+    is today's ``rollout=ray`` with ``num_workers`` and ``backend`` (the Ray settings
+    that are not keys any more go); any other backend ran locally, and its (then always
+    written) ``rollout.ray`` goes. ``logger.mode=online`` is ``logger=wandb_online``.
     """
     out = dict(container)
+    logger = out.get("logger")
+    if isinstance(logger, Mapping) and str(logger.get("mode")) == "online":
+        if str(logger.get("backend")) == "wandb":
+            out["logger"] = {**logger, "backend": "wandb_online"}
     rollout = out.get("rollout")
     ray = rollout.get("ray") if isinstance(rollout, Mapping) else None
     if not isinstance(ray, Mapping) or "workers_per_actor" not in ray:
@@ -317,6 +322,7 @@ def _ray_migrated(container: Mapping[str, Any]) -> dict[str, Any]:
     rollout, ray = dict(rollout), dict(ray)
     workers, backend = ray.pop("workers_per_actor"), ray.pop("env_backend", "single")
     if str(rollout.get("backend")) == "ray":
+        ray = {key: value for key, value in ray.items() if key in _keys(RayConfig)}
         rollout |= {"num_workers": workers, "backend": backend, "ray": ray}
     else:
         rollout.pop("ray")

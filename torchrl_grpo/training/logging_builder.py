@@ -25,7 +25,6 @@ from torchrl_grpo.training.run_plots import save_gif
 
 __all__ = [
     "LoggerKind",
-    "WandbRunMode",
     "is_video",
     "log_hparams",
     "log_metrics",
@@ -35,10 +34,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: Where metrics go (``logger.backend``): TorchRL's wandb or CSV logger, or nowhere.
-LoggerKind = Literal["wandb", "csv", "none"]
-#: wandb's mode (``logger.mode``): ``offline`` writes a run folder to ``wandb sync`` later.
-WandbRunMode = Literal["offline", "online"]
+#: Where metrics go (``logger.backend``): TorchRL's wandb logger offline (a run folder to
+#: ``wandb sync`` later) or online, its CSV logger, or nowhere.
+LoggerKind = Literal["wandb", "wandb_online", "csv", "none"]
 
 
 def make_logger(
@@ -46,9 +44,10 @@ def make_logger(
 ) -> Logger | None:
     """The TorchRL logger of ``logger.backend``; ``None`` for ``none``.
 
-    ``wandb`` with ``mode: offline`` sets ``WANDB_MODE=offline`` and needs no
-    network: the run lands in ``<run_dir>/wandb/offline-run-*``, to upload later
-    with ``wandb sync <that folder>``.
+    ``wandb`` sets ``WANDB_MODE=offline`` and needs no network: the run lands in
+    ``<run_dir>/wandb/offline-run-*``, to upload later with ``wandb sync <that folder>``;
+    ``wandb_online`` streams it. The project is ``WANDB_PROJECT`` (``torchrl_grpo``
+    when unset).
 
     Args:
         logger_cfg: the ``logger`` group.
@@ -70,8 +69,8 @@ def make_logger(
         return None
     if backend == "csv":
         logger: Logger = CSVLogger(exp_name, log_dir=str(run_dir / "csv"), video_format="pt")
-    elif backend == "wandb":
-        offline = str(logger_cfg.get("mode", "offline")) == "offline"
+    elif backend in ("wandb", "wandb_online"):
+        offline = backend == "wandb"
         if offline:
             # Set before wandb starts: no login prompt, no network access.
             os.environ["WANDB_MODE"] = "offline"
@@ -79,7 +78,7 @@ def make_logger(
             exp_name,
             offline=offline,
             save_dir=str(run_dir),
-            project=logger_cfg.get("project"),
+            project=os.environ.get("WANDB_PROJECT", "torchrl_grpo"),
             # wandb reads WANDB_RUN_GROUP and WANDB_TAGS from the environment itself.
             group=os.environ.get("WANDB_RUN_GROUP"),
             tags=[t for t in os.environ.get("WANDB_TAGS", "").split(",") if t],

@@ -10,11 +10,12 @@ schemas Hydra's own list shows beside them (``algo=base_grpo`` is no choice).
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 from omegaconf import OmegaConf
 
-__all__ = ["CONF_DIR", "config_choices", "register_resolvers", "run_dir"]
+__all__ = ["CONF_DIR", "config_choices", "env_name", "register_resolvers", "run_dir"]
 
 #: The config folder of a source checkout (``conf/`` beside the package).
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
@@ -66,8 +67,18 @@ def config_choices(*groups: str, conf_dir: str | Path | None = None) -> str:
     return "\n".join(lines)
 
 
+def env_name(scenario: str) -> str:
+    """A scenario's short name, for run folders and run names.
+
+    Example:
+        >>> env_name("highway-fast-v0")
+        'highway_fast'
+    """
+    return re.sub(r"-v\d+$", "", str(scenario)).replace("-", "_")
+
+
 def register_resolvers() -> None:
-    """Register ``run_dir`` and ``config_choices`` with OmegaConf (idempotent).
+    """Register ``run_dir``, ``env_name`` and ``config_choices`` with OmegaConf (idempotent).
 
     Example:
         >>> register_resolvers()
@@ -76,6 +87,7 @@ def register_resolvers() -> None:
         >>> cfg.dir
         'runs/y'
     """
-    for name, resolver in (("run_dir", run_dir), ("config_choices", config_choices)):
+    resolvers = (("run_dir", run_dir), ("env_name", env_name), ("config_choices", config_choices))
+    for name, resolver in resolvers:
         if not OmegaConf.has_resolver(name):
             OmegaConf.register_new_resolver(name, resolver)

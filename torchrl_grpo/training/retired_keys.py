@@ -44,8 +44,9 @@ SHARED_FIXED: dict[str, dict[str, Any]] = {
 
 #: Keys that changed nothing a run computes, or that now follow from another key.
 DROPPED: dict[str, frozenset[str]] = {
+    "env": frozenset({"name"}),
     "experiment": frozenset({"name", "transfer_gap", "progress_bar", "plot_every"}),
-    "logger": frozenset({"group", "tags", "group_plots"}),
+    "logger": frozenset({"mode", "project", "group", "tags", "group_plots"}),
 }
 
 #: What a config written before the keys retired meant by leaving one out: the old

@@ -53,6 +53,7 @@ from torchrl_grpo.training.metrics import PhaseTimer, progress_bar, progress_pos
 from torchrl_grpo.training.model_builder import make_policy
 from torchrl_grpo.training.optim_builder import anneal_lr
 from torchrl_grpo.training.pretrained import init_policy
+from torchrl_grpo.training.resolvers import env_name
 from torchrl_grpo.training.run_plots import plot_learning_curve
 
 # PhaseTimer and plot_learning_curve lived here before metrics.py and plots.py: still
@@ -170,7 +171,7 @@ class Trainer:
         self._rng_state: dict[str, Any] | None = None
         if cfg.get("resume"):
             self._load(str(cfg.resume))
-        name = f"{cfg.algo.name}_{cfg.env.name}_s{self.seed}"
+        name = f"{cfg.algo.name}_{env_name(cfg.env.scenario)}_s{self.seed}"
         self.logger = make_logger(cfg.logger, self.run_dir, name, self.config)
         OmegaConf.save(composed, self.run_dir / "config.yaml", resolve=True)
 
