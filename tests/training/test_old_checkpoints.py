@@ -186,3 +186,15 @@ def test_an_old_checkpoint_evaluates_its_own_policy(tmp_path, run):
     seed = typed_config(ckpt["config"]).experiment.final_eval_seed
     expected, _ = evaluate(env, policy, episodes=2, seed=seed, max_steps=env_cfg.max_episode_steps)
     assert (trained.returns, trained.seeds) == (expected.returns, expected.seeds)
+
+
+def test_the_labs_defaults_are_the_old_schemas_so_a_migrated_run_reads_as_it_ran():
+    from torchrl_grpo.experimental.grpo_lab import GRPOLabConfig, GRPOLabRolloutConfig
+    from torchrl_grpo.training.retired_keys import OLD_DEFAULTS
+
+    for schema, group in ((GRPOLabConfig, "algo"), (GRPOLabRolloutConfig, "rollout")):
+        lab = to_container(
+            OmegaConf.structured(schema(name="grpo_lab") if group == "algo" else schema)
+        )
+        old = {k: v for k, v in OLD_DEFAULTS[group].items() if k != "mp_start_method"}
+        assert {k: lab[k] for k in old} == old

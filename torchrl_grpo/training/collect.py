@@ -209,7 +209,10 @@ def make_ray_collector(
         snapshots=True,
         mp_start_method=rollout.get("mp_start_method"),
     )
-    memory_mb = ray_cfg.get("memory_per_actor_mb", 1024)
+    # 1 GiB for the actor and its in-process env, 400 MiB more per worker process.
+    parallel = str(rollout.get("backend", "single")) == "parallel"
+    workers = int(rollout.get("num_workers", 1)) if parallel else 0
+    memory_mb = ray_cfg.get("memory_per_actor_mb", 1024 + 400 * workers)
     object_store_mb = ray_cfg.get("object_store_mb", 512)
     return RayGroupCollector(
         env_factory,

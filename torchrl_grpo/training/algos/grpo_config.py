@@ -16,6 +16,7 @@ from omegaconf import MISSING
 from torchrl_grpo.training.algos.base import AlgoConfig
 from torchrl_grpo.training.choices import choice_enum
 from torchrl_grpo.training.model_builder import BasePolicyName
+from torchrl_grpo.training.retired_keys import OLD_DEFAULTS
 
 __all__ = [
     "FIXED_SETTINGS",
@@ -74,31 +75,13 @@ class GRPOConfig(AlgoConfig):
 
 
 # The values each variant runs with for the settings GRPOConfig does not make keys:
-# grpo_branch's are the recommended recipe's (conf/algo/grpo_branch.yaml before #40).
-_COMMON_FIXED: dict[str, Any] = {
-    "select": "best",
-    "returns": "branch",
-    "bootstrap": "batch_mean",
-    "crash_penalty": 0.0,
-    "baseline": "mean",
-    "gamma": 1.0,
-    "dual_clip": None,
-    "kl_estimator": "k3",
-    "aggregation": "dapo",
-    "ref_model_sync_steps": 64,
-    "ref_model_mixup_alpha": 1.0,
-    "tail_sync_batches": None,
-    "trunk": "sample",
-    "group_fit_weighting": "uniform",
-    "crash_head_coeff": 1.0,
-    "crash_label": "branch",
-    "max_minibatches": None,
-}
+# grpo_episode keeps the defaults the schema had; grpo_branch's are the recommended
+# recipe's (conf/algo/grpo_branch.yaml before #40).
+_EPISODE_ROLLOUT = {k: v for k, v in OLD_DEFAULTS["rollout"].items() if k != "mp_start_method"}
 FIXED_SETTINGS: dict[str, dict[str, dict[str, Any]]] = {
     "grpo_branch": {
         "algo": {
-            **_COMMON_FIXED,
-            "roots": "trunk",
+            **OLD_DEFAULTS["algo"],
             "scale_rewards": "none",
             "explore_steps": 1,
             "first_action": "enumerate",
@@ -106,29 +89,10 @@ FIXED_SETTINGS: dict[str, dict[str, dict[str, Any]]] = {
             "group_fit_temperature": 1.0,
             "group_fit_loss": "regression",
         },
-        "rollout": {
-            "live_trunks": True,
-            "stagger_trunks": True,
-            "full_horizon_roots": False,
-            "first_root_step": 0,
-        },
+        "rollout": {**_EPISODE_ROLLOUT, "live_trunks": True, "stagger_trunks": True},
     },
     "grpo_episode": {
-        "algo": {
-            **_COMMON_FIXED,
-            "roots": "reset",
-            "scale_rewards": "group",
-            "explore_steps": None,
-            "first_action": "sample",
-            "action_weights": "uniform",
-            "group_fit_temperature": 0.1,
-            "group_fit_loss": "cross_entropy",
-        },
-        "rollout": {
-            "live_trunks": False,
-            "stagger_trunks": False,
-            "full_horizon_roots": False,
-            "first_root_step": 0,
-        },
+        "algo": {**OLD_DEFAULTS["algo"], "roots": "reset"},
+        "rollout": _EPISODE_ROLLOUT,
     },
 }
