@@ -122,8 +122,8 @@ class LoggerConfig:
         >>> import tempfile
         >>> from torchrl_grpo.training.logging_builder import make_logger
         >>> cfg = OmegaConf.structured(LoggerConfig(backend="csv"))
-        >>> print(cfg.backend, cfg.mode, cfg.video)
-        csv offline True
+        >>> print(cfg.backend, cfg.video)
+        csv True
         >>> type(make_logger(cfg, tempfile.mkdtemp(), "demo", {})).__name__
         'CSVLogger'
     """
