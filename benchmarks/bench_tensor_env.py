@@ -48,6 +48,7 @@ from __future__ import annotations
 import argparse
 import atexit
 import copy
+import functools
 import importlib.util
 import inspect
 import os
@@ -107,6 +108,34 @@ def tensor_stepper(batch: int, compile: bool, device: str, **kwargs) -> Callable
             sync()
 
         return synced
+    return step
+
+
+def _shard(batch: int, seed: int) -> TensorHighwayEnv:
+    """One shard of the worlds (a module-level function: ParallelEnv pickles it)."""
+    return TensorHighwayEnv("highway-fast-v0", num_envs=batch, seed=seed)
+
+
+def shard_stepper(batch: int, shards: int) -> Callable[[], None]:
+    """B worlds as ``shards`` processes of B / shards worlds, one torch thread each.
+
+    TorchRL's ``ParallelEnv`` (batch ``[shards, B / shards]``), stepped with
+    ``step_and_maybe_reset``: one process per core instead of intra-op threads.
+    """
+    from torchrl.envs import ParallelEnv
+
+    makers = [functools.partial(_shard, batch // shards, seed) for seed in range(shards)]
+    env = ParallelEnv(shards, makers, num_threads=1, num_sub_threads=1)
+    atexit.register(env.close)
+    td = env.reset()
+    action = torch.full((shards, batch // shards), IDLE)
+
+    def step() -> None:
+        nonlocal td
+        td.set("action", action)
+        _, td = env.step_and_maybe_reset(td)
+
+    step()
     return step
 
 
@@ -280,6 +309,8 @@ def peer_rates(
     runs = {"tensor": (tensor_stepper(batch, False, args.device), calls, batch)}
     if args.compile:
         runs["compiled"] = (tensor_stepper(batch, True, args.device), calls, batch)
+    if args.shards > 1:
+        runs["shards"] = (shard_stepper(batch, args.shards), calls, batch)
     if hw is not None:
         runs["highway"] = (hw, 30, 1)
     pool = envpool_stepper(batch, args.threads)
@@ -310,6 +341,9 @@ def main() -> None:
     parser.add_argument("--highjax-python", help="a python with highjax: run it as a peer")
     parser.add_argument("--no-highway", action="store_true", help="leave highway-env out")
     parser.add_argument("--peers-only", action="store_true", help="no snapshot/check figures")
+    parser.add_argument(
+        "--shards", type=int, default=0, help="also B worlds as this many 1-thread processes"
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     if args.checks_only:
@@ -324,7 +358,8 @@ def main() -> None:
             f"highway-fast-v0, B={batch}, {args.threads} threads on {cores} cores, {args.device}"
         )
         note = ", ".join(f"{k} {v:,.0f}/s" for k, v in rates.items())
-        print(f"  {where}: {note}")
+        load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+        print(f"  {where}: {note} (load average {load})")
         if "highway" in rates:
             goal = ">=200" if batch == 1024 and args.device == "cpu" else None
             claim(
@@ -333,15 +368,20 @@ def main() -> None:
                 goal,
                 note=note,
             )
+        ours = [("tensor", "TensorHighwayEnv")]
         if "compiled" in rates:
             claim(f"{where}: compiled / eager env-steps/s", rates["compiled"] / rates["tensor"])
-        for peer, label in (("envpool", "EnvPool"), ("highjax", "HighJax")):
-            if peer in rates:
-                claim(
-                    f"{where}: TensorHighwayEnv / {label} env-steps/s",
-                    rates["tensor"] / rates[peer],
-                    note=f"{rates['tensor']:,.0f}/s vs {rates[peer]:,.0f}/s",
-                )
+            ours.append(("compiled", "compiled TensorHighwayEnv"))
+        if "shards" in rates:
+            ours.append(("shards", f"TensorHighwayEnv in {args.shards} shards"))
+        for name, who in ours:
+            for peer, label in (("envpool", "EnvPool"), ("highjax", "HighJax")):
+                if peer in rates:
+                    claim(
+                        f"{where}: {who} / {label} env-steps/s",
+                        rates[name] / rates[peer],
+                        note=f"{rates[name]:,.0f}/s vs {rates[peer]:,.0f}/s",
+                    )
     if args.peers_only:
         return
     snapshot_cost(1024, args.repeats)
