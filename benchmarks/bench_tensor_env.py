@@ -360,6 +360,8 @@ def main() -> None:
         note = ", ".join(f"{k} {v:,.0f}/s" for k, v in rates.items())
         load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
         print(f"  {where}: {note} (load average {load})")
+        for name, value in rates.items():
+            claim(f"{where}: {name} env-steps/s", value)
         if "highway" in rates:
             goal = ">=200" if batch == 1024 and args.device == "cpu" else None
             claim(
