@@ -90,6 +90,9 @@ def wrap_stages() -> None:
     for label, owner, name in STAGES:
         setattr(owner, name, ranged(label, getattr(owner, name)))
     simulate.substep = ranged(SUBSTEP, simulate.substep)
+    if hasattr(simulate, "eager_stages"):
+        # The default stages hold the functions themselves: rebuild them from the wrapped.
+        simulate.EAGER = simulate.eager_stages()
 
 
 def make(batch: int) -> tuple[TensorHighwayEnv, Callable[[], None], Callable[[], None]]:
