@@ -10,12 +10,14 @@ the run ends in time whatever a part costs:
 1. env-steps/s of highway-fast-v0, float32, always-IDLE, finished worlds reset, at each B:
    * ``eager``: ``TensorHighwayEnv.step_and_maybe_reset`` (what training calls; on a
      GPU the step takes its dense, sync-free path);
-   * ``compiled``: the same env after ``env.compile(dense=True)`` (the whole dense step
-     through Inductor; GPU only, one compilation per B);
-   * ``graph``: the pure step plus the sync-free reset of finished rows
-     (:func:`~torchrl_grpo.sim.reset.reset_world`), captured once into a CUDA graph and
-     replayed (GPU only): the simulator without TorchRL's per-step Python.
-   A size that runs out of memory is reported as such and the larger ones are skipped.
+   * ``compiled``: the same env after ``env.compile(dense=True, dynamic=True)`` (the
+     whole dense step through Inductor, TorchRL's plumbing eager; GPU only);
+   * ``graph``: the pure dense step plus the sync-free reset of finished rows
+     (:func:`~torchrl_grpo.sim.reset.reset_world`), through
+     ``torch.compile(mode="reduce-overhead", dynamic=True)``: Inductor's kernels
+     replayed as CUDA graphs (GPU only), the simulator without TorchRL's per-step Python.
+   Every B of one kind runs before the next kind (eager, graph, compiled); a size that
+   runs out of memory is reported as such.
 2. The branch-as-rows lookahead planner
    (:class:`~torchrl_grpo.branching.LookaheadPolicy` on a TensorHighwayEnv, every
    action's branch a row of one batched rollout): ``--planner-worlds`` episodes of at
@@ -86,7 +88,7 @@ def env_stepper(batch: int, device: torch.device, compiled: bool) -> Callable[[]
     env = TensorHighwayEnv("highway-fast-v0", num_envs=batch, seed=0, device=device,
                            check_actions=False)  # fmt: skip
     if compiled:
-        env.compile(dense=True)
+        env.compile(dense=True, dynamic=True)  # one compilation for every B
     td = env.reset()
     action = torch.full((batch,), IDLE, device=device)
 
@@ -98,44 +100,52 @@ def env_stepper(batch: int, device: torch.device, compiled: bool) -> Callable[[]
     return fn
 
 
+def _advance(world, action, params):
+    """One env step of B worlds and the reset of the finished ones: a pure function."""
+    new, out = sim_step(world, action, params, dense=True)
+    return reset_world(new, out["terminated"] | out["truncated"], params), out["observation"]
+
+
+#: One compiled function for every B (``dynamic=True``: one Inductor compilation), its
+#: graphs replayed by cudagraph trees (``mode="reduce-overhead"``).
+_GRAPHED: dict[str, Callable] = {}
+
+
 def graph_stepper(batch: int, device: torch.device) -> Callable[[], None]:
-    """The pure dense step and the reset of finished rows, as one replayed CUDA graph."""
+    """The pure dense step plus the reset of finished rows, compiled and CUDA-graphed.
+
+    ``torch.compile(mode="reduce-overhead")`` rather than a hand capture with
+    ``torch.cuda.graph``: the step builds small constant tensors from Python lists
+    (host-to-device copies, which a stream capture refuses); Inductor makes them graph
+    constants.
+    """
+    if "fn" not in _GRAPHED:
+        _GRAPHED["fn"] = torch.compile(_advance, mode="reduce-overhead", dynamic=True)
+    advance = _GRAPHED["fn"]
     env = TensorHighwayEnv("highway-fast-v0", num_envs=batch, seed=0, device=device)
-    params = env.params
-    world = env._world  # the static input the graph reads and overwrites
-    action = torch.full((batch,), IDLE, device=device)
+    params, action = env.params, torch.full((batch,), IDLE, device=device)
+    world = env._world
 
-    def advance() -> None:
-        new, out = sim_step(world, action, params, dense=True)
-        new = reset_world(new, out["terminated"] | out["truncated"], params)
-        for static, fresh in zip(_leaves(world), _leaves(new), strict=True):
-            static.copy_(fresh)
+    def fn() -> None:
+        nonlocal world
+        torch.compiler.cudagraph_mark_step_begin()
+        world, _ = advance(world, action, params)
 
-    stream = torch.cuda.Stream(device)
-    stream.wait_stream(torch.cuda.current_stream(device))
-    with torch.cuda.stream(stream):
-        for _ in range(2):  # warm-up on a side stream, as CUDA graph capture requires
-            advance()
-    torch.cuda.current_stream(device).wait_stream(stream)
-    graph = torch.cuda.CUDAGraph()
-    with torch.cuda.graph(graph):
-        advance()
-    return graph.replay
-
-
-def _leaves(world) -> list[torch.Tensor]:
-    return [*world.vehicles, *world[1:]]
+    return fn
 
 
 def env_rates(args: argparse.Namespace, clock: Clock, out: dict) -> None:
+    """Every kind at every B, the cheap kind first: a budget cut loses the costly ones."""
     device = torch.device(args.device)
-    kinds = ["eager"] + (["compiled", "graph"] if device.type == "cuda" else [])
-    for batch in args.sizes:
-        for kind in kinds:
+    kinds = ["eager"] + (["graph", "compiled"] if device.type == "cuda" else [])
+    for kind in kinds:
+        for batch in args.sizes:
             name = f"env-steps/s {kind} B={batch}"
-            if clock.left() < args.seconds * 4:
+            if clock.left() < args.seconds * 4 + (60 if kind != "eager" else 0):
                 out[name] = "skipped: time"
+                report(name, out[name])
                 continue
+            fn = None
             try:
                 if kind == "graph":
                     fn = graph_stepper(batch, device)
