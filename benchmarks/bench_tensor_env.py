@@ -1,7 +1,17 @@
 """TensorHighwayEnv's throughput beside HighwayEnv and EnvPool, and its snapshot cost.
 
-Usage: ``python benchmarks/bench_tensor_env.py [--sizes 1 64 1024 8192] [--threads 2]
-[--compile] [--device cpu] [--checks-only]``
+Usage: ``python benchmarks/bench_tensor_env.py [--sizes 1 64 1024 8192] [--threads N]
+[--compile] [--device cpu] [--checks-only] [--highjax-python PYTHON] [--no-highway]``
+
+The issue #41 table (docs/benchmarks.md, "Peers"): one core, then two threads::
+
+    taskset -c 0 python benchmarks/bench_tensor_env.py --sizes 1024 8192 --no-highway \
+        --highjax-python /work/venv-jax/bin/python --peers-only
+    python benchmarks/bench_tensor_env.py --sizes 1024 8192 --no-highway \
+        --highjax-python /work/venv-jax/bin/python --peers-only
+
+``--threads`` defaults to the cores the process may run on (``taskset`` sets them):
+torch's intra-op threads, EnvPool's ``num_threads`` and XLA's threads all get that many.
 
 For each batch size B, one run measures env steps per second of highway-fast-v0 in
 float32, side by side in alternating blocks (so that both sides of a ratio see the same
@@ -10,8 +20,13 @@ machine load):
 * ``TensorHighwayEnv(num_envs=B)`` stepped through TorchRL's ``env.step`` (what a user
   gets), always-IDLE actions, worlds reset as their episodes end;
 * ``HighwayEnv`` (highway-env itself) stepped in this one process;
-* EnvPool's C++ ``highway-fast-v0`` with ``num_envs=B`` and as many threads, when
-  ``envpool`` is installed (``pip install -e ".[bench]"``).
+* EnvPool's C++ ``highway-fast-v0`` with ``num_envs=B`` and ``num_threads`` = the
+  threads, when ``envpool`` is installed (``pip install -e ".[bench]"``); it resets
+  finished envs itself;
+* HighJax 0.1.0 (a JAX port) configured like highway-fast-v0, ``jit(vmap(step))`` with
+  its own auto-reset, when ``--highjax-python`` names a python that has it: it runs in
+  that python as a subprocess (``benchmarks/highjax_worker.py``), timed block by block
+  in turn with the others.
 
 Goals (issue #17): at B = 1,024 on 2 CPU cores, TensorHighwayEnv >= 200 x HighwayEnv;
 EnvPool's rate is the aim (the ratio is reported). Also reported: ``get_state`` plus a
@@ -31,12 +46,17 @@ alone), so that a change to the state check is measured before and after.
 from __future__ import annotations
 
 import argparse
+import atexit
 import copy
+import functools
 import importlib.util
 import inspect
+import os
 import statistics
+import subprocess
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import torch
 from claims import claim
@@ -88,6 +108,34 @@ def tensor_stepper(batch: int, compile: bool, device: str, **kwargs) -> Callable
             sync()
 
         return synced
+    return step
+
+
+def _shard(batch: int, seed: int) -> TensorHighwayEnv:
+    """One shard of the worlds (a module-level function: ParallelEnv pickles it)."""
+    return TensorHighwayEnv("highway-fast-v0", num_envs=batch, seed=seed)
+
+
+def shard_stepper(batch: int, shards: int) -> Callable[[], None]:
+    """B worlds as ``shards`` processes of B / shards worlds, one torch thread each.
+
+    TorchRL's ``ParallelEnv`` (batch ``[shards, B / shards]``), stepped with
+    ``step_and_maybe_reset``: one process per core instead of intra-op threads.
+    """
+    from torchrl.envs import ParallelEnv
+
+    makers = [functools.partial(_shard, batch // shards, seed) for seed in range(shards)]
+    env = ParallelEnv(shards, makers, num_threads=1, num_sub_threads=1)
+    atexit.register(env.close)
+    td = env.reset()
+    action = torch.full((shards, batch // shards), IDLE)
+
+    def step() -> None:
+        nonlocal td
+        td.set("action", action)
+        _, td = env.step_and_maybe_reset(td)
+
+    step()
     return step
 
 
@@ -228,15 +276,74 @@ def action_check_cost(sizes: list[int], device: str, repeats: int) -> None:
     )
 
 
+def highjax_stepper(python: str, batch: int, threads: int) -> Callable[[], None]:
+    """Blocks of HighJax steps run by ``highjax_worker.py`` under ``python``.
+
+    The returned call steps one block; its rate is the worker's own timing (the pipe's
+    round trip stays outside it), read back by :func:`rate` through ``last``.
+    """
+    worker = subprocess.Popen(
+        [python, str(Path(__file__).with_name("highjax_worker.py")), "--batch", str(batch),
+         "--threads", str(threads)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    if worker.stdout.readline().strip() != "ready":
+        raise RuntimeError(f"highjax_worker.py under {python} did not start")
+    atexit.register(worker.kill)
+    calls = max(2, min(200, 20000 // batch))
+
+    def block() -> float:
+        worker.stdin.write(f"{calls}\n")
+        worker.stdin.flush()
+        return float(worker.stdout.readline())
+
+    return block
+
+
+def peer_rates(
+    batch: int, args: argparse.Namespace, hw: Callable[[], None] | None
+) -> dict[str, float]:
+    """Median env-steps/s of TensorHighwayEnv and each installed peer at B, interleaved."""
+    # Blocks of about a second each: fewer calls for larger batches.
+    calls = max(2, min(200, 20000 // batch))
+    runs = {"tensor": (tensor_stepper(batch, False, args.device), calls, batch)}
+    if args.compile:
+        runs["compiled"] = (tensor_stepper(batch, True, args.device), calls, batch)
+    if args.shards > 1:
+        runs["shards"] = (shard_stepper(batch, args.shards), calls, batch)
+    if hw is not None:
+        runs["highway"] = (hw, 30, 1)
+    pool = envpool_stepper(batch, args.threads)
+    if pool is not None:
+        runs["envpool"] = (pool, calls, batch)
+    timed = {}
+    if args.highjax_python:
+        timed["highjax"] = highjax_stepper(args.highjax_python, batch, args.threads)
+    out: dict[str, list[float]] = {k: [] for k in (*runs, *timed)}
+    for _ in range(args.repeats):
+        for name, (step, n, per_call) in runs.items():
+            out[name].append(rate(step, n, per_call))
+        for name, block in timed.items():
+            out[name].append(block())
+    return {k: statistics.median(v) for k, v in out.items()}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     # "--sizes" with no value: with --checks-only, the state check's figures alone.
     parser.add_argument("--sizes", type=int, nargs="*", default=[1, 64, 1024, 8192])
-    parser.add_argument("--threads", type=int, default=2)
+    cores = len(os.sched_getaffinity(0))
+    parser.add_argument("--threads", type=int, default=cores, help="default: the cores")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--compile", action="store_true")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--checks-only", action="store_true", help="only the checks' costs")
+    parser.add_argument("--highjax-python", help="a python with highjax: run it as a peer")
+    parser.add_argument("--no-highway", action="store_true", help="leave highway-env out")
+    parser.add_argument("--peers-only", action="store_true", help="no snapshot/check figures")
+    parser.add_argument(
+        "--shards", type=int, default=0, help="also B worlds as this many 1-thread processes"
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     if args.checks_only:
@@ -244,37 +351,41 @@ def main() -> None:
         if args.sizes:
             action_check_cost(args.sizes, args.device, args.repeats)
         return
-    hw = highway_stepper()
+    hw = None if args.no_highway else highway_stepper()
     for batch in args.sizes:
-        # Blocks of about a second each: fewer calls for larger batches.
-        calls = max(2, min(200, 20000 // batch))
-        runs = {"tensor": (tensor_stepper(batch, False, args.device), calls, batch)}
-        if args.compile:
-            runs["compiled"] = (tensor_stepper(batch, True, args.device), calls, batch)
-        runs["highway"] = (hw, 30, 1)
-        pool = envpool_stepper(batch, args.threads)
-        if pool is not None:
-            runs["envpool"] = (pool, calls, batch)
-        rates = interleaved(runs, args.repeats)
-        where = f"highway-fast-v0, B={batch}, {args.threads} threads, {args.device}"
-        note = ", ".join(f"{k} {v:,.0f}/s" for k, v in rates.items())
-        goal = ">=200" if batch == 1024 and args.device == "cpu" else None
-        claim(
-            f"{where}: TensorHighwayEnv / HighwayEnv env-steps/s",
-            rates["tensor"] / rates["highway"],
-            goal,
-            note=note,
+        rates = peer_rates(batch, args, hw)
+        where = (
+            f"highway-fast-v0, B={batch}, {args.threads} threads on {cores} cores, {args.device}"
         )
+        note = ", ".join(f"{k} {v:,.0f}/s" for k, v in rates.items())
+        load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+        print(f"  {where}: {note} (load average {load})")
+        for name, value in rates.items():
+            claim(f"{where}: {name} env-steps/s", value)
+        if "highway" in rates:
+            goal = ">=200" if batch == 1024 and args.device == "cpu" else None
+            claim(
+                f"{where}: TensorHighwayEnv / HighwayEnv env-steps/s",
+                rates["tensor"] / rates["highway"],
+                goal,
+                note=note,
+            )
+        ours = [("tensor", "TensorHighwayEnv")]
         if "compiled" in rates:
-            claim(
-                f"{where}: compiled TensorHighwayEnv / HighwayEnv env-steps/s",
-                rates["compiled"] / rates["highway"],
-            )
-        if "envpool" in rates:
-            claim(
-                f"{where}: TensorHighwayEnv / EnvPool env-steps/s",
-                rates["tensor"] / rates["envpool"],
-            )
+            claim(f"{where}: compiled / eager env-steps/s", rates["compiled"] / rates["tensor"])
+            ours.append(("compiled", "compiled TensorHighwayEnv"))
+        if "shards" in rates:
+            ours.append(("shards", f"TensorHighwayEnv in {args.shards} shards"))
+        for name, who in ours:
+            for peer, label in (("envpool", "EnvPool"), ("highjax", "HighJax")):
+                if peer in rates:
+                    claim(
+                        f"{where}: {who} / {label} env-steps/s",
+                        rates[name] / rates[peer],
+                        note=f"{rates[name]:,.0f}/s vs {rates[peer]:,.0f}/s",
+                    )
+    if args.peers_only:
+        return
     snapshot_cost(1024, args.repeats)
     state_check_cost(1024, args.repeats)
     action_check_cost(args.sizes, args.device, args.repeats)

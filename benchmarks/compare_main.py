@@ -17,6 +17,9 @@ Run (from this tree's root)::
         bench_ceiling.py --repeats 1 --engines whole lockstep
     python benchmarks/compare_main.py --baseline /work/main --pairs 4 -- \\
         bench_branching.py --repeats 2
+    taskset -c 0 python benchmarks/compare_main.py --baseline /work/main --pairs 2 \\
+        --same-script -- bench_tensor_env.py --sizes 1024 8192 --no-highway --peers-only \\
+        --highjax-python /work/venv-jax/bin/python
 
 A ratio B / A above 1 means this tree's figure is higher (for rates and ratios to a
 ceiling: faster; for CPU ms per step: slower).
@@ -71,13 +74,15 @@ def figures(text: str) -> dict[str, float]:
     return out
 
 
-def run_once(tree: Path, script: str, args: list[str]) -> dict[str, float]:
-    """Run ``tree``'s ``benchmarks/script`` with ``tree`` first on ``PYTHONPATH``."""
+def run_once(
+    tree: Path, script: str, args: list[str], script_tree: Path | None = None
+) -> dict[str, float]:
+    """Run ``script_tree``'s (default ``tree``'s) ``benchmarks/script``, ``tree`` on the path."""
     env = dict(os.environ, PYTHONPATH=str(tree))
     env.pop("BENCH_CLAIMS", None)  # the comparison's runs are not the benchmarks page's
     proc = subprocess.run(
         [sys.executable, script, *args],
-        cwd=tree / "benchmarks",
+        cwd=(script_tree or tree) / "benchmarks",
         env=env,
         capture_output=True,
         text=True,
@@ -92,6 +97,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--baseline", type=Path, required=True, help="checkout A (e.g. main)")
     parser.add_argument("--pairs", type=int, default=4, help="A/B pairs: A B, B A, A B, ...")
+    parser.add_argument(
+        "--same-script",
+        action="store_true",
+        help="run this tree's script on both sides (only the package differs): for a "
+        "script whose options the baseline's copy lacks",
+    )
     parser.add_argument("script", help="a script of benchmarks/, e.g. bench_ceiling.py")
     parser.add_argument("args", nargs=argparse.REMAINDER, help="the script's arguments")
     opts = parser.parse_args()
@@ -100,7 +111,8 @@ def main() -> None:
     load = [os.getloadavg()[0]]
     for pair in range(opts.pairs):
         for side in ("A", "B") if pair % 2 == 0 else ("B", "A"):
-            runs[side].append(run_once(sides[side], opts.script, opts.args))
+            script_tree = HERE if opts.same_script else None
+            runs[side].append(run_once(sides[side], opts.script, opts.args, script_tree))
             load.append(os.getloadavg()[0])
         print(f"pair {pair + 1}/{opts.pairs} done", file=sys.stderr, flush=True)
     names = [n for n in runs["A"][0] if all(n in r for r in runs["A"] + runs["B"])]

@@ -250,14 +250,16 @@ def test_asking_for_cuda_without_a_gpu_is_a_clear_error(monkeypatch):
         TensorHighwayEnv(num_envs=2, device="cuda")
 
 
-def test_compile_traces_the_dense_step_once_and_keeps_the_bits():
+@pytest.mark.parametrize("dense", [False, True])
+def test_compile_traces_the_step_once_and_keeps_the_bits(dense):
     # compile= in the constructor is TorchRL's keyword: it must reach this env's compile
-    # (the pure step, static shapes), not TorchRL's whole step_and_maybe_reset, which
+    # (pure step functions, static shapes: the dense stages between the compacted ones,
+    # or the whole dense step), not TorchRL's whole step_and_maybe_reset, which
     # recompiled at every step here. The eager backend traces without code generation.
     from torch._dynamo.utils import counters
 
     torch._dynamo.reset()
-    compiled = TensorHighwayEnv(num_envs=4, seed=3, compile={"backend": "eager"})
+    compiled = TensorHighwayEnv(num_envs=4, seed=3, compile={"backend": "eager", "dense": dense})
     eager = TensorHighwayEnv(num_envs=4, seed=3)
     assert "_compiled_step_and_maybe_reset" not in vars(compiled)
     script = actions(4, 5, seed=1)

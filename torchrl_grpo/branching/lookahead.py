@@ -157,7 +157,7 @@ class LookaheadPolicy(TensorDictModuleBase):
         self.frames += int(mask.sum())
         reward = data.get(("next", "reward")).reshape(mask.shape).double()
         # Summed step by step, in float64: the order of a sequential sum of the rewards.
-        scores = torch.zeros(mask.shape[:-1], dtype=torch.float64)
+        scores = torch.zeros(mask.shape[:-1], dtype=torch.float64, device=reward.device)
         for t in range(mask.shape[-1]):
             scores += torch.where(mask[..., t], reward[..., t], 0.0)
         return scores if tensordict.batch_dims else scores[0]

@@ -175,8 +175,9 @@ def _all_pairs(v: Vehicles, params: HighwayParams) -> Vehicles:
     upper = torch.ones(n, n, dtype=torch.bool, device=v.x.device).triu(1)
     near = ~(torch.sqrt(dx * dx + dy * dy) > _reach(v.speed.unsqueeze(2), params))
     rows, i, j = (near & checks & both & upper).nonzero(as_tuple=True)
-    car_i = tuple(t[rows, i] for t in (v.x, v.y, v.heading, v.speed))
-    car_j = tuple(t[rows, j] for t in (v.x, v.y, v.heading, v.speed))
+    at_i, at_j = rows * n + i, rows * n + j  # flat index_select: faster than t[rows, i]
+    car_i = tuple(take(t, at_i) for t in (v.x, v.y, v.heading, v.speed))
+    car_j = tuple(take(t, at_j) for t in (v.x, v.y, v.heading, v.speed))
     hit, will, tx, ty = separating_axes(
         car_i, car_j, params.time.dt, params.vehicle.length, params.vehicle.width
     )

@@ -131,13 +131,15 @@ def mobil_accepts(
         gather_car(table, rows, new_front),
         gather_car(table, rows, new_rear),
     )
-    delta = v.delta[rows, vehicle]
+    # Flat index_select (take) rather than advanced indexing: the same values, faster.
+    at = rows * v.x.shape[1] + vehicle
+    delta = take(v.delta, at)
     # The new follower is evaluated with the decider's exponent, as highway-env does.
     new_following_free = free_road(new_following, delta, params)
     new_following_pred_a = new_following_free - interaction(new_following, me, params)
     unsafe = new_following_pred_a < -idm.lane_change_max_braking_imposed
-    self_pred_a = drivers.free[rows, vehicle] - interaction(me, new_preceding, params)
-    self_a = drivers.acc[rows, vehicle]
+    self_pred_a = take(drivers.free, at) - interaction(me, new_preceding, params)
+    self_a = take(drivers.acc, at)
     jerk = self_pred_a - self_a
     if idm.politeness != 0:
         # With politeness 0 (highway-env's value) the followers' terms vanish exactly.

@@ -49,6 +49,12 @@ def _between(u: torch.Tensor, low: float, high: float) -> torch.Tensor:
 def reset_world(world: World, mask: torch.Tensor, params: HighwayParams) -> World:
     """``world`` with the rows of ``mask`` replaced by fresh episodes.
 
+    On a CPU only the masked rows are drawn (a training step resets a few rows of
+    thousands: drawing every row cost a third of a step at B = 8,192), and written
+    back with ``index_copy``; on a GPU every row is drawn and selected with ``where``,
+    which needs no host sync. The values are the same either way: each row's draws
+    come from its own stream.
+
     Args:
         world: B worlds (their ``rng_key``/``rng_counter`` feed the draws).
         mask: ``[B]`` bool, the rows to reset.
@@ -60,22 +66,60 @@ def reset_world(world: World, mask: torch.Tensor, params: HighwayParams) -> Worl
     Example:
         >>> # see the module's example
     """
+    v_old = world.vehicles
+    if mask.device.type == "cuda":
+        fresh, ego_index, counter = _fresh_rows(world.rng_key, world.rng_counter, params)
+        rows = mask.unsqueeze(-1)
+        table = Vehicles(
+            *(torch.where(rows, n.to(o.dtype), o) for n, o in zip(fresh, v_old, strict=True))
+        )
+        return World(
+            vehicles=table,
+            speed_index=torch.where(mask, ego_index, world.speed_index),
+            time=torch.where(mask, torch.zeros_like(world.time), world.time),
+            steps=torch.where(mask, torch.zeros_like(world.steps), world.steps),
+            rng_key=world.rng_key,
+            rng_counter=torch.where(mask, counter, world.rng_counter),
+        )
+    at = mask.nonzero().squeeze(-1)
+    fresh, ego_index, counter = _fresh_rows(
+        world.rng_key.index_select(0, at), world.rng_counter.index_select(0, at), params
+    )
+
+    def put(old: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
+        return old.index_copy(0, at, new.to(old.dtype))
+
+    return World(
+        vehicles=Vehicles(*(put(o, n) for n, o in zip(fresh, v_old, strict=True))),
+        speed_index=put(world.speed_index, ego_index),
+        time=world.time.index_fill(0, at, 0.0),
+        steps=world.steps.index_fill(0, at, 0),
+        rng_key=world.rng_key,
+        rng_counter=put(world.rng_counter, counter),
+    )
+
+
+def _fresh_rows(
+    key: torch.Tensor, counter: torch.Tensor, params: HighwayParams
+) -> tuple[Vehicles, torch.Tensor, torch.Tensor]:
+    """Fresh episodes for the streams ``(key, counter)`` (``[R]`` each).
+
+    Returns:
+        ``(vehicle table [R, N] in float64, the ego's speed index, the advanced counters)``.
+    """
     t, road = params.traffic, params.road
     n_lanes, others = road.lanes_count, t.vehicles_count
-    v_old = world.vehicles
-    device = v_old.x.device
-    u, counter = uniform(world.rng_key, world.rng_counter, 2 + 4 * others)
+    device = key.device
+    u, counter = uniform(key, counter, 2 + 4 * others)
     ego_lane_u, ego_jitter = u[:, 0], u[:, 1]
     lane_u, speed_u, jitter_u, delta_u = u[:, 2:].view(-1, others, 4).unbind(-1)
-
     decay = math.exp(-t.spacing_decay * n_lanes)
     if t.initial_lane_id is None:
         ego_lane = torch.floor(ego_lane_u * n_lanes).to(torch.int64)
     else:
-        ego_lane = torch.full_like(world.steps, int(t.initial_lane_id))
+        ego_lane = torch.full_like(key, int(t.initial_lane_id))
     ego_offset = t.ego_spacing * (t.spacing_base + t.spacing_per_speed * t.ego_speed) * decay
     ego_x = t.first_offsets * ego_offset + ego_offset * _between(ego_jitter, *t.jitter)
-
     limit = road.speed_limit
     speeds = _between(speed_u, t.speed_low * limit, t.speed_high * limit)
     offsets = (1 / t.vehicles_density) * (t.spacing_base + t.spacing_per_speed * speeds) * decay
@@ -83,7 +127,6 @@ def reset_world(world: World, mask: torch.Tensor, params: HighwayParams) -> Worl
     xs = ego_x.unsqueeze(-1) + torch.cumsum(steps_ahead, dim=-1)
     lanes = torch.floor(lane_u * n_lanes).to(torch.int64)
     deltas = _between(delta_u, *params.idm.delta_range)
-
     x = torch.cat([ego_x.unsqueeze(-1), xs], dim=-1)
     lane = torch.cat([ego_lane.unsqueeze(-1), lanes], dim=-1)
     y = lane.to(torch.float64) * road.lane_width
@@ -106,15 +149,4 @@ def reset_world(world: World, mask: torch.Tensor, params: HighwayParams) -> Worl
         crashed=torch.zeros_like(checks), impact=torch.zeros_like(checks),
         check_collisions=checks, present=torch.ones_like(checks),
     )  # fmt: skip
-    rows = mask.unsqueeze(-1)
-    table = Vehicles(
-        *(torch.where(rows, new.to(old.dtype), old) for new, old in zip(fresh, v_old, strict=True))
-    )
-    return World(
-        vehicles=table,
-        speed_index=torch.where(mask, ego_index, world.speed_index),
-        time=torch.where(mask, torch.zeros_like(world.time), world.time),
-        steps=torch.where(mask, torch.zeros_like(world.steps), world.steps),
-        rng_key=world.rng_key,
-        rng_counter=torch.where(mask, counter, world.rng_counter),
-    )
+    return fresh, ego_index, counter

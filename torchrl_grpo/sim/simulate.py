@@ -29,6 +29,9 @@ Example:
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
 import torch
 
 from torchrl_grpo.sim.collision import collide
@@ -43,7 +46,29 @@ from torchrl_grpo.sim.reward import reward, truncated
 from torchrl_grpo.sim.selection import scatter, select
 from torchrl_grpo.sim.state import Vehicles, World, take
 
-__all__ = ["act", "observe_world", "step", "substep"]
+__all__ = ["Stages", "act", "compiled_stages", "eager_stages", "observe_world", "step", "substep"]
+
+
+class Stages(NamedTuple):
+    """The stages of a step that compute every vehicle, with no data-dependent shapes.
+
+    :func:`step` calls them eagerly by default (:func:`eager_stages`); on a CPU,
+    :func:`compiled_stages` runs them through ``torch.compile``, where Inductor fuses
+    each into a few C++ loops, while the compacted stages (MOBIL's due vehicles, the
+    close pairs of the collision pass) stay eager: compiling those densely computes
+    every vehicle's decision and is slower than eager on a CPU (docs/sim.md, "Speed").
+
+    Attributes:
+        drivers: ``(v, params) -> (lane index, Drivers)``: the lane index and IDM.
+        steering: :func:`~torchrl_grpo.sim.control.steering_control`.
+        move: :func:`~torchrl_grpo.sim.kinematics.step_vehicles`.
+        observe: :func:`observe_world`.
+    """
+
+    drivers: Callable
+    steering: Callable
+    move: Callable
+    observe: Callable
 
 
 def _set_ego(v: Vehicles, **columns: torch.Tensor) -> Vehicles:
@@ -56,7 +81,15 @@ def _set_ego(v: Vehicles, **columns: torch.Tensor) -> Vehicles:
     return v._replace(**out)
 
 
-def act(v: Vehicles, params: HighwayParams, dense: bool = False) -> Vehicles:
+def _drivers(v: Vehicles, params: HighwayParams) -> tuple:
+    """The substep's lane index and every vehicle's IDM terms."""
+    index = lane_index(v.x, v.y, v.present, params.road)
+    return index, drivers_of(v, index, params)
+
+
+def act(
+    v: Vehicles, params: HighwayParams, dense: bool = False, stages: Stages | None = None
+) -> Vehicles:
     """``road.act()``: every vehicle's commands (and the others' lane decisions).
 
     Args:
@@ -64,6 +97,7 @@ def act(v: Vehicles, params: HighwayParams, dense: bool = False) -> Vehicles:
         params: the constants.
         dense: compute every vehicle with masks instead of compacting (see
             :mod:`.selection`).
+        stages: the dense stages (default :func:`eager_stages`).
 
     Returns:
         The table with new ``steering``, ``acceleration``, ``target_lane`` and ``timer``.
@@ -71,8 +105,8 @@ def act(v: Vehicles, params: HighwayParams, dense: bool = False) -> Vehicles:
     Example:
         >>> # see the module's example
     """
-    index = lane_index(v.x, v.y, v.present, params.road)
-    drivers = drivers_of(v, index, params)
+    stages = stages or EAGER
+    index, drivers = stages.drivers(v, params)
     target, timer = lane_change_policy(v, drivers, index, params, dense)
     acc = drivers.acc
     sel = select(v.lane != target, dense)
@@ -84,7 +118,7 @@ def act(v: Vehicles, params: HighwayParams, dense: bool = False) -> Vehicles:
         acc_target = take(drivers.free, sel.at) - interaction(me, ahead, params)
         acc = scatter(acc, sel, torch.minimum(take(acc, sel.at), acc_target))
     acc = torch.clamp(acc, -params.idm.acc_max, params.idm.acc_max)
-    steer = steering_control(v.x, v.y, v.speed, v.heading, target, params)
+    steer = stages.steering(v.x, v.y, v.speed, v.heading, target, params)
     ego_acc = params.control.kp_a * (v.target_speed[:, 0] - v.speed[:, 0])
 
     others = v.present & ~v.crashed
@@ -100,7 +134,11 @@ def act(v: Vehicles, params: HighwayParams, dense: bool = False) -> Vehicles:
 
 
 def substep(
-    world: World, action: torch.Tensor, params: HighwayParams, dense: bool = False
+    world: World,
+    action: torch.Tensor,
+    params: HighwayParams,
+    dense: bool = False,
+    stages: Stages | None = None,
 ) -> World:
     """One simulation frame; ``action`` applies where ``steps`` is a multiple of ``frames``.
 
@@ -109,6 +147,7 @@ def substep(
         action: ``[B]`` int64 meta-actions (-1: none).
         params: the constants.
         dense: see :func:`act`.
+        stages: see :func:`act`.
 
     Returns:
         The worlds one frame later.
@@ -124,8 +163,8 @@ def substep(
         world.speed_index, action, params,
     )  # fmt: skip
     v = _set_ego(v, target_lane=lane, target_speed=speed)
-    v = act(v, params, dense)
-    v = step_vehicles(v, params)
+    v = act(v, params, dense, stages)
+    v = (stages or EAGER).move(v, params)
     v = collide(v, params, dense)
     return world._replace(vehicles=v, speed_index=index, steps=world.steps + 1)
 
@@ -162,7 +201,11 @@ def observe_world(world: World, params: HighwayParams) -> dict[str, torch.Tensor
 
 
 def step(
-    world: World, action: torch.Tensor, params: HighwayParams, dense: bool = False
+    world: World,
+    action: torch.Tensor,
+    params: HighwayParams,
+    dense: bool = False,
+    stages: Stages | None = None,
 ) -> tuple[World, dict[str, torch.Tensor]]:
     """``env.step(action)`` for B worlds.
 
@@ -172,6 +215,7 @@ def step(
         params: the constants.
         dense: static shapes throughout (for ``torch.compile`` and GPUs), see
             :mod:`.selection`; the same values as the default compacted path.
+        stages: the dense stages (default :func:`eager_stages`; see :class:`Stages`).
 
     Returns:
         ``(worlds after the step, observe_world of them)``.
@@ -180,6 +224,36 @@ def step(
         >>> # see the module's example
     """
     world = world._replace(time=world.time + params.time.step_time)
+    stages = stages or EAGER
     for _ in range(params.time.frames):
-        world = substep(world, action, params, dense)
-    return world, observe_world(world, params)
+        world = substep(world, action, params, dense, stages)
+    return world, stages.observe(world, params)
+
+
+def eager_stages() -> Stages:
+    """The dense stages as plain functions (what :func:`step` uses by default).
+
+    Example:
+        >>> eager_stages().move.__name__
+        'step_vehicles'
+    """
+    return Stages(_drivers, steering_control, step_vehicles, observe_world)
+
+
+def compiled_stages(**kwargs: Any) -> Stages:
+    """The dense stages, each through ``torch.compile(..., **kwargs)`` (static shapes).
+
+    Each compiles on its first call, once per batch size and dtype. On a CPU Inductor
+    emits C++ whose values matched the eager ones bit for bit in float32 and float64
+    (tests/envs/test_tensor_compile.py).
+
+    Example:
+        >>> stages = compiled_stages(backend="eager")  # traces only: no code generation
+        >>> isinstance(stages, Stages)
+        True
+    """
+    kwargs.setdefault("dynamic", False)
+    return Stages(*(torch.compile(fn, **kwargs) for fn in eager_stages()))
+
+
+EAGER = eager_stages()
