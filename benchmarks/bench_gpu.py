@@ -217,8 +217,6 @@ def training_rate(args: argparse.Namespace, clock: Clock, out: dict) -> None:
         f"experiment.total_frames={args.train_frames}",
         "experiment.eval_every=0",
         "experiment.final_eval_episodes=0",
-        "experiment.plot_every=0",
-        "experiment.progress_bar=false",
         *args.train_override,
     ]
     try:
