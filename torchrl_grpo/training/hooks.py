@@ -141,7 +141,7 @@ class GroupPlotHook(Hook):
 
     The group with the widest spread of returns goes to ``<run>/plots/`` and, as a
     video, to the logger (``collect/branch_group``, in the iteration's row). Only
-    batches of branch groups are plotted.
+    batches of branch groups are plotted, and only with a logger (not ``logger=none``).
 
     Example:
         >>> GroupPlotHook().phase
@@ -151,6 +151,8 @@ class GroupPlotHook(Hook):
     phase = "plot"
 
     def due(self, trainer: TrainerView, batch: TensorDictBase) -> bool:  # noqa: D102
+        if str(trainer.cfg.logger.backend) == "none":
+            return False  # nothing logged, nothing drawn (the tests' runs)
         every = int(trainer.cfg.experiment.eval_every)
         first = trainer.progress.iteration == 1
         return BRANCH_RETURN in batch.keys() and (first or _every(trainer, every))
