@@ -142,7 +142,12 @@ def quick_runs(request, tmp_path_factory):
 
 
 # The longest quick runs are slow-marked (the default suite's 10-minute budget).
-SLOW_TUTORIALS = {"branch_scripted_policies", "multi_turn", "custom_reward_and_vehicle"}
+SLOW_TUTORIALS = {
+    "branch_scripted_policies",
+    "multi_turn",
+    "custom_reward_and_vehicle",
+    "train_merge",
+}
 
 
 @pytest.mark.parametrize(

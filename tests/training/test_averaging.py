@@ -46,6 +46,7 @@ def _train(tmp_path, name, overrides):
     return trainer
 
 
+@pytest.mark.slow  # 9 s: three runs
 def test_runs_evaluate_and_save_the_average_and_resume_exactly(tmp_path, monkeypatch):
     driven = []
     evaluate = hooks_module.evaluate

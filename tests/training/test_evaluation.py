@@ -89,6 +89,8 @@ def test_evaluate_script_on_a_checkpoint(smoke_run):
     assert (run / "eval" / "results.md").exists()
 
 
+# 28 s with its trained run; the planners also meet in tests/branching/test_batched_search.py
+@pytest.mark.slow
 def test_search_over_a_checkpoint_scores_as_the_planner_on_highway_env(smoke_run, tmp_path):
     train, run, _ = smoke_run
     assert train.returncode == 0, train.stderr[-3000:]

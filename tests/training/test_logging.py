@@ -51,6 +51,7 @@ def test_csv_logger_writes_every_metric_at_its_step(tmp_path):
     assert not list((tmp_path / "csv").rglob("none.csv"))
 
 
+@pytest.mark.slow  # 11 s: a wandb run read back
 def test_each_iteration_is_one_wandb_row_keyed_by_frames(tmp_path, monkeypatch):
     pytest.importorskip("wandb")
     from train_setup import TINY, compose_config

@@ -57,6 +57,7 @@ def test_evaluate_refuses_an_env_beside_a_checkpoint(tmp_path, smoke_run):
     assert "env=merge: a checkpoint is evaluated on its own env" in proc.stderr
 
 
+@pytest.mark.slow  # 9 s: every choice of --help composed
 def test_help_lists_only_choices_that_compose():
     proc = _script("train.py", ["--help"], ROOT, timeout=120)
     assert proc.returncode == 0, proc.stderr[-3000:]

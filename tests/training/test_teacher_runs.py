@@ -36,6 +36,7 @@ def test_the_teachers_train_first_and_the_student_learns_from_their_checkpoints(
     assert any(not torch.equal(a[k], b[k]) for k in a)
 
 
+@pytest.mark.slow  # 13 s: three stages trained twice
 def test_a_rerun_skips_finished_teachers_and_resumes_the_unfinished_one(tmp_path):
     train_with_teachers(compose_config(_student(20, 20)), tmp_path)
     first = tmp_path / "teachers" / "0" / "last.pt"

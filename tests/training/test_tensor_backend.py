@@ -31,6 +31,7 @@ from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
 TENSOR = ["env.backend=tensor", "env.num_envs=32"]
 
 
+@pytest.mark.slow  # 17 s: a run, evaluated on both simulators
 def test_a_tensor_smoke_run_trains_on_the_simulator_and_is_evaluated_on_highway_env(tmp_path):
     run_dir = tmp_path / "run"
     proc = run_script(

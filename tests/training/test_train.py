@@ -88,7 +88,7 @@ def _params(trainer: Trainer) -> dict[str, torch.Tensor]:
             marks=pytest.mark.slow,  # grpo_branch_replay resumes the same loop and more
         ),
         ("ppo", ["rollout.frames_per_batch=32"], 32, 96),
-        ("grpo_branch", [*REPLAY], 60, 160),
+        pytest.param("grpo_branch", [*REPLAY], 60, 160, marks=pytest.mark.slow),  # 12 s
     ],
     ids=["grpo_branch", "ppo", "grpo_branch_replay"],
 )
@@ -265,6 +265,7 @@ def test_changed_keys_compares_only_keys_both_configs_hold():
     assert changed_keys(saved, saved) == {}
 
 
+@pytest.mark.slow  # 13 s: a run on two workers, interrupted
 def test_ctrl_c_saves_and_leaves_no_worker(tmp_path):
     run_dir = tmp_path / "run"
     args = [
