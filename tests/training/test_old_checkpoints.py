@@ -196,5 +196,5 @@ def test_the_labs_defaults_are_the_old_schemas_so_a_migrated_run_reads_as_it_ran
         lab = to_container(
             OmegaConf.structured(schema(name="grpo_lab") if group == "algo" else schema)
         )
-        old = {k: v for k, v in OLD_DEFAULTS[group].items() if k != "mp_start_method"}
+        old = OLD_DEFAULTS[group]
         assert {k: lab[k] for k in old} == old

@@ -9,6 +9,7 @@ from __future__ import annotations
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_grpo.training.algos.registry import algorithm_for, with_fixed_settings
+from torchrl_grpo.training.group_schemas import collects_on_ray
 
 __all__ = ["check_config"]
 
@@ -87,7 +88,7 @@ def _group(cfg: DictConfig, group: str) -> DictConfig | None:
 def _check_rollout(rollout: DictConfig) -> None:
     """The ``rollout`` keys; the Ray settings (``rollout=ray``)."""
     backend = str(rollout.backend)
-    on_ray = rollout.get("ray") is not None
+    on_ray = collects_on_ray(rollout)
     if backend == "ray":
         raise ValueError(
             "rollout.backend=ray: choose rollout=ray, GRPO's groups on Ray actors "

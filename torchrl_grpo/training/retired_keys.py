@@ -50,7 +50,8 @@ DROPPED: dict[str, frozenset[str]] = {
 }
 
 #: What a config written before the keys retired meant by leaving one out: the old
-#: schemas' defaults (a v1 checkpoint has no ``rollout.live_trunks``; it ran without).
+#: schemas' defaults (a v1 checkpoint has no ``rollout.live_trunks``; it ran without),
+#: where they are not :data:`SHARED_FIXED`'s values.
 OLD_DEFAULTS: dict[str, dict[str, Any]] = {
     "algo": {
         "roots": "trunk",
@@ -83,10 +84,7 @@ OLD_DEFAULTS: dict[str, dict[str, Any]] = {
         "stagger_trunks": False,
         "full_horizon_roots": False,
         "first_root_step": 0,
-        "mp_start_method": "fork",
     },
-    "optim": {"eps": 1e-8, "weight_decay": 0.0},
-    "model": {"prior": None, "prior_weight": 2.0, "ensemble": 1, "bagging": False},
 }
 
 #: Keys renamed: ``{group: {old: new}}``.

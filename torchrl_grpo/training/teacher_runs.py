@@ -94,6 +94,9 @@ class _PipelineBar(Hook):
 
 
 def _frames_done(folder: Path) -> int:
+    # A finished stage says its frames in done.json: no checkpoint to read for the bar.
+    if (folder / DONE).exists():
+        return int(json.loads((folder / DONE).read_text())["frames"])
     path = folder / "last.pt"
     return int(load_checkpoint(path)["frames"]) if path.exists() else 0
 

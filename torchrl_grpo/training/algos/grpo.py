@@ -308,10 +308,8 @@ class GRPO(Algorithm):
             self.tail_policy.load_state_dict(checkpoint["tail_policy"])
         if self.replay is not None and checkpoint.get("replay") is not None:
             # The saved run's settings, in today's names, with those its variant fixes.
-            saved_algo = renamed("algo", checkpoint["config"]["algo"])
-            name = str(saved_algo.get("name", self.cfg.algo.name))
-            saved_algo = OmegaConf.create(
-                {**self.fixed_settings(name).get("algo", {}), **saved_algo}
+            saved_algo = self.algo_with_fixed(
+                OmegaConf.create(renamed("algo", checkpoint["config"]["algo"]))
             )
             check_replay_targets(saved_algo, self.cfg.algo, source)
             saved = replay_rows(saved_algo)

@@ -77,7 +77,6 @@ class GRPOConfig(AlgoConfig):
 # The values each variant runs with for the settings GRPOConfig does not make keys:
 # grpo_episode keeps the defaults the schema had; grpo_branch's are the recommended
 # recipe's (conf/algo/grpo_branch.yaml before #40).
-_EPISODE_ROLLOUT = {k: v for k, v in OLD_DEFAULTS["rollout"].items() if k != "mp_start_method"}
 FIXED_SETTINGS: dict[str, dict[str, dict[str, Any]]] = {
     "grpo_branch": {
         "algo": {
@@ -89,10 +88,10 @@ FIXED_SETTINGS: dict[str, dict[str, dict[str, Any]]] = {
             "group_fit_temperature": 1.0,
             "group_fit_loss": "regression",
         },
-        "rollout": {**_EPISODE_ROLLOUT, "live_trunks": True, "stagger_trunks": True},
+        "rollout": {**OLD_DEFAULTS["rollout"], "live_trunks": True, "stagger_trunks": True},
     },
     "grpo_episode": {
         "algo": {**OLD_DEFAULTS["algo"], "roots": "reset"},
-        "rollout": _EPISODE_ROLLOUT,
+        "rollout": OLD_DEFAULTS["rollout"],
     },
 }
