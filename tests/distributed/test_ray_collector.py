@@ -306,10 +306,8 @@ TINY_RAY = [
     "rollout=ray",
     "rollout.ray.num_actors=2",
     "rollout.ray.num_cpus_per_actor=0.5",
-    # The default scripted tail and its replay are refused on Ray when the config loads.
-    "algo.tail_policy=learner",
-    "algo.tail_learner_steps=0",
-    "algo.replay_groups=null",
+    "env.backend=tensor",  # the recipe as it trains: tensor shards, rule tails, replay
+    "env.num_envs=10",
 ]
 
 

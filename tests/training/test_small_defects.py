@@ -21,30 +21,16 @@ def test_episodes_of_zero_steps_are_refused_at_start(tmp_path):
     check_config(compose_config([*TINY, "env.max_episode_steps=1"]))
 
 
-@pytest.mark.parametrize("tail", ["rule", "slower"])
-def test_a_scripted_tail_on_ray_is_refused_when_the_config_loads(tail):
-    cfg = compose_config(
-        [
-            *TINY,
-            "rollout=ray",
-            f"algo.tail_policy={tail}",
-            "algo.replay_groups=null",  # refused on Ray on its own (next test)
-        ]
-    )
-    with pytest.raises(ValueError, match=f"algo.tail_policy={tail} is not supported"):
+@pytest.mark.parametrize("where", [[], ["rollout=ray"]])
+def test_replay_needs_a_scripted_tail_on_ray_as_locally(where):
+    # Ray actors run the scripted tails: the recipe (rule tails, replay) is accepted there
+    for tail in ("rule", "slower"):
+        check_config(compose_config([*TINY, *where, f"algo.tail_policy={tail}"]))
+    learner = ["algo.tail_policy=learner", "algo.tail_learner_steps=0"]
+    cfg = compose_config([*TINY, *where, *learner, "algo.replay_groups=8"])
+    with pytest.raises(ValueError, match="algo.replay_groups=8 replays old groups"):
         check_config(cfg)
-    learner = ["algo.tail_policy=learner", "algo.tail_learner_steps=0", "algo.replay_groups=null"]
-    check_config(compose_config([*TINY, "rollout=ray", *learner]))
-
-
-def test_replayed_groups_on_ray_are_refused_naming_them_when_the_config_loads():
-    # replay needs a scripted tail, which Ray actors do not run: the error says so
-    scripted = ["algo.tail_policy=rule"]  # greedy tails of enumerated first actions
-    for tail in (scripted, ["algo.tail_policy=learner", "algo.tail_learner_steps=0"]):
-        cfg = compose_config([*TINY, "rollout=ray", *tail, "algo.replay_groups=8"])
-        with pytest.raises(ValueError, match="algo.replay_groups=8 is not supported with rollout"):
-            check_config(cfg)
-    check_config(compose_config([*TINY, *scripted, "algo.replay_groups=8"]))  # not on Ray: fine
+    check_config(compose_config([*TINY, *where, *learner, "algo.replay_groups=null"]))
 
 
 def test_recording_an_evaluation_prints_no_sdl_error(tmp_path):

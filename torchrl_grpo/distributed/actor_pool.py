@@ -16,7 +16,13 @@ from typing import Any
 from torchrl.envs import EnvBase
 
 from torchrl_grpo.branching.roots import RootSource
-from torchrl_grpo.distributed.worker import GroupResult, GroupWorker, WorkerSnapshot, actor_seed
+from torchrl_grpo.distributed.worker import (
+    GroupResult,
+    GroupWorker,
+    WorkerSnapshot,
+    actor_seed,
+    shared_root_policy,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -97,6 +103,8 @@ class ActorPool:
         self.env_factory = env_factory
         self.policy = policy
         self.roots = list(roots)
+        # Computed before the roots are copied: the copy no longer shares the policy.
+        self.root_policies = [shared_root_policy(policy, r) for r in self.roots]
         self.collector_kwargs = collector_kwargs
         self.groups_per_actor = groups_per_actor
         self.num_actors = len(groups_per_actor)
@@ -132,7 +140,14 @@ class ActorPool:
         # A RootSource object is copied per actor, so actors never share one.
         kwargs["roots"] = copy.deepcopy(roots) if isinstance(roots, RootSource) else roots
         seed = actor_seed(self.seed, index)
-        return remote_cls.remote(self.env_factory, self._policy_ref, kwargs, seed, self.num_threads)
+        return remote_cls.remote(
+            self.env_factory,
+            self._policy_ref,
+            kwargs,
+            seed,
+            self.num_threads,
+            self.root_policies[index],
+        )
 
     def start(self) -> None:
         """Start the actors, restored from their snapshots, unless they run already."""

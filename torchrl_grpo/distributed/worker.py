@@ -24,7 +24,7 @@ from torchrl_grpo.envs.core.errors import SnapshotError
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["GroupResult", "GroupWorker", "WorkerSnapshot", "actor_seed"]
+__all__ = ["GroupResult", "GroupWorker", "WorkerSnapshot", "actor_seed", "shared_root_policy"]
 
 _SEED_MOD = 2**31 - 1  # torch, numpy and TorchRL's env seeding all take it
 
@@ -44,6 +44,35 @@ def actor_seed(seed: int, actor: int) -> int:
         return int(seed)
     words = np.random.SeedSequence([int(seed), int(actor), 0x7261_79]).generate_state(1)
     return int(words[0]) % _SEED_MOD
+
+
+def shared_root_policy(policy: Any, roots: Any) -> str | None:
+    """Which submodule of ``policy`` the root source ``roots`` follows, or ``None``.
+
+    A root source may run its trunks with a policy of its own that is part of the
+    collector's policy: the learner inside a :class:`~torchrl_grpo.modules.GreedyTail`
+    whose tails are a scripted base policy. Shipping both to a Ray actor copies them
+    apart, and the weights the learner sends each batch would then reach the tails'
+    wrapper but not the trunks; the actor links them again by this path.
+
+    Example:
+        >>> from torchrl_grpo.branching.roots import TrunkRoots
+        >>> from torchrl_grpo.modules import GreedyTail, KinematicsMLP, make_discrete_actor
+        >>> from torchrl_grpo.modules import RulePolicy
+        >>> learner = make_discrete_actor(KinematicsMLP(5, 5, out_features=5), 5)
+        >>> tails = GreedyTail(learner, 1, first_action="enumerate", tail_policy=RulePolicy())
+        >>> shared_root_policy(tails, TrunkRoots(1, policy=learner))
+        'policy'
+        >>> shared_root_policy(tails, "trunk") is None
+        True
+    """
+    own = getattr(roots, "policy", None)
+    if own is None or not isinstance(policy, torch.nn.Module):
+        return None
+    for name, module in policy.named_modules():
+        if module is own:
+            return name
+    return None
 
 
 @dataclass
@@ -128,6 +157,8 @@ class GroupWorker:
         collector_kwargs: the other :class:`GroupCollector` arguments.
         seed: this actor's seed (see :func:`actor_seed`).
         num_threads: torch threads of the actor (1: the env workers need the cores).
+        root_policy: the submodule of ``policy`` the root source's trunks follow
+            (:func:`shared_root_policy`); linked again here, and after every restore.
 
     Example:
         >>> import functools
@@ -148,14 +179,24 @@ class GroupWorker:
         collector_kwargs: dict[str, Any],
         seed: int,
         num_threads: int | None = 1,
+        root_policy: str | None = None,
     ) -> None:
         if num_threads is not None:
             torch.set_num_threads(int(num_threads))
         self.collector = GroupCollector(
             env_factory, policy, total_frames=-1, seed=int(seed), **collector_kwargs
         )
+        self.root_policy = root_policy
+        self._link_root_policy()
         torch.manual_seed(int(seed))
         self._iterator = None
+
+    def _link_root_policy(self) -> None:
+        # The trunks follow the collector's own submodule, which receives the weights.
+        if self.root_policy is not None:
+            self.collector.root_source.policy = self.collector.policy.get_submodule(
+                self.root_policy
+            )
 
     def pid(self) -> int:
         """The actor's process id (tests kill it)."""
@@ -173,6 +214,7 @@ class GroupWorker:
         """Continue from ``snapshot`` (taken in another actor, usually a dead one)."""
         # The snapshot was unpickled in this process: its root source is this actor's own.
         self.collector.root_source = snapshot.root_source
+        self._link_root_policy()  # the snapshot's copy of it holds old weights
         self.collector.load_state_dict(snapshot.collector)
         torch.set_rng_state(snapshot.torch_rng)
 

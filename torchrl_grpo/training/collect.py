@@ -15,7 +15,6 @@ Also saves and restores a collector's exact position for checkpoints:
 from __future__ import annotations
 
 import copy
-import functools
 from typing import Any
 
 from omegaconf import DictConfig
@@ -25,14 +24,13 @@ from torchrl.collectors import BaseCollector, Collector
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 
-from torchrl_grpo.branching.branch_env import make_branch_env
 from torchrl_grpo.branching.group_collector import GroupCollector
 from torchrl_grpo.branching.keys import STATE
 from torchrl_grpo.branching.roots import TrunkRoots
 from torchrl_grpo.distributed.ray_collector import RayGroupCollector
 from torchrl_grpo.modules.greedy_tail import GreedyTail
-from torchrl_grpo.training.env_builder import env_overrides
 from torchrl_grpo.training.group_schemas import collects_on_ray
+from torchrl_grpo.training.ray_rollout import make_ray_collector
 
 __all__ = [
     "collector_state",
@@ -40,7 +38,6 @@ __all__ = [
     "world_steps",
     "load_collector_state",
     "make_collector",
-    "make_ray_collector",
     "trunk_schedule",
 ]
 
@@ -178,63 +175,6 @@ def trunk_schedule(rollout: DictConfig, step_limit: int) -> tuple[int, int, int 
         )
     stagger = last - first if rollout.get("stagger_trunks") else 0
     return stagger, first, last if rollout.get("full_horizon_roots") else None
-
-
-def make_ray_collector(
-    cfg: DictConfig, policy: TensorDictModuleBase, roots: Any, seed: int
-) -> RayGroupCollector:
-    """The GRPO collector on Ray actors (``rollout=ray``, settings in ``rollout.ray``).
-
-    Each actor builds ``rollout.num_workers`` env workers with ``rollout.backend``.
-    Ray is started on this machine (its cores, a 512 MiB object store) unless
-    ``rollout.ray.address`` names a cluster (``auto``) or Ray already runs.
-
-    Example:
-        >>> from omegaconf import OmegaConf
-        >>> cfg = OmegaConf.create({"algo": {"group_size": 2, "select": "best"},
-        ...     "env": {"scenario": "merge-v0", "config": {}},
-        ...     "rollout": {"horizon": 2, "groups_per_batch": 2, "decision_interval": 2,
-        ...     "num_workers": 1, "backend": "single", "ray": {"num_actors": 2,
-        ...     "num_cpus_per_actor": 0.5, "num_cpus": 2}}})
-        >>> collector = make_ray_collector(cfg, None, "reset", seed=0)  # doctest: +SKIP
-    """
-    algo, rollout = cfg.algo, cfg.rollout
-    ray_cfg = rollout.ray
-    env_factory = functools.partial(
-        make_branch_env,
-        str(cfg.env.scenario),
-        int(rollout.get("num_workers", 1)),
-        config=env_overrides(cfg.env),
-        backend=str(rollout.get("backend", "single")),
-        snapshots=True,
-        mp_start_method=rollout.get("mp_start_method"),
-    )
-    # 1 GiB for the actor and its in-process env, 400 MiB more per worker process.
-    parallel = str(rollout.get("backend", "single")) == "parallel"
-    workers = int(rollout.get("num_workers", 1)) if parallel else 0
-    memory_mb = ray_cfg.get("memory_per_actor_mb", 1024 + 400 * workers)
-    object_store_mb = ray_cfg.get("object_store_mb", 512)
-    return RayGroupCollector(
-        env_factory,
-        policy,
-        num_actors=int(ray_cfg.num_actors),
-        group_size=int(algo.group_size),
-        horizon=int(rollout.horizon),
-        groups_per_batch=int(rollout.groups_per_batch),
-        total_frames=-1,
-        roots=roots,
-        decision_interval=int(rollout.decision_interval),
-        select=str(algo.select),
-        seed=seed,
-        num_cpus_per_actor=float(ray_cfg.get("num_cpus_per_actor", 1.0)),
-        memory_per_actor=None if memory_mb is None else int(memory_mb) * 1024**2,
-        max_restarts=int(ray_cfg.get("max_restarts", 3)),
-        ray_init={
-            "address": ray_cfg.get("address"),
-            "num_cpus": ray_cfg.get("num_cpus"),
-            "object_store_memory": None if object_store_mb is None else object_store_mb * 1024**2,
-        },
-    )
 
 
 def env_frames(collector: BaseCollector) -> int:

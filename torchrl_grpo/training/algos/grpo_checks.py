@@ -6,7 +6,6 @@ from omegaconf import DictConfig
 
 from torchrl_grpo.training.algos.enumerated import check_distill
 from torchrl_grpo.training.algos.registry import with_fixed_settings
-from torchrl_grpo.training.group_schemas import collects_on_ray
 
 __all__ = ["check_grpo_config", "check_crash_head_needed"]
 
@@ -58,17 +57,10 @@ def check_grpo_config(cfg: DictConfig) -> None:
             f"rollout.{set_keys[0]} places decision points along trunks: it needs "
             f"algo.roots=trunk, got algo.roots={algo.roots}"
         )
-    on_ray = collects_on_ray(rollout)
     replay = algo.replay_groups
     if replay is not None:
         if replay < 1:
             raise ValueError(f"algo.replay_groups must be >= 1, got {replay}")
-        if on_ray:
-            raise ValueError(
-                f"algo.replay_groups={replay} is not supported with rollout=ray: replay needs "
-                "a scripted algo.tail_policy, which the Ray actors do not run yet; set "
-                "algo.replay_groups=null or collect locally (rollout=grpo_branch)"
-            )
         if str(algo.first_action) != "enumerate" or tail_policy == "learner":
             raise ValueError(
                 f"algo.replay_groups={replay} replays old groups, which is sound only when "
@@ -86,11 +78,6 @@ def check_grpo_config(cfg: DictConfig) -> None:
         raise ValueError(
             f"algo.first_action={first_action} chooses the first action of "
             "greedy-tail branches: set algo.explore_steps too (e.g. 1)"
-        )
-    if on_ray and tail_policy != "learner":
-        raise ValueError(
-            f"algo.tail_policy={tail_policy} is not supported with rollout=ray yet; "
-            "collect locally (rollout=grpo_branch)"
         )
     model = cfg.get("model")
     has_head = model is not None and bool(model.get("crash_head", False))
