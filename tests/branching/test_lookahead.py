@@ -95,6 +95,20 @@ def test_a_stale_tensor_state_carried_from_the_reset_is_refused():
         planner.returns(data[:, 1])  # the reset's state, carried to the next step
 
 
+def test_env_rollout_with_auto_reset_plans_the_reset_worlds_from_their_new_state():
+    # The rows that end are reset by the rollout; the planner must read their new state
+    env = TensorHighwayEnv(SCENARIO, num_envs=3, seed=0, return_state=True)
+    planner = LookaheadPolicy(
+        TensorHighwayEnv(SCENARIO, num_envs=15), make_scripted_policy("aggressive"), 1
+    )
+    data = env.rollout(40, planner, break_when_any_done=False)
+    done = data["next", "done"].squeeze(-1)
+    row, t = done[:, :-1].nonzero()[0].tolist()  # a row reset inside the rollout
+    after = data[row, t + 1]
+    assert int(after["state", "steps"]) == 0  # a fresh episode's first step
+    assert int(after["action"]) == int(planner.returns(after).argmax())
+
+
 def test_planning_on_the_tensor_simulator_for_highway_env_scores_as_its_snapshots():
     # The driven env is highway-env; one planner branches on its snapshots, the other on
     # the tensor simulator from the same states imported through the bridge.
