@@ -10,7 +10,10 @@ evaluation and no logger, in a fresh process: ``local`` as it trains by default,
 kinds run in alternation, ``--repeats`` times, so that load from other processes hits
 them alike. Frames/s are end to end (actor start, collection, updates), from the
 trainer's own frame count and the process's wall time around ``Trainer.train``. It
-prints the median of each kind and its ratio to ``local``.
+prints the median of each kind, its ratio to ``local``, and the seconds the trainer
+spent collecting (the actors' work and the transfer) and updating (the learner), from
+its csv log: the split a projection to more actors needs, since only collection
+scales with them.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import subprocess
 import sys
 
 CHILD = """
-import json, sys, tempfile, time, warnings
+import glob, json, sys, tempfile, time, warnings
 warnings.filterwarnings("ignore")
 from torchrl_grpo.training import Trainer, compose_config
 overrides = json.loads(sys.argv[1])
@@ -31,14 +34,19 @@ with tempfile.TemporaryDirectory() as run_dir:
     start = time.perf_counter()
     result = Trainer(cfg, run_dir=run_dir).train()
     elapsed = time.perf_counter() - start
-print(json.dumps({"frames": int(result.frames), "seconds": elapsed}))
+    phases = {}
+    for phase in ("collect", "update"):
+        (path,) = glob.glob(f"{run_dir}/csv/*/scalars/time/{phase}.csv")
+        rows = open(path).read().split()
+        phases[phase] = sum(float(r.split(",")[-1]) for r in rows)
+print(json.dumps({"frames": int(result.frames), "seconds": elapsed, **phases}))
 """
 
 
 def overrides(kind: str, frames: int) -> list[str]:
     """The config of one measurement: the recipe, short, locally or on ``kind`` actors."""
     base = [
-        "logger=none",
+        "logger=csv",
         f"experiment.total_frames={frames}",
         "experiment.eval_every=0",
         "experiment.final_eval_episodes=0",
@@ -49,16 +57,15 @@ def overrides(kind: str, frames: int) -> list[str]:
     return [*base, "rollout=ray", f"rollout.ray.num_actors={kind}"]
 
 
-def measure(kind: str, frames: int) -> float:
-    """Frames/s of one fresh training process."""
+def measure(kind: str, frames: int) -> dict[str, float]:
+    """Frames, wall seconds and the collect and update phases' seconds of one fresh run."""
     out = subprocess.run(
         [sys.executable, "-c", CHILD, json.dumps(overrides(kind, frames))],
         capture_output=True,
         text=True,
         check=True,
     )
-    result = json.loads(out.stdout.strip().splitlines()[-1])
-    return result["frames"] / result["seconds"]
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def main() -> None:
@@ -68,19 +75,29 @@ def main() -> None:
     parser.add_argument("--actors", type=int, nargs="+", default=[1, 2])
     args = parser.parse_args()
     kinds = ["local", *(str(a) for a in args.actors)]
-    rates: dict[str, list[float]] = {k: [] for k in kinds}
+    runs: dict[str, list[dict[str, float]]] = {k: [] for k in kinds}
     for _ in range(args.repeats):
         for kind in kinds:
-            rates[kind].append(measure(kind, args.frames))
-    local = statistics.median(rates["local"])
+            runs[kind].append(measure(kind, args.frames))
+
+    def median(kind: str, key: str) -> float:
+        return statistics.median(r[key] for r in runs[kind])
+
+    def rate(run: dict[str, float]) -> float:
+        return run["frames"] / run["seconds"]
+
+    local = statistics.median(rate(r) for r in runs["local"])
     print(f"recipe, {args.frames} frames, median of {args.repeats}")
-    print("| run | frames/s | ratio to local | runs |")
-    print("|---|---|---|---|")
+    print("| run | frames/s | ratio to local | collect s | update s | wall s | runs (frames/s) |")
+    print("|---|---|---|---|---|---|---|")
     for kind in kinds:
-        rate = statistics.median(rates[kind])
+        fps = statistics.median(rate(r) for r in runs[kind])
         name = "local" if kind == "local" else f"rollout=ray, {kind} actor(s)"
-        runs = ", ".join(f"{r:,.0f}" for r in rates[kind])
-        print(f"| {name} | {rate:,.0f} | {rate / local:.2f} | {runs} |")
+        each = ", ".join(f"{rate(r):,.0f}" for r in runs[kind])
+        print(
+            f"| {name} | {fps:,.0f} | {fps / local:.2f} | {median(kind, 'collect'):.1f} "
+            f"| {median(kind, 'update'):.1f} | {median(kind, 'seconds'):.1f} | {each} |"
+        )
 
 
 if __name__ == "__main__":
