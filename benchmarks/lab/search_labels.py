@@ -47,26 +47,32 @@ ACTIONS = ["LANE_LEFT", "IDLE", "LANE_RIGHT", "FASTER", "SLOWER"]
 def visit(
     policy: TensorDictModuleBase, scenario: str, seeds: list[int], horizon: int, max_steps: int
 ) -> dict[str, torch.Tensor]:
-    """Every action's score at every state the greedy ``policy`` visits; its actions, rewards."""
+    """Every action's score at every state the greedy ``policy`` visits; what it saw and did."""
     n = len(seeds)
     planner = LookaheadPolicy(TensorHighwayEnv(scenario, num_envs=5 * n), policy, horizon)
     env = TensorHighwayEnv(scenario, num_envs=n, return_state=True)
     td = highway_starts(env, seeds)
     live = torch.ones(n, dtype=torch.bool)
-    scores, chosen, rewards = [], [], []
+    scores, chosen, rewards, observations = [], [], [], []
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(max_steps):
             rows = live.nonzero().squeeze(-1)
             if rows.numel() == 0:
                 break
             scores.append(planner.returns(td[rows]))
+            observations.append(td.get("observation")[rows])
             action = policy(td.clone())["action"]
             chosen.append(action[rows])
             stepped = env.step(td.set("action", action))
             rewards.append(stepped.get(("next", "reward")).reshape(-1)[rows])
             live &= ~stepped.get(("next", "done")).reshape(-1)
             td = step_mdp(stepped)
-    return {"scores": torch.cat(scores), "action": torch.cat(chosen), "reward": torch.cat(rewards)}
+    return {
+        "scores": torch.cat(scores),
+        "action": torch.cat(chosen),
+        "reward": torch.cat(rewards),
+        "observation": torch.cat(observations),
+    }
 
 
 def label_stats(scores: torch.Tensor, action: torch.Tensor) -> dict[str, float]:

@@ -38,3 +38,15 @@ def test_one_step_scores_are_the_rewards_the_driven_episodes_get():
     played = data["scores"][:, 4]
     assert torch.allclose(played, data["reward"].double(), atol=1e-6)
     assert not torch.allclose(data["scores"][:, 3], played)  # FASTER scores otherwise
+
+
+def test_regret_loss_by_hand():
+    from search_fit import regret_loss
+
+    logits = torch.zeros(1, 5, requires_grad=True)  # uniform
+    scores = torch.tensor([[1.0, 0.0, 0.0, 0.0, 1.0]])  # two tied best actions
+    loss = regret_loss(logits, scores, logits.detach(), beta=0.5)
+    assert torch.isclose(loss, torch.tensor(0.6))  # 3 of 5 actions lose 1; KL to itself 0
+    loss.backward()
+    grad = logits.grad[0]
+    assert grad[0] == grad[4] < 0 < grad[1] == grad[2] == grad[3]  # the ties alike

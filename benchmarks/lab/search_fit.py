@@ -1,0 +1,130 @@
+"""Expert iteration from the lookahead planner: a network fits its own search, round by round.
+
+    python benchmarks/lab/search_fit.py --checkpoint runs/<name>/last.pt --out runs/search_fit \\
+        [--rounds 3] [--episodes 200] [--horizon 8] [--eval-episodes 1000]
+
+Round k: the network drives ``--episodes`` episodes greedily on the tensor simulator
+(highway-env's starts of seeds ``40000 + k * episodes ...``, disjoint between rounds),
+and the planner over the same network scores every action at each state it visits
+(``search_labels.visit``, what ``evaluate.py search_horizon=H`` plays). The states join
+the data of the earlier rounds (DAgger's aggregation), and the network minimises, over
+all of them, its expected regret under the planner's scores,
+
+    sum_a pi(a | s) * (max_b Q(s, b) - Q(s, a))  +  beta * KL(pi_k(. | s) || pi(. | s)),
+
+with ``pi_k`` the round's starting network. Unlike hard argmax labels, tied actions
+cost nothing (no index bias), and a state pulls in proportion to what the network's
+choice loses there: the crash-scale corrections weigh more than the many small ones
+(``search_labels.py`` measures both). After each round the network is evaluated
+greedily over ``--eval-episodes`` tensor-simulator episodes from highway-env's starts
+of seeds 60000.. (used for nothing else) and saved as ``<out>/round_<k>.pt``, a
+checkpoint ``scripts/evaluate.py`` reads. Frames: the planner's branch steps and the
+driven steps, counted as training counts them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import warnings
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+from search_labels import visit
+from tensordict import TensorDict
+
+from torchrl_grpo.modules.actors import DeterministicActor
+from torchrl_grpo.training import make_env
+from torchrl_grpo.training.checkpoint import load_checkpoint, save_checkpoint
+from torchrl_grpo.training.pretrained import load_run_policy
+from torchrl_grpo.training.transfer import evaluate_on_tensor
+
+warnings.filterwarnings("ignore")
+
+
+def regret_loss(
+    logits: torch.Tensor, scores: torch.Tensor, start_logits: torch.Tensor, beta: float
+) -> torch.Tensor:
+    """Mean expected regret under the scores, plus ``beta`` times the KL to the start."""
+    regret = (scores.max(-1, keepdim=True).values - scores).to(logits.dtype)
+    log_p = logits.log_softmax(-1)
+    expected = (log_p.exp() * regret).sum(-1)
+    start = start_logits.log_softmax(-1)
+    kl = (start.exp() * (start - log_p)).sum(-1)
+    return (expected + beta * kl).mean()
+
+
+def fit(policy, data: dict[str, torch.Tensor], epochs: int, lr: float, beta: float) -> float:
+    """Minimise :func:`regret_loss` over ``data``; the last epoch's mean loss."""
+    obs, scores = data["observation"], data["scores"]
+    with torch.no_grad():
+        start = logits_of(policy, obs)
+    optim = torch.optim.Adam(policy.parameters(), lr=lr)
+    n, last = obs.shape[0], 0.0
+    for _ in range(epochs):
+        total = 0.0
+        for idx in torch.randperm(n).split(1024):
+            loss = regret_loss(logits_of(policy, obs[idx]), scores[idx], start[idx], beta)
+            optim.zero_grad()
+            loss.backward()
+            optim.step()
+            total += float(loss) * len(idx)
+        last = total / n
+    return last
+
+
+def logits_of(policy, obs: torch.Tensor) -> torch.Tensor:
+    return policy(TensorDict(observation=obs, batch_size=[obs.shape[0]]))["logits"]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--checkpoint", required=True)
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--episodes", type=int, default=200)
+    parser.add_argument("--horizon", type=int, default=8)
+    parser.add_argument("--eval-episodes", type=int, default=1000)
+    parser.add_argument("--epochs", type=int, default=4)
+    parser.add_argument("--lr", type=float, default=1e-4)
+    parser.add_argument("--beta", type=float, default=0.05)
+    args = parser.parse_args()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt = load_checkpoint(args.checkpoint)
+    env_cfg = OmegaConf.create(ckpt["config"])["env"]
+    policy = load_run_policy(args.checkpoint, env_cfg, make_env(env_cfg, seed=0))
+    greedy = DeterministicActor(policy)
+
+    def evaluate(label: str) -> dict:
+        res = evaluate_on_tensor(env_cfg, greedy, episodes=args.eval_episodes, seed=60_000)
+        summary = res.summary()
+        row = {"round": label, "return": summary["return"], "crash_rate": summary["crash_rate"]}
+        print(json.dumps(row), flush=True)
+        return row
+
+    history = [evaluate("start")]
+    data: dict[str, list[torch.Tensor]] = {"observation": [], "scores": []}
+    frames = 0
+    for k in range(args.rounds):
+        seeds = list(range(40_000 + k * args.episodes, 40_000 + (k + 1) * args.episodes))
+        visited = visit(greedy, str(env_cfg.scenario), seeds, args.horizon, 40)
+        m = visited["scores"].shape[0]
+        frames += m * (1 + 5 * args.horizon)  # driven steps, and at most 5 x H per state
+        for key in data:
+            data[key].append(visited[key])
+        merged = {key: torch.cat(value) for key, value in data.items()}
+        loss = fit(policy, merged, args.epochs, args.lr, args.beta)
+        row = evaluate(str(k + 1))
+        row.update(states=int(merged["scores"].shape[0]), loss=loss, frames_at_most=frames)
+        history.append(row)
+        saved = copy.copy(ckpt)
+        saved["policy"] = policy.state_dict()
+        save_checkpoint(saved, out / f"round_{k + 1}.pt")
+    (out / "history.json").write_text(json.dumps(history, indent=1))
+
+
+if __name__ == "__main__":
+    main()
