@@ -223,18 +223,6 @@ def test_the_trunk_schedule_names_an_empty_step_range():
         trunk_schedule(rollout, 30)
 
 
-def test_a_prior_policy_is_typed_and_its_weight_positive():
-    cfg = compose_config([*LAB_RUN, "model.prior=rule", "model.prior_weight=3"])
-    check_config(cfg)
-    assert cfg.model.prior == "rule" and cfg.model.prior_weight == 3.0
-    with pytest.raises(ConfigCompositionException) as info:
-        compose_config([*LAB_RUN, "model.prior=rules"])
-    assert "prior" in str(info.value.__cause__)
-    cfg.model.prior_weight = 0.0
-    with pytest.raises(ValueError, match="model.prior_weight must be > 0, got 0.0"):
-        check_config(cfg)
-
-
 def test_a_null_sync_keeps_the_reference_frozen():
     from torchrl_grpo.envs import HighwayEnv
     from torchrl_grpo.training.loss_builder import make_loss, make_reference_sync
@@ -320,6 +308,7 @@ def test_the_choices_are_the_librarys_literals():
     from torchrl_grpo.objectives.kl import KLEstimator
     from torchrl_grpo.training import choices as config
     from torchrl_grpo.training.algos.grpo_config import TailPolicyName
+    from torchrl_grpo.training.model_builder import BasePolicyName
 
     for enum, literal in [
         (config.RootKindName, RootKind),
@@ -332,9 +321,9 @@ def test_the_choices_are_the_librarys_literals():
         assert [member.value for member in enum] == list(get_args(literal)), enum.__name__
     assert [m.value for m in config.Backend] == [*get_args(BranchBackend), "ray"]
     assert [m.value for m in config.ModelKind] == [*get_args(NetworkKind), "scene", "neighbours"]
-    # The scripted base policies a prior or a greedy tail may name exist.
-    assert {m.value for m in config.PriorName} < set(SCRIPTED_POLICIES)
-    assert {m.value for m in TailPolicyName} == {"learner"} | {m.value for m in config.PriorName}
+    # The scripted base policies a greedy tail may name exist.
+    assert set(get_args(BasePolicyName)) < set(SCRIPTED_POLICIES)
+    assert {m.value for m in TailPolicyName} == {"learner", *get_args(BasePolicyName)}
 
 
 def test_no_overrides_run_the_recommended_recipe():

@@ -9,5 +9,6 @@ model=lab algo.roots=continue`` runs. ``docs/lab/`` holds what was measured with
 """
 
 from torchrl_grpo.experimental.grpo_lab import GRPOLab, GRPOLabConfig
+from torchrl_grpo.experimental.prior import PriorLogits
 
-__all__ = ["GRPOLab", "GRPOLabConfig"]
+__all__ = ["GRPOLab", "GRPOLabConfig", "PriorLogits"]

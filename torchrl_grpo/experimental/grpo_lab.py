@@ -21,8 +21,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from omegaconf import MISSING
+from omegaconf import MISSING, DictConfig, OmegaConf
 
+from torchrl_grpo.experimental.prior import PriorName, check_prior
 from torchrl_grpo.training.algos.enumerated import (
     ActionWeightsName,
     GroupFitLossName,
@@ -38,7 +39,6 @@ from torchrl_grpo.training.choices import (
     CrashLabelName,
     FirstActionName,
     KLEstimatorName,
-    PriorName,
     ReturnsName,
     RootKindName,
     ScaleRewards,
@@ -136,6 +136,13 @@ class GRPOLab(GRPO):
     def fixed_settings(cls, name: str) -> dict[str, dict[str, Any]]:
         """None: the lab's schemas have every setting."""
         return {}
+
+    @classmethod
+    def check_config(cls, cfg: DictConfig) -> None:
+        """GRPO's checks, and ``model=lab``'s prior."""
+        super().check_config(cfg)
+        if "model" in cfg and not OmegaConf.is_missing(cfg, "model"):
+            check_prior(cfg.model)
 
     @classmethod
     def model_schema(cls, kind: str) -> type[ModelConfig]:
