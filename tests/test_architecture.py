@@ -146,6 +146,11 @@ def test_no_module_basename_names_two_things():
 MOVED_TO_EXPERIMENTAL = {
     "PriorLogits": "torchrl_grpo.experimental.prior",
     "PriorName": "torchrl_grpo.experimental.prior",
+    "GroupDistillLoss": "torchrl_grpo.experimental.group_distill",
+    "group_softmax_target": "torchrl_grpo.experimental.group_distill",
+    "group_spread": "torchrl_grpo.experimental.group_distill",
+    "GroupFitLossName": "torchrl_grpo.experimental.group_distill",
+    "GroupFitWeightingName": "torchrl_grpo.experimental.group_distill",
 }
 
 

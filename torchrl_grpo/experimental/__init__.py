@@ -8,7 +8,8 @@ ensembles, the cross-entropy group fit, ...). ``scripts/train.py`` and
 model=lab algo.roots=continue`` runs. ``docs/lab/`` holds what was measured with it.
 """
 
+from torchrl_grpo.experimental.group_distill import GroupDistillLoss
 from torchrl_grpo.experimental.grpo_lab import GRPOLab, GRPOLabConfig
 from torchrl_grpo.experimental.prior import PriorLogits
 
-__all__ = ["GRPOLab", "GRPOLabConfig", "PriorLogits"]
+__all__ = ["GRPOLab", "GRPOLabConfig", "GroupDistillLoss", "PriorLogits"]

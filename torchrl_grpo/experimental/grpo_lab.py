@@ -23,12 +23,9 @@ from typing import Any, Literal
 
 from omegaconf import MISSING, DictConfig, OmegaConf
 
+from torchrl_grpo.experimental.group_distill import GroupFitLossName, GroupFitWeightingName
 from torchrl_grpo.experimental.prior import PriorName, check_prior
-from torchrl_grpo.training.algos.enumerated import (
-    ActionWeightsName,
-    GroupFitLossName,
-    GroupFitWeightingName,
-)
+from torchrl_grpo.training.algos.enumerated import ActionWeightsName
 from torchrl_grpo.training.algos.grpo import GRPO
 from torchrl_grpo.training.algos.grpo_config import GRPOConfig, TrunkPolicyName
 from torchrl_grpo.training.algos.registry import register_algorithm
