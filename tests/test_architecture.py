@@ -151,6 +151,8 @@ MOVED_TO_EXPERIMENTAL = {
     "group_spread": "torchrl_grpo.experimental.group_distill",
     "GroupFitLossName": "torchrl_grpo.experimental.group_distill",
     "GroupFitWeightingName": "torchrl_grpo.experimental.group_distill",
+    "lagging_copy": "torchrl_grpo.experimental.lagging_tail",
+    "check_tail_sync": "torchrl_grpo.experimental.lagging_tail",
 }
 
 

@@ -158,15 +158,12 @@ def test_learner_steps_need_a_scripted_tail():
         check_config(cfg)
 
 
-def test_a_scripted_tail_needs_greedy_tail_branches_and_no_tail_sync():
+def test_a_scripted_tail_needs_greedy_tail_branches():
     cfg = OmegaConf.structured(Config(algo=LAB(tail_policy="slower")))
     with pytest.raises(ValueError, match="algo.tail_policy=slower.*algo.explore_steps"):
         check_config(cfg)
     cfg.algo.explore_steps = 1
     check_config(cfg)
-    cfg.algo.tail_sync_batches = 2
-    with pytest.raises(ValueError, match="algo.tail_sync_batches null"):
-        check_config(cfg)
     with pytest.raises(ValidationError, match="tail_policy"):
         cfg.algo.tail_policy = "slowr"
     on_ray = OmegaConf.structured(

@@ -22,8 +22,12 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from omegaconf import MISSING, DictConfig, OmegaConf
+from torch import nn
+from torchrl.envs import EnvBase
+from torchrl.modules import ProbabilisticActor
 
 from torchrl_grpo.experimental.group_distill import GroupFitLossName, GroupFitWeightingName
+from torchrl_grpo.experimental.lagging_tail import check_tail_sync, lagging_copy
 from torchrl_grpo.experimental.prior import PriorName, check_prior
 from torchrl_grpo.training.algos.enumerated import ActionWeightsName
 from torchrl_grpo.training.algos.grpo import GRPO
@@ -136,10 +140,27 @@ class GRPOLab(GRPO):
 
     @classmethod
     def check_config(cls, cfg: DictConfig) -> None:
-        """GRPO's checks, and ``model=lab``'s prior."""
+        """The lagging tail's checks, GRPO's, and ``model=lab``'s prior."""
+        check_tail_sync(cfg.algo)
         super().check_config(cfg)
         if "model" in cfg and not OmegaConf.is_missing(cfg, "model"):
             check_prior(cfg.model)
+
+    @classmethod
+    def make_tail_policy(
+        cls, algo_cfg: DictConfig, policy: ProbabilisticActor, env: EnvBase
+    ) -> nn.Module | None:
+        """GRPO's, or with ``algo.tail_sync_batches`` a lagging copy of the policy."""
+        if str(algo_cfg.tail_policy) == "learner" and algo_cfg.tail_sync_batches is not None:
+            return lagging_copy(policy)
+        return super().make_tail_policy(algo_cfg, policy, env)
+
+    def after_batch(self, iteration: int) -> None:
+        """Copy the policy into the lagging tail policy every ``algo.tail_sync_batches``."""
+        super().after_batch(iteration)
+        sync = self.cfg.algo.tail_sync_batches
+        if self.tail_policy is not None and sync is not None and iteration % int(sync) == 0:
+            self.tail_policy.load_state_dict(self.policy.state_dict())
 
     @classmethod
     def model_schema(cls, kind: str) -> type[ModelConfig]:

@@ -64,11 +64,12 @@ def make_collector(
     The collector runs without a frame budget: the trainer stops it, counting trunk
     steps too. With ``rollout=ray`` the envs are built in the Ray actors:
     pass ``env=None`` (a given env is closed). ``tail_policy`` is the actor greedy
-    tails follow: a lagging copy of ``policy`` (``algo.tail_sync_batches``; greedy
-    trunks follow it too) or a scripted base policy (``algo.tail_policy``; trunks follow
-    ``policy``). Default: ``policy``. ``trunk_stagger`` spreads live trunks' first
-    episodes over that many steps (:class:`~torchrl_grpo.branching.roots.TrunkRoots`'
-    ``stagger``; ``rollout.stagger_trunks``); ``trunk_max_steps`` ends trunks at that
+    tails follow: a scripted base policy (``algo.tail_policy``; trunks follow
+    ``policy``), or a lagging copy of ``policy`` (greedy trunks follow it too; the
+    experimental ``algo.tail_sync_batches``). Default: ``policy``. ``trunk_stagger``
+    spreads live trunks' first episodes over that many steps
+    (:class:`~torchrl_grpo.branching.roots.TrunkRoots`' ``stagger``;
+    ``rollout.stagger_trunks``); ``trunk_max_steps`` ends trunks at that
     episode step (``rollout.full_horizon_roots``), and ``trunk_min_steps`` starts their
     decision points at that step (``rollout.first_root_step``).
 

@@ -31,18 +31,11 @@ def check_grpo_config(cfg: DictConfig) -> None:
     if algo.group_size < 2:
         raise ValueError(f"algo.group_size must be >= 2, got {algo.group_size}")
     explore = algo.explore_steps
-    tail_sync = algo.tail_sync_batches
-    if tail_sync is not None and (tail_sync < 1 or explore is None):
-        raise ValueError(
-            f"algo.tail_sync_batches={tail_sync}: must be >= 1, and applies to "
-            "greedy-tail branches only (set algo.explore_steps too)"
-        )
     tail_policy = str(algo.tail_policy)
-    if tail_policy != "learner" and (explore is None or tail_sync is not None):
+    if tail_policy != "learner" and explore is None:
         raise ValueError(
             f"algo.tail_policy={tail_policy} is the base policy of greedy-tail "
-            "branches: set algo.explore_steps too (e.g. 1), and leave "
-            "algo.tail_sync_batches null (it refreshes a learner's copy)"
+            "branches: set algo.explore_steps too (e.g. 1)"
         )
     learner_steps = algo.get("tail_learner_steps", 0)
     if learner_steps < 0 or (learner_steps > 0 and tail_policy == "learner"):
