@@ -153,6 +153,8 @@ MOVED_TO_EXPERIMENTAL = {
     "GroupFitWeightingName": "torchrl_grpo.experimental.group_distill",
     "lagging_copy": "torchrl_grpo.experimental.lagging_tail",
     "check_tail_sync": "torchrl_grpo.experimental.lagging_tail",
+    "TrunkPolicyName": "torchrl_grpo.experimental.trunk_clock",
+    "check_trunk_bounds": "torchrl_grpo.experimental.trunk_clock",
 }
 
 

@@ -198,26 +198,6 @@ def test_staggered_trunks_need_live_trunks():
         check_config(cfg)
     cfg.rollout.live_trunks = True
     check_config(cfg)
-    cfg = OmegaConf.structured(
-        Config(algo=LAB(roots="reset"), rollout=GRPOLabRolloutConfig(first_root_step=2))
-    )
-    with pytest.raises(ValueError, match="rollout.first_root_step.*needs algo.roots=trunk"):
-        check_config(cfg)
-
-
-def test_the_trunk_schedule_names_an_empty_step_range():
-    from torchrl_grpo.training.collect import trunk_schedule
-
-    rollout = OmegaConf.structured(GRPOLabRolloutConfig(horizon=8, full_horizon_roots=True))
-    assert trunk_schedule(rollout, 30) == (0, 0, 23)
-    rollout.stagger_trunks, rollout.first_root_step = True, 22
-    assert trunk_schedule(rollout, 30) == (1, 22, 23)
-    rollout.first_root_step = 23
-    with pytest.raises(ValueError, match="rollout.first_root_step=23 leaves no decision point"):
-        trunk_schedule(rollout, 30)
-    rollout.first_root_step, rollout.horizon = 0, 31
-    with pytest.raises(ValueError, match="rollout.horizon=31"):
-        trunk_schedule(rollout, 30)
 
 
 def test_a_null_sync_keeps_the_reference_frozen():

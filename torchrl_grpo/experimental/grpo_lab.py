@@ -24,14 +24,21 @@ from typing import Any, Literal
 from omegaconf import MISSING, DictConfig, OmegaConf
 from torch import nn
 from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType
 from torchrl.modules import ProbabilisticActor
 
 from torchrl_grpo.experimental.group_distill import GroupFitLossName, GroupFitWeightingName
 from torchrl_grpo.experimental.lagging_tail import check_tail_sync, lagging_copy
 from torchrl_grpo.experimental.prior import PriorName, check_prior
+from torchrl_grpo.experimental.trunk_clock import (
+    TrunkPolicyName,
+    check_trunk_bounds,
+    trunk_exploration,
+    trunk_schedule,
+)
 from torchrl_grpo.training.algos.enumerated import ActionWeightsName
 from torchrl_grpo.training.algos.grpo import GRPO
-from torchrl_grpo.training.algos.grpo_config import GRPOConfig, TrunkPolicyName
+from torchrl_grpo.training.algos.grpo_config import GRPOConfig
 from torchrl_grpo.training.algos.registry import register_algorithm
 from torchrl_grpo.training.choices import (
     AggregationName,
@@ -140,9 +147,10 @@ class GRPOLab(GRPO):
 
     @classmethod
     def check_config(cls, cfg: DictConfig) -> None:
-        """The lagging tail's checks, GRPO's, and ``model=lab``'s prior."""
+        """The lagging tail's checks, GRPO's, the trunks' bounds', and the prior's."""
         check_tail_sync(cfg.algo)
         super().check_config(cfg)
+        check_trunk_bounds(cfg.algo, cfg.get("rollout"))
         if "model" in cfg and not OmegaConf.is_missing(cfg, "model"):
             check_prior(cfg.model)
 
@@ -154,6 +162,16 @@ class GRPOLab(GRPO):
         if str(algo_cfg.tail_policy) == "learner" and algo_cfg.tail_sync_batches is not None:
             return lagging_copy(policy)
         return super().make_tail_policy(algo_cfg, policy, env)
+
+    @classmethod
+    def trunk_schedule(cls, rollout: DictConfig, step_limit: int) -> tuple[int, int, int | None]:
+        """The trunks' schedule with ``rollout.first_root_step`` and ``full_horizon_roots``."""
+        return trunk_schedule(rollout, step_limit)
+
+    @classmethod
+    def trunk_exploration(cls, algo_cfg: DictConfig) -> ExplorationType:
+        """How the policy acts on trunks: ``algo.trunk``."""
+        return trunk_exploration(algo_cfg)
 
     def after_batch(self, iteration: int) -> None:
         """Copy the policy into the lagging tail policy every ``algo.tail_sync_batches``."""

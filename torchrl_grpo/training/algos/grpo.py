@@ -15,6 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from torchrl.collectors import BaseCollector
 from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType
 from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import LossModule
 
@@ -187,7 +188,8 @@ class GRPO(Algorithm):
             env = make_rollout_env(
                 cfg.env, cfg.rollout, snapshots=True, device=cfg.device, seed=seed
             )
-        stagger, min_steps, max_steps = trunk_schedule(cfg.rollout, self.bootstrap.step_limit)
+        schedule = self.trunk_schedule(cfg.rollout, self.bootstrap.step_limit)
+        stagger, min_steps, max_steps = schedule
         return make_collector(
             cfg,
             env,
@@ -197,7 +199,18 @@ class GRPO(Algorithm):
             trunk_stagger=stagger,
             trunk_max_steps=max_steps,
             trunk_min_steps=min_steps,
+            trunk_exploration=self.trunk_exploration(cfg.algo),
         )
+
+    @classmethod
+    def trunk_schedule(cls, rollout: DictConfig, step_limit: int) -> tuple[int, int, int | None]:
+        """Where trunks have decision points (``training.collect.trunk_schedule``)."""
+        return trunk_schedule(rollout, step_limit)
+
+    @classmethod
+    def trunk_exploration(cls, algo_cfg: DictConfig) -> ExplorationType:
+        """How the policy acts on trunks: it samples."""
+        return ExplorationType.RANDOM
 
     def batch_metrics(self, batch: TensorDictBase) -> dict[str, float]:
         """Statistics of a ``[R, G, T]`` batch of branch groups."""

@@ -44,11 +44,9 @@ def check_grpo_config(cfg: DictConfig) -> None:
             "scripted algo.tail_policy (e.g. rule), which takes over after those steps"
         )
     rollout = cfg.get("rollout")
-    trunk_keys = ("stagger_trunks", "full_horizon_roots", "first_root_step")
-    set_keys = [k for k in trunk_keys if rollout is not None and rollout.get(k)]
-    if set_keys and str(algo.roots) != "trunk":
+    if rollout is not None and rollout.get("stagger_trunks") and str(algo.roots) != "trunk":
         raise ValueError(
-            f"rollout.{set_keys[0]} places decision points along trunks: it needs "
+            "rollout.stagger_trunks places decision points along trunks: it needs "
             f"algo.roots=trunk, got algo.roots={algo.roots}"
         )
     on_ray = collects_on_ray(rollout)
