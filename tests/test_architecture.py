@@ -139,3 +139,62 @@ def test_no_module_basename_names_two_things():
             seen.setdefault(path.name, []).append(str(path.relative_to(PACKAGE)))
     repeated = {name: paths for name, paths in seen.items() if len(paths) > 1}
     assert not repeated, repeated
+
+
+#: What moved out of the core into ``torchrl_grpo.experimental`` (issue #40): the name,
+#: the experimental module that defines it. No core module may define, import or name it.
+MOVED_TO_EXPERIMENTAL = {
+    "PriorLogits": "torchrl_grpo.experimental.prior",
+    "PriorName": "torchrl_grpo.experimental.prior",
+    "GroupDistillLoss": "torchrl_grpo.experimental.group_distill",
+    "group_softmax_target": "torchrl_grpo.experimental.group_distill",
+    "group_spread": "torchrl_grpo.experimental.group_distill",
+    "GroupFitLossName": "torchrl_grpo.experimental.group_distill",
+    "GroupFitWeightingName": "torchrl_grpo.experimental.group_distill",
+    "lagging_copy": "torchrl_grpo.experimental.lagging_tail",
+    "check_tail_sync": "torchrl_grpo.experimental.lagging_tail",
+    "TrunkPolicyName": "torchrl_grpo.experimental.trunk_clock",
+    "check_trunk_bounds": "torchrl_grpo.experimental.trunk_clock",
+}
+
+
+def _defined_names(path: Path) -> set[str]:
+    out = set()
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, (ast.ClassDef, ast.FunctionDef)):
+            out.add(node.name)
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            out |= {t.id for t in targets if isinstance(t, ast.Name)}
+    return out
+
+
+def test_the_moved_variants_live_in_experimental_only():
+    found = modules()
+    strays = []
+    for name, module in MOVED_TO_EXPERIMENTAL.items():
+        assert name in _defined_names(found[module]), f"{module} defines {name}"
+        for source, path in found.items():
+            if subpackage(source) == "experimental":
+                continue
+            tree = ast.parse(path.read_text())
+            names = {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)}
+            imported = [n for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
+            names |= {alias.name for node in imported for alias in node.names}
+            if name in names | _defined_names(path):
+                strays.append(f"{source}: {name}")
+    assert not strays, "moved to experimental, still in the core:\n" + "\n".join(strays)
+
+
+def test_the_core_never_imports_experimental():
+    # Stated on its own, though test_imports_only_go_down implies it: a lazy import of a
+    # research variant from the core is the cross-cutting branch issue #40 took out.
+    edges = graph()
+    strays = [
+        f"{source} -> {target}"
+        for source, targets in edges.items()
+        if subpackage(source) != "experimental"
+        for target in targets
+        if subpackage(target) == "experimental"
+    ]
+    assert not strays, strays

@@ -65,20 +65,6 @@ def test_the_minimum_is_the_softmax_of_the_advantages_over_the_temperature():
     torch.testing.assert_close(probs, torch.softmax(advantage / 0.5, -1), atol=1e-4, rtol=0)
 
 
-def test_spread_weights_count_each_root_by_its_spread():
-    table = torch.nn.Parameter(torch.randn(3, 5))
-    advantage = torch.tensor(
-        [[-8.0, 2.0, 2.0, 2.0, 2.0], [-0.5, 0.5, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 0.0]]
-    )
-    data = distill_targets(_groups(advantage), 1.0, "spread", "regression")
-    out = AdvantageRegressionLoss(_tabular_actor(table), coeff=1.0, temperature=1.0)(data)
-    centred = table.detach() - table.detach().mean(-1, keepdim=True)
-    per_root = (centred - advantage).pow(2).sum(-1)
-    # Spreads 10, 1 and 0 (a tie teaches nothing); each root's 5 rows carry its spread.
-    expected = (10 * per_root[0] + 1 * per_root[1]) / (5 * 11)
-    torch.testing.assert_close(out["distill_squared_error"], expected)
-
-
 def test_the_targets_are_the_advantages_before_the_surrogates_reweighting():
     data = distill_targets(_groups(torch.tensor([[1.0, -1.0]])), 1.0, "uniform", "regression")
     data.set("advantage", data.get("advantage") * 3)  # what algo.action_weights=policy does

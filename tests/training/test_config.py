@@ -158,15 +158,12 @@ def test_learner_steps_need_a_scripted_tail():
         check_config(cfg)
 
 
-def test_a_scripted_tail_needs_greedy_tail_branches_and_no_tail_sync():
+def test_a_scripted_tail_needs_greedy_tail_branches():
     cfg = OmegaConf.structured(Config(algo=LAB(tail_policy="slower")))
     with pytest.raises(ValueError, match="algo.tail_policy=slower.*algo.explore_steps"):
         check_config(cfg)
     cfg.algo.explore_steps = 1
     check_config(cfg)
-    cfg.algo.tail_sync_batches = 2
-    with pytest.raises(ValueError, match="algo.tail_sync_batches null"):
-        check_config(cfg)
     with pytest.raises(ValidationError, match="tail_policy"):
         cfg.algo.tail_policy = "slowr"
     on_ray = OmegaConf.structured(
@@ -201,38 +198,6 @@ def test_staggered_trunks_need_live_trunks():
         check_config(cfg)
     cfg.rollout.live_trunks = True
     check_config(cfg)
-    cfg = OmegaConf.structured(
-        Config(algo=LAB(roots="reset"), rollout=GRPOLabRolloutConfig(first_root_step=2))
-    )
-    with pytest.raises(ValueError, match="rollout.first_root_step.*needs algo.roots=trunk"):
-        check_config(cfg)
-
-
-def test_the_trunk_schedule_names_an_empty_step_range():
-    from torchrl_grpo.training.collect import trunk_schedule
-
-    rollout = OmegaConf.structured(GRPOLabRolloutConfig(horizon=8, full_horizon_roots=True))
-    assert trunk_schedule(rollout, 30) == (0, 0, 23)
-    rollout.stagger_trunks, rollout.first_root_step = True, 22
-    assert trunk_schedule(rollout, 30) == (1, 22, 23)
-    rollout.first_root_step = 23
-    with pytest.raises(ValueError, match="rollout.first_root_step=23 leaves no decision point"):
-        trunk_schedule(rollout, 30)
-    rollout.first_root_step, rollout.horizon = 0, 31
-    with pytest.raises(ValueError, match="rollout.horizon=31"):
-        trunk_schedule(rollout, 30)
-
-
-def test_a_prior_policy_is_typed_and_its_weight_positive():
-    cfg = compose_config([*LAB_RUN, "model.prior=rule", "model.prior_weight=3"])
-    check_config(cfg)
-    assert cfg.model.prior == "rule" and cfg.model.prior_weight == 3.0
-    with pytest.raises(ConfigCompositionException) as info:
-        compose_config([*LAB_RUN, "model.prior=rules"])
-    assert "prior" in str(info.value.__cause__)
-    cfg.model.prior_weight = 0.0
-    with pytest.raises(ValueError, match="model.prior_weight must be > 0, got 0.0"):
-        check_config(cfg)
 
 
 def test_a_null_sync_keeps_the_reference_frozen():
@@ -320,6 +285,7 @@ def test_the_choices_are_the_librarys_literals():
     from torchrl_grpo.objectives.kl import KLEstimator
     from torchrl_grpo.training import choices as config
     from torchrl_grpo.training.algos.grpo_config import TailPolicyName
+    from torchrl_grpo.training.model_builder import BasePolicyName
 
     for enum, literal in [
         (config.RootKindName, RootKind),
@@ -332,9 +298,9 @@ def test_the_choices_are_the_librarys_literals():
         assert [member.value for member in enum] == list(get_args(literal)), enum.__name__
     assert [m.value for m in config.Backend] == [*get_args(BranchBackend), "ray"]
     assert [m.value for m in config.ModelKind] == [*get_args(NetworkKind), "scene", "neighbours"]
-    # The scripted base policies a prior or a greedy tail may name exist.
-    assert {m.value for m in config.PriorName} < set(SCRIPTED_POLICIES)
-    assert {m.value for m in TailPolicyName} == {"learner"} | {m.value for m in config.PriorName}
+    # The scripted base policies a greedy tail may name exist.
+    assert set(get_args(BasePolicyName)) < set(SCRIPTED_POLICIES)
+    assert {m.value for m in TailPolicyName} == {"learner", *get_args(BasePolicyName)}
 
 
 def test_no_overrides_run_the_recommended_recipe():

@@ -112,36 +112,6 @@ def test_resume_continues_exactly(tmp_path, algo, extra, first, total):
     assert any(not torch.equal(a[k], c[k]) for k in a)
 
 
-def test_resume_restores_the_lagging_tail_policy(tmp_path):
-    common = [
-        *LAB,
-        "algo.group_size=5",
-        "rollout.horizon=2",
-        "algo.explore_steps=1",
-        "algo.first_action=enumerate",
-        "algo.trunk=greedy",
-        "algo.tail_sync_batches=2",
-        "algo.tail_policy=learner",
-        "algo.tail_learner_steps=0",
-        "algo.replay_groups=null",
-    ]
-    stopped = train_run(tmp_path, "stopped", [*common, "experiment.total_frames=70"])
-    assert stopped.iteration == 3
-    tail, policy = stopped.algo.tail_policy.state_dict(), stopped.policy.state_dict()
-    assert any(not torch.equal(tail[k], policy[k]) for k in tail)  # it lags one batch
-    cfg = compose_config(
-        [
-            *TINY,
-            *common,
-            "experiment.total_frames=130",
-            f"resume={tmp_path / 'stopped' / 'last.pt'}",
-        ]
-    )
-    resumed = Trainer(cfg, run_dir=tmp_path / "resumed").algo.tail_policy.state_dict()
-    for key, value in tail.items():
-        assert torch.equal(resumed[key], value), key
-
-
 def test_a_scripted_tail_scores_every_first_action_from_the_learners_trunks(tmp_path):
     overrides = [
         *LAB,

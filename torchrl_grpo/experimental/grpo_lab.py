@@ -21,15 +21,24 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from omegaconf import MISSING
+from omegaconf import MISSING, DictConfig, OmegaConf
+from torch import nn
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType
+from torchrl.modules import ProbabilisticActor
 
-from torchrl_grpo.training.algos.enumerated import (
-    ActionWeightsName,
-    GroupFitLossName,
-    GroupFitWeightingName,
+from torchrl_grpo.experimental.group_distill import GroupFitLossName, GroupFitWeightingName
+from torchrl_grpo.experimental.lagging_tail import check_tail_sync, lagging_copy
+from torchrl_grpo.experimental.prior import PriorName, check_prior
+from torchrl_grpo.experimental.trunk_clock import (
+    TrunkPolicyName,
+    check_trunk_bounds,
+    trunk_exploration,
+    trunk_schedule,
 )
+from torchrl_grpo.training.algos.enumerated import ActionWeightsName
 from torchrl_grpo.training.algos.grpo import GRPO
-from torchrl_grpo.training.algos.grpo_config import GRPOConfig, TrunkPolicyName
+from torchrl_grpo.training.algos.grpo_config import GRPOConfig
 from torchrl_grpo.training.algos.registry import register_algorithm
 from torchrl_grpo.training.choices import (
     AggregationName,
@@ -38,7 +47,6 @@ from torchrl_grpo.training.choices import (
     CrashLabelName,
     FirstActionName,
     KLEstimatorName,
-    PriorName,
     ReturnsName,
     RootKindName,
     ScaleRewards,
@@ -136,6 +144,41 @@ class GRPOLab(GRPO):
     def fixed_settings(cls, name: str) -> dict[str, dict[str, Any]]:
         """None: the lab's schemas have every setting."""
         return {}
+
+    @classmethod
+    def check_config(cls, cfg: DictConfig) -> None:
+        """The lagging tail's checks, GRPO's, the trunks' bounds', and the prior's."""
+        check_tail_sync(cfg.algo)
+        super().check_config(cfg)
+        check_trunk_bounds(cfg.algo, cfg.get("rollout"))
+        if "model" in cfg and not OmegaConf.is_missing(cfg, "model"):
+            check_prior(cfg.model)
+
+    @classmethod
+    def make_tail_policy(
+        cls, algo_cfg: DictConfig, policy: ProbabilisticActor, env: EnvBase
+    ) -> nn.Module | None:
+        """GRPO's, or with ``algo.tail_sync_batches`` a lagging copy of the policy."""
+        if str(algo_cfg.tail_policy) == "learner" and algo_cfg.tail_sync_batches is not None:
+            return lagging_copy(policy)
+        return super().make_tail_policy(algo_cfg, policy, env)
+
+    @classmethod
+    def trunk_schedule(cls, rollout: DictConfig, step_limit: int) -> tuple[int, int, int | None]:
+        """The trunks' schedule with ``rollout.first_root_step`` and ``full_horizon_roots``."""
+        return trunk_schedule(rollout, step_limit)
+
+    @classmethod
+    def trunk_exploration(cls, algo_cfg: DictConfig) -> ExplorationType:
+        """How the policy acts on trunks: ``algo.trunk``."""
+        return trunk_exploration(algo_cfg)
+
+    def after_batch(self, iteration: int) -> None:
+        """Copy the policy into the lagging tail policy every ``algo.tail_sync_batches``."""
+        super().after_batch(iteration)
+        sync = self.cfg.algo.tail_sync_batches
+        if self.tail_policy is not None and sync is not None and iteration % int(sync) == 0:
+            self.tail_policy.load_state_dict(self.policy.state_dict())
 
     @classmethod
     def model_schema(cls, kind: str) -> type[ModelConfig]:

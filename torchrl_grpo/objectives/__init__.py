@@ -4,8 +4,7 @@ Also the regression of enumerated groups' action comparisons
 (``AdvantageRegressionLoss``), the loss of a crash head (``CrashHeadLoss``), and the
 distillation of trained teachers into one policy (``TeacherDistillLoss``, and
 ``TeacherCrashLoss`` for their crash heads). What the losses share (the crash labels and
-tail survival of ``survival.py``, the cross-entropy distillation of ``distill.py``, the
-``Literal`` choices) is imported from its module.
+tail survival of ``survival.py``, the ``Literal`` choices) is imported from its module.
 """
 
 from torchrl_grpo.objectives.advantage import GroupRelativeAdvantage

@@ -2,11 +2,11 @@
 
 A group that tries every action of a root once and then follows a fixed policy scores
 each action exactly: its advantages are ``A(s, a) = Q(s, a) - mean_b Q(s, b)``. The
-cross-entropy to ``softmax(A / tau)``
-(:class:`~torchrl_grpo.objectives.group_distill.GroupDistillLoss`)
-teaches, in states the observation cannot tell apart, how often each action is the
-best; its greedy action is then the one that wins most often, even where it crashes
-in the others. Regressing the centred logits onto the advantages,
+cross-entropy to ``softmax(A / tau)`` (the experimental
+``torchrl_grpo.experimental.group_distill.GroupDistillLoss``) teaches, in states the
+observation cannot tell apart, how often each action is the best; its greedy action is
+then the one that wins most often, even where it crashes in the others. Regressing the
+centred logits onto the advantages,
 ``tau * (l_a - mean_b l_b) ~ A(s, a)``, teaches the mean advantage of each action
 over those states instead: the greedy action is the best on average, a crash in one
 state in ten costing what it costs. Where the observation tells states apart, both

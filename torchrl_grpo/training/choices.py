@@ -30,7 +30,7 @@ from torchrl_grpo.objectives.kl import KLEstimator
 from torchrl_grpo.objectives.survival import CrashLabel
 from torchrl_grpo.training.env_builder import EnvBackend, RolloutBackend
 from torchrl_grpo.training.logging_builder import LoggerKind
-from torchrl_grpo.training.model_builder import BasePolicyName, ModelArchitecture
+from torchrl_grpo.training.model_builder import ModelArchitecture
 
 __all__ = [
     "AggregationName",
@@ -43,7 +43,6 @@ __all__ = [
     "KLEstimatorName",
     "LoggerBackend",
     "ModelKind",
-    "PriorName",
     "ReturnsName",
     "RootKindName",
     "ScaleRewards",
@@ -139,11 +138,6 @@ FirstActionName = _choices(
     "How a greedy-tail branch picks its first action (``algo.first_action``).",
 )
 ModelKind = _choices("ModelKind", ModelArchitecture, "Network over the Kinematics table.")
-PriorName = _choices(
-    "PriorName",
-    BasePolicyName,
-    "Scripted base policy whose action the policy's logits favour (``model.prior``).",
-)
 Backend = _choices(
     "Backend",
     RolloutBackend,

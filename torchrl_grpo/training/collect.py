@@ -55,19 +55,23 @@ def make_collector(
     trunk_stagger: int = 0,
     trunk_max_steps: int | None = None,
     trunk_min_steps: int = 0,
+    trunk_exploration: ExplorationType = ExplorationType.RANDOM,
 ) -> BaseCollector:
     """The collector of ``cfg.algo.name`` over ``env`` (which it owns and closes).
 
     The collector runs without a frame budget: the trainer stops it, counting trunk
     steps too. With ``rollout=ray`` the envs are built in the Ray actors:
     pass ``env=None`` (a given env is closed). ``tail_policy`` is the actor greedy
-    tails follow: a lagging copy of ``policy`` (``algo.tail_sync_batches``; greedy
-    trunks follow it too) or a scripted base policy (``algo.tail_policy``; trunks follow
-    ``policy``). Default: ``policy``. ``trunk_stagger`` spreads live trunks' first
-    episodes over that many steps (:class:`~torchrl_grpo.branching.roots.TrunkRoots`'
-    ``stagger``; ``rollout.stagger_trunks``); ``trunk_max_steps`` ends trunks at that
-    episode step (``rollout.full_horizon_roots``), and ``trunk_min_steps`` starts their
-    decision points at that step (``rollout.first_root_step``).
+    tails follow: a scripted base policy (``algo.tail_policy``; trunks follow
+    ``policy``), or a lagging copy of ``policy`` (greedy trunks follow it too; the
+    experimental ``algo.tail_sync_batches``). Default: ``policy``. ``trunk_stagger``
+    spreads live trunks' first episodes over that many steps
+    (:class:`~torchrl_grpo.branching.roots.TrunkRoots`' ``stagger``;
+    ``rollout.stagger_trunks``); ``trunk_max_steps`` ends trunks at that
+    episode step, ``trunk_min_steps`` starts their decision points at that step (the
+    experimental ``rollout.full_horizon_roots`` and ``rollout.first_root_step``), and the
+    trunks act with ``trunk_exploration`` (the policy samples; the experimental
+    ``algo.trunk=greedy`` acts deterministically).
 
     Example:
         >>> from omegaconf import OmegaConf
@@ -99,17 +103,14 @@ def make_collector(
         # A scripted base tail scores actions; the trunks still follow the learner, so
         # that its decision points are the states the learner visits (as in DAgger).
         base_tail = str(algo.get("tail_policy", "learner")) != "learner"
-        greedy_trunk = str(algo.get("trunk", "sample")) == "greedy"
         source = "continue" if roots == "continuation" else roots
         live = bool(rollout.get("live_trunks", False))
         bounded = trunk_max_steps is not None or trunk_min_steps > 0
-        if roots == "trunk" and (greedy_trunk or base_tail or live or bounded):
-            # Greedy: decision points on the states the evaluated policy visits.
+        sampled = trunk_exploration == ExplorationType.RANDOM
+        if roots == "trunk" and (not sampled or base_tail or live or bounded):
             source = TrunkRoots(
                 int(rollout.decision_interval),
-                exploration_type=(
-                    ExplorationType.DETERMINISTIC if greedy_trunk else ExplorationType.RANDOM
-                ),
+                exploration_type=trunk_exploration,
                 policy=learner if base_tail else None,
                 max_steps=trunk_max_steps,
                 min_steps=trunk_min_steps,
@@ -145,36 +146,17 @@ def make_collector(
 def trunk_schedule(rollout: DictConfig, step_limit: int) -> tuple[int, int, int | None]:
     """The ``trunk_stagger``, ``trunk_min_steps`` and ``trunk_max_steps`` of :func:`make_collector`.
 
-    ``rollout.first_root_step`` is the episode step of a trunk's first decision point.
-    ``rollout.full_horizon_roots`` ends trunks at step ``T - H + 1`` of an episode of
-    ``T = step_limit`` steps, so that every decision point's branches of ``H`` steps end
-    before the time limit: the policy does not see the time, so a branch the limit cut
-    short would teach it, in states like any other, that a crash after the cut costs
-    nothing. ``rollout.stagger_trunks`` spreads the trunks over the steps where they
-    have decision points.
-
-    Raises:
-        ValueError: no episode step is left for decision points.
+    ``rollout.stagger_trunks`` spreads the live trunks over an episode's ``step_limit``
+    steps; decision points start at the episode's first step, and trunks run to its end.
+    (The experimental ``algo=grpo_lab`` bounds them too: ``rollout.first_root_step``,
+    ``rollout.full_horizon_roots``.)
 
     Example:
         >>> from omegaconf import OmegaConf
-        >>> rollout = OmegaConf.create({"horizon": 8, "stagger_trunks": True,
-        ...                             "full_horizon_roots": True, "first_root_step": 3})
-        >>> trunk_schedule(rollout, 30)
-        (20, 3, 23)
+        >>> trunk_schedule(OmegaConf.create({"horizon": 8, "stagger_trunks": True}), 30)
+        (30, 0, None)
     """
-    first = int(rollout.get("first_root_step", 0))
-    last = step_limit
-    if rollout.get("full_horizon_roots"):
-        last = step_limit - int(rollout.horizon) + 1
-    if not 0 <= first < last:
-        raise ValueError(
-            f"rollout.first_root_step={first} leaves no decision point in an episode of "
-            f"{step_limit} steps (rollout.horizon={rollout.horizon}, "
-            f"rollout.full_horizon_roots={rollout.get('full_horizon_roots')})"
-        )
-    stagger = last - first if rollout.get("stagger_trunks") else 0
-    return stagger, first, last if rollout.get("full_horizon_roots") else None
+    return (step_limit if rollout.get("stagger_trunks") else 0), 0, None
 
 
 def env_frames(collector: BaseCollector) -> int:

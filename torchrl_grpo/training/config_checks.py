@@ -45,11 +45,6 @@ def check_config(cfg: DictConfig) -> None:
         value = node[name]
         if value is not None and value < low:
             raise ValueError(f"{key} must be >= {low}, got {value}")
-    model = _group(cfg, "model")
-    if model is not None:
-        weight = model.get("prior_weight")
-        if weight is not None and not weight > 0:
-            raise ValueError(f"model.prior_weight must be > 0, got {weight}")
     rollout = _group(cfg, "rollout")
     if rollout is not None:
         _check_rollout(rollout)

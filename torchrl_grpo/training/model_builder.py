@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Literal
 
 from omegaconf import DictConfig
@@ -14,7 +15,6 @@ from torchrl_grpo.modules.crash_head import CrashHead
 from torchrl_grpo.modules.ensemble import PolicyEnsemble
 from torchrl_grpo.modules.neighbour_features import NeighbourMLP
 from torchrl_grpo.modules.networks import NetworkKind, make_network
-from torchrl_grpo.modules.prior import PriorLogits
 from torchrl_grpo.modules.scene_features import DEFAULT_TARGET_SPEEDS, SceneMLP
 from torchrl_grpo.modules.scripted.actions import ScriptedPolicy
 from torchrl_grpo.modules.scripted.policy_registry import make_scripted_policy
@@ -27,14 +27,54 @@ __all__ = [
     "make_net",
     "make_policy",
     "make_value",
+    "register_policy_wrapper",
 ]
 
 #: The network of ``model.kind``: one of :func:`~torchrl_grpo.modules.networks.make_network`'s
 #: kinds, or ``"scene"`` (:class:`~torchrl_grpo.modules.SceneMLP`).
 ModelArchitecture = Literal[NetworkKind, "scene", "neighbours"]
 #: The scripted policies that drive deterministically (names of
-#: :data:`~torchrl_grpo.modules.SCRIPTED_POLICIES`): a prior's, or a greedy tail's base.
+#: :data:`~torchrl_grpo.modules.SCRIPTED_POLICIES`): a greedy tail's base (or a prior's).
 BasePolicyName = Literal["idle", "slower", "rule", "conservative", "cautious"]
+
+#: A wrapper of the policy's logits network: ``(model_cfg, env, net, n_actions) -> net``,
+#: the network itself where its ``model`` keys are off.
+PolicyWrapper = Callable[[DictConfig, EnvBase, nn.Module, int], nn.Module]
+#: The wrappers :func:`make_policy` applies, in registration order
+#: (:func:`register_policy_wrapper`): how a package beside the core, which the core never
+#: imports (``torchrl_grpo.experimental``'s scripted prior), changes the policy every
+#: builder of a run makes (training, evaluation, a teacher's reload).
+POLICY_WRAPPERS: list[PolicyWrapper] = []
+
+
+def register_policy_wrapper(wrapper: PolicyWrapper) -> PolicyWrapper:
+    """Registers a wrapper of the policy's logits network (usable as a decorator).
+
+    :func:`make_policy` hands it the ``model`` config, the env, the network (the
+    ensemble, with ``model.ensemble > 1``) and the number of actions; it returns the
+    network to act with. Registering the same function again is a no-op.
+
+    Example:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_grpo.training.group_schemas import MLPModelConfig
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> class Doubled(nn.Module):
+        ...     def __init__(self, net):
+        ...         super().__init__()
+        ...         self.net = net
+        ...     def forward(self, observation):
+        ...         return 2 * self.net(observation)
+        >>> @register_policy_wrapper
+        ... def doubled(model_cfg, env, net, n_actions):
+        ...     return Doubled(net)
+        >>> policy = make_policy(OmegaConf.structured(MLPModelConfig), HighwayEnv(seed=0))
+        >>> type(policy.module[0].module).__name__
+        'Doubled'
+        >>> POLICY_WRAPPERS.remove(doubled)  # leave the registry as it was
+    """
+    if wrapper not in POLICY_WRAPPERS:
+        POLICY_WRAPPERS.append(wrapper)
+    return wrapper
 
 
 def _table_shape(env: EnvBase) -> tuple[int, int]:
@@ -98,9 +138,8 @@ def make_policy(model_cfg: DictConfig, env: EnvBase) -> ProbabilisticActor:
     its crash probability (:class:`~torchrl_grpo.modules.CrashHead`), which
     ``model.crash_aversion`` weighs into the logits. With ``model.ensemble=K > 1``, the
     policy is ``K`` such networks (:class:`~torchrl_grpo.modules.PolicyEnsemble`) that
-    act with their mean logits. With ``model.prior`` set, the logits
-    are the network's plus ``model.prior_weight``
-    on that scripted policy's action (:class:`~torchrl_grpo.modules.prior.PriorLogits`).
+    act with their mean logits. The wrappers of :data:`POLICY_WRAPPERS` then wrap the
+    network (``torchrl_grpo.experimental``'s ``model.prior``).
 
     Example:
         >>> from omegaconf import OmegaConf
@@ -120,10 +159,8 @@ def make_policy(model_cfg: DictConfig, env: EnvBase) -> ProbabilisticActor:
         raise ValueError(f"model.ensemble must be >= 1 (networks in the policy), got {size}")
     members = [_member(model_cfg, env, n_actions) for _ in range(size)]
     net = members[0] if size == 1 else PolicyEnsemble(members)
-    prior = model_cfg.get("prior")
-    if prior is not None:
-        base = make_base_policy(str(prior), env, "model.prior")
-        net = PriorLogits(net, base, n_actions, model_cfg.prior_weight)
+    for wrapper in POLICY_WRAPPERS:
+        net = wrapper(model_cfg, env, net, n_actions)
     return make_discrete_actor(net, spec)
 
 
@@ -140,7 +177,7 @@ def make_base_policy(name: str, env: EnvBase, key: str) -> ScriptedPolicy:
 
     Example:
         >>> from torchrl_grpo.envs import HighwayEnv
-        >>> type(make_base_policy("rule", HighwayEnv(seed=0), "model.prior")).__name__
+        >>> type(make_base_policy("rule", HighwayEnv(seed=0), "algo.tail_policy")).__name__
         'RulePolicy'
     """
     n_actions = getattr(env.action_spec, "n", None)

@@ -1,7 +1,7 @@
 """Who acts on the tails of GRPO's branches, and what a tail cut by the horizon is worth.
 
 A greedy-tail branch explores its first steps, then a tail actor drives it: the learner,
-a frozen copy of it, or a scripted base policy (``algo.tail_policy``). A branch the
+or a scripted base policy (``algo.tail_policy``). A branch the
 horizon cuts is credited the episode steps left (``algo.bootstrap``); with
 ``algo.bootstrap=survival``, times the crash head's probability of surviving them. With
 ``algo.crash_label=bootstrap`` the same probability labels the head's own training rows
@@ -9,8 +9,6 @@ of branches cut alive.
 """
 
 from __future__ import annotations
-
-import copy
 
 import torch
 from omegaconf import DictConfig
@@ -31,25 +29,21 @@ __all__ = ["crash_labels", "make_tail_policy", "make_tail_survival"]
 def make_tail_policy(algo: DictConfig, policy: nn.Module, env: EnvBase) -> nn.Module | None:
     """The actor of greedy tails when it is not ``policy`` itself, or ``None``.
 
-    A scripted base policy (``algo.tail_policy``), or a frozen copy of ``policy``
-    (``algo.tail_sync_batches``).
+    A scripted base policy (``algo.tail_policy``); ``None`` for the learner's own tails.
+    (The experimental ``algo=grpo_lab`` also has a lagging copy of the learner,
+    ``algo.tail_sync_batches``.)
 
     Example:
         >>> from omegaconf import OmegaConf
         >>> from torchrl_grpo.envs import TensorHighwayEnv
-        >>> algo = OmegaConf.create({"tail_policy": "learner", "tail_sync_batches": None})
+        >>> algo = OmegaConf.create({"tail_policy": "learner"})
         >>> make_tail_policy(algo, nn.Linear(1, 1), TensorHighwayEnv(num_envs=1)) is None
         True
     """
-    # check_config has refused both settings without explore_steps, and together.
     base = str(algo.tail_policy)
     if base != "learner":
         return make_base_policy(base, env, "algo.tail_policy")
-    if algo.tail_sync_batches is None:
-        return None
-    tail = copy.deepcopy(policy)
-    tail.requires_grad_(False)
-    return tail
+    return None
 
 
 def make_tail_survival(algo: DictConfig, head: nn.Module | None) -> TailSurvival | None:

@@ -4,12 +4,20 @@ With ``algo.first_action=enumerate`` and a scripted ``algo.tail_policy``, a grou
 every action of its root under a fixed base policy: the advantages do not depend on the
 policy that collected them, so old groups stay valid targets (:func:`make_replay`), and
 each action's term can be weighed by the probability the policy gives it
-(:func:`policy_weighted`), or distilled as a target distribution per root
-(:func:`distill_targets`).
+(:func:`policy_weighted`), or fitted per root (:func:`distill_targets`, the group fit of
+``algo.group_fit_coeff``).
+
+The recipes' group fit is the regression of each root's centred logits on its actions'
+advantages (``algo.group_fit_loss=regression``, every root weighed alike). Other fits and
+weightings are registered by name (:func:`register_group_fit`,
+:func:`register_group_fit_weighting`): ``torchrl_grpo.experimental``, which the core never
+imports, adds the cross-entropy fit and the spread weighting of ``algo=grpo_lab``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Literal
 
 import torch
@@ -20,11 +28,6 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.objectives import LossModule
 
 from torchrl_grpo.branching.keys import GROUP_ID
-from torchrl_grpo.objectives.group_distill import (
-    GroupDistillLoss,
-    group_softmax_target,
-    group_spread,
-)
 from torchrl_grpo.objectives.regression import AdvantageRegressionLoss
 from torchrl_grpo.training.choices import choice_enum
 
@@ -32,12 +35,11 @@ __all__ = [
     "BRANCH_CRASHED",
     "DISTILL_TARGET",
     "DISTILL_WEIGHT",
+    "GROUP_FITS",
+    "GROUP_FIT_WEIGHTINGS",
     "ActionWeights",
     "ActionWeightsName",
-    "DistillLoss",
-    "GroupFitLossName",
-    "DistillWeighting",
-    "GroupFitWeightingName",
+    "GroupFit",
     "branch_crashed",
     "check_distill",
     "check_replay_targets",
@@ -45,6 +47,8 @@ __all__ = [
     "make_group_fit_loss",
     "make_replay",
     "policy_weighted",
+    "register_group_fit",
+    "register_group_fit_weighting",
     "replay_rows",
 ]
 
@@ -60,31 +64,102 @@ DISTILL_TARGET = "distill_target"
 #: Weight of each enumerated first action in the objective (``algo.action_weights``):
 #: once each, or ``n * pi(a|s)`` (the expected clipped surrogate over all actions).
 ActionWeights = Literal["uniform", "policy"]
-#: Weight of each root in the distillation (``algo.group_fit_weighting``): the same for
-#: all, or its group's spread (best minus worst advantage: ties teach nothing).
-DistillWeighting = Literal["uniform", "spread"]
-#: What the distillation fits (``algo.group_fit_loss``): each root's softmax target by
-#: cross-entropy, or its advantages by the policy's centred logits (squared error).
-DistillLoss = Literal["cross_entropy", "regression"]
-
 ActionWeightsName = choice_enum(
     "ActionWeightsName",
     ActionWeights,
     "Weight of an enumerated first action in the objective.",
     module=__name__,
 )
-GroupFitWeightingName = choice_enum(
-    "GroupFitWeightingName",
-    DistillWeighting,
-    "Weight of a root in the distillation.",
-    module=__name__,
-)
-GroupFitLossName = choice_enum(
-    "GroupFitLossName",
-    DistillLoss,
-    "What the distillation fits.",
-    module=__name__,
-)
+
+
+@dataclass(frozen=True)
+class GroupFit:
+    """One ``algo.group_fit_loss``: the rows' targets and the loss that fits them.
+
+    Attributes:
+        targets: ``(data, temperature) -> weight``: each trained row's weight in its
+            root's fit (``[N, 1]``, like the advantage); it may also write the row's
+            target into ``data`` (the regression's :data:`DISTILL_TARGET`).
+        make_loss: ``(policy, coeff, temperature) -> loss``: the term beside the
+            surrogate, reading the rows' weights under :data:`DISTILL_WEIGHT`.
+
+    Example:
+        >>> GROUP_FITS["regression"].make_loss.__name__
+        '_regression_loss'
+    """
+
+    targets: Callable[[TensorDictBase, float], torch.Tensor]
+    make_loss: Callable[[nn.Module, float, float], LossModule]
+
+
+def _regression_targets(data: TensorDictBase, temperature: float) -> torch.Tensor:
+    advantage = data.get("advantage")
+    data.set(DISTILL_TARGET, advantage.clone())
+    return torch.ones_like(advantage)
+
+
+def _regression_loss(policy: nn.Module, coeff: float, temperature: float) -> LossModule:
+    return AdvantageRegressionLoss(policy, coeff=coeff, temperature=temperature)
+
+
+#: The group fits by ``algo.group_fit_loss`` (:func:`register_group_fit` adds one).
+GROUP_FITS: dict[str, GroupFit] = {
+    "regression": GroupFit(_regression_targets, _regression_loss),
+}
+#: The root weightings by ``algo.group_fit_weighting`` other than ``uniform`` (every root
+#: alike): ``(advantage, group_id) -> factor`` on each row's weight
+#: (:func:`register_group_fit_weighting` adds one).
+GROUP_FIT_WEIGHTINGS: dict[str, Callable[[torch.Tensor, torch.Tensor], torch.Tensor]] = {}
+
+
+def register_group_fit(name: str, fit: GroupFit) -> GroupFit:
+    """Makes ``fit`` the group fit of ``algo.group_fit_loss=name``.
+
+    Raises:
+        ValueError: another fit has that name.
+
+    Example:
+        >>> fit = GroupFit(GROUP_FITS["regression"].targets, GROUP_FITS["regression"].make_loss)
+        >>> register_group_fit("my_fit", fit) is GROUP_FITS["my_fit"]
+        True
+        >>> del GROUP_FITS["my_fit"]  # leave the registry as it was
+    """
+    return _register(GROUP_FITS, name, fit, "algo.group_fit_loss")
+
+
+def register_group_fit_weighting(
+    name: str, weighting: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+    """Makes ``weighting`` the root weighting of ``algo.group_fit_weighting=name``.
+
+    Raises:
+        ValueError: another weighting has that name, or the name is ``uniform``.
+
+    Example:
+        >>> def doubled(advantage, group_id):
+        ...     return torch.full_like(advantage, 2.0)
+        >>> register_group_fit_weighting("doubled", doubled) is doubled
+        True
+        >>> del GROUP_FIT_WEIGHTINGS["doubled"]  # leave the registry as it was
+    """
+    if name == "uniform":
+        raise ValueError("algo.group_fit_weighting=uniform is the core's: weigh roots alike")
+    return _register(GROUP_FIT_WEIGHTINGS, name, weighting, "algo.group_fit_weighting")
+
+
+def _register(registry: dict, name: str, entry: object, key: str) -> object:
+    taken = registry.get(name)
+    if taken is not None and taken != entry:
+        raise ValueError(f"{key}={name} is taken")
+    registry[name] = entry
+    return entry
+
+
+def _unknown(key: str, value: str, known: list[str]) -> ValueError:
+    return ValueError(
+        f"{key} must be {' or '.join(repr(k) for k in known)}, got {value!r} (the "
+        "experimental ones are algo=grpo_lab's: import torchrl_grpo.experimental)"
+    )
 
 
 def make_replay(algo: DictConfig) -> ReplayBuffer | None:
@@ -189,46 +264,38 @@ def check_distill(algo: DictConfig) -> None:
 def distill_targets(
     data: TensorDictBase,
     temperature: float,
-    weighting: DistillWeighting = "uniform",
-    loss: DistillLoss = "cross_entropy",
+    weighting: str = "uniform",
+    loss: str = "regression",
 ) -> TensorDictBase:
-    """``data`` (a batch's trained steps) with its groups' distillation targets.
+    """``data`` (a batch's trained steps) with its groups' targets for the group fit.
 
     The targets are computed when the steps are collected, so replayed steps keep the
     target of their own group (group ids are reused across batches). With
-    ``loss="cross_entropy"``, :data:`DISTILL_WEIGHT` is each row's weight in its root's
-    softmax target; with ``loss="regression"`` it is 1 and :data:`DISTILL_TARGET` holds
-    the row's advantage. With ``weighting="spread"`` each group's weights are scaled by
-    its spread (:func:`~torchrl_grpo.objectives.group_distill.group_spread`): the loss's weighted
-    mean
-    then counts a root by how much its best action beats its worst, so the rare states
-    where one action crashes and another does not outweigh the many where all score alike.
+    ``loss="regression"`` (the recipes'), :data:`DISTILL_WEIGHT` is 1 and
+    :data:`DISTILL_TARGET` holds the row's advantage; the other fits and weightings are
+    those registered (:data:`GROUP_FITS`, :data:`GROUP_FIT_WEIGHTINGS`).
+
+    Raises:
+        ValueError: a fit or a weighting that is not registered, naming it.
 
     Example:
         >>> import torch
         >>> from tensordict import TensorDict
         >>> data = TensorDict(advantage=torch.tensor([[0.0], [1.0], [2.0], [2.0]]),
         ...                   group_id=torch.tensor([3, 3, 4, 4]), batch_size=[4])
-        >>> distill_targets(data, 0.0)["distill_weight"].squeeze(-1)
-        tensor([0.0000, 1.0000, 0.5000, 0.5000])
-        >>> distill_targets(data, 0.0, "spread")["distill_weight"].squeeze(-1)
-        tensor([0., 1., 0., 0.])
-        >>> out = distill_targets(data, 0.1, "spread", "regression")
+        >>> out = distill_targets(data, 0.1)
         >>> out["distill_weight"].squeeze(-1), out["distill_target"].squeeze(-1)
-        (tensor([1., 1., 0., 0.]), tensor([0., 1., 2., 2.]))
+        (tensor([1., 1., 1., 1.]), tensor([0., 1., 2., 2.]))
     """
-    advantage, group_id = data.get("advantage"), data.get(GROUP_ID)
-    if loss == "cross_entropy":
-        weight = group_softmax_target(advantage, group_id, temperature)
-    elif loss == "regression":
-        weight = torch.ones_like(advantage)
-        data.set(DISTILL_TARGET, advantage.clone())
-    else:
-        raise ValueError(f"loss must be 'cross_entropy' or 'regression', got {loss!r}")
-    if weighting == "spread":
-        weight = weight * group_spread(advantage, group_id)
-    elif weighting != "uniform":
-        raise ValueError(f"weighting must be 'uniform' or 'spread', got {weighting!r}")
+    fit = GROUP_FITS.get(loss)
+    if fit is None:
+        raise _unknown("loss", loss, sorted(GROUP_FITS))
+    weight = fit.targets(data, temperature)
+    if weighting != "uniform":
+        factor = GROUP_FIT_WEIGHTINGS.get(weighting)
+        if factor is None:
+            raise _unknown("weighting", weighting, ["uniform", *sorted(GROUP_FIT_WEIGHTINGS)])
+        weight = weight * factor(data.get("advantage"), data.get(GROUP_ID))
     return data.set(DISTILL_WEIGHT, weight)
 
 
@@ -287,8 +354,8 @@ def make_group_fit_loss(algo: DictConfig, policy: nn.Module) -> LossModule | Non
     coeff = float(algo.group_fit_coeff)
     if coeff == 0:
         return None
-    if str(algo.group_fit_loss) == "regression":
-        return AdvantageRegressionLoss(
-            policy, coeff=coeff, temperature=float(algo.group_fit_temperature)
-        )
-    return GroupDistillLoss(policy, coeff=coeff)
+    loss = str(algo.group_fit_loss)
+    fit = GROUP_FITS.get(loss)
+    if fit is None:
+        raise _unknown("algo.group_fit_loss", loss, sorted(GROUP_FITS))
+    return fit.make_loss(policy, coeff, float(algo.group_fit_temperature))

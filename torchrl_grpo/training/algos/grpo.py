@@ -15,6 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from torchrl.collectors import BaseCollector
 from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType
 from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import LossModule
 
@@ -102,7 +103,7 @@ class GRPO(Algorithm):
             termination_penalty=float(algo.crash_penalty),
         ).set_keys(train_reward=TRAIN_REWARD)
         self.ref_sync = self.make_reference_sync(algo, self.loss)
-        self.tail_policy = make_tail_policy(algo, policy, env)
+        self.tail_policy = self.make_tail_policy(algo, policy, env)
         self.replay = make_replay(algo)
         self.distill = make_group_fit_loss(algo, policy)
         head = self.trained_head
@@ -115,6 +116,17 @@ class GRPO(Algorithm):
     def fixed_settings(cls, name: str) -> dict[str, dict[str, Any]]:
         """The recipe's values of the variant's settings that are not keys (see GRPOConfig)."""
         return copy.deepcopy(FIXED_SETTINGS.get(name, {}))
+
+    @classmethod
+    def make_tail_policy(
+        cls, algo_cfg: DictConfig, policy: ProbabilisticActor, env: EnvBase
+    ) -> torch.nn.Module | None:
+        """The actor of greedy tails when it is not the policy itself, or ``None``.
+
+        A scripted base policy (``algo.tail_policy``); it is part of the checkpoint when
+        it has parameters (the experimental lagging copy of the policy).
+        """
+        return make_tail_policy(algo_cfg, policy, env)
 
     @classmethod
     def make_loss(
@@ -176,7 +188,8 @@ class GRPO(Algorithm):
             env = make_rollout_env(
                 cfg.env, cfg.rollout, snapshots=True, device=cfg.device, seed=seed
             )
-        stagger, min_steps, max_steps = trunk_schedule(cfg.rollout, self.bootstrap.step_limit)
+        schedule = self.trunk_schedule(cfg.rollout, self.bootstrap.step_limit)
+        stagger, min_steps, max_steps = schedule
         return make_collector(
             cfg,
             env,
@@ -186,7 +199,18 @@ class GRPO(Algorithm):
             trunk_stagger=stagger,
             trunk_max_steps=max_steps,
             trunk_min_steps=min_steps,
+            trunk_exploration=self.trunk_exploration(cfg.algo),
         )
+
+    @classmethod
+    def trunk_schedule(cls, rollout: DictConfig, step_limit: int) -> tuple[int, int, int | None]:
+        """Where trunks have decision points (``training.collect.trunk_schedule``)."""
+        return trunk_schedule(rollout, step_limit)
+
+    @classmethod
+    def trunk_exploration(cls, algo_cfg: DictConfig) -> ExplorationType:
+        """How the policy acts on trunks: it samples."""
+        return ExplorationType.RANDOM
 
     def batch_metrics(self, batch: TensorDictBase) -> dict[str, float]:
         """Statistics of a ``[R, G, T]`` batch of branch groups."""
@@ -287,12 +311,6 @@ class GRPO(Algorithm):
     def on_optimizer_step(self) -> None:  # noqa: D102
         if self.ref_sync is not None:
             self.ref_sync.step()
-
-    def after_batch(self, iteration: int) -> None:
-        """Copy the policy into the tail policy every ``algo.tail_sync_batches`` batches."""
-        sync = self.cfg.algo.tail_sync_batches
-        if self.tail_policy is not None and sync is not None and iteration % int(sync) == 0:
-            self.tail_policy.load_state_dict(self.policy.state_dict())
 
     def state_dict(self) -> dict[str, Any]:  # noqa: D102
         return {

@@ -30,18 +30,11 @@ def check_grpo_config(cfg: DictConfig) -> None:
     if algo.group_size < 2:
         raise ValueError(f"algo.group_size must be >= 2, got {algo.group_size}")
     explore = algo.explore_steps
-    tail_sync = algo.tail_sync_batches
-    if tail_sync is not None and (tail_sync < 1 or explore is None):
-        raise ValueError(
-            f"algo.tail_sync_batches={tail_sync}: must be >= 1, and applies to "
-            "greedy-tail branches only (set algo.explore_steps too)"
-        )
     tail_policy = str(algo.tail_policy)
-    if tail_policy != "learner" and (explore is None or tail_sync is not None):
+    if tail_policy != "learner" and explore is None:
         raise ValueError(
             f"algo.tail_policy={tail_policy} is the base policy of greedy-tail "
-            "branches: set algo.explore_steps too (e.g. 1), and leave "
-            "algo.tail_sync_batches null (it refreshes a learner's copy)"
+            "branches: set algo.explore_steps too (e.g. 1)"
         )
     learner_steps = algo.get("tail_learner_steps", 0)
     if learner_steps < 0 or (learner_steps > 0 and tail_policy == "learner"):
@@ -50,11 +43,9 @@ def check_grpo_config(cfg: DictConfig) -> None:
             "scripted algo.tail_policy (e.g. rule), which takes over after those steps"
         )
     rollout = cfg.get("rollout")
-    trunk_keys = ("stagger_trunks", "full_horizon_roots", "first_root_step")
-    set_keys = [k for k in trunk_keys if rollout is not None and rollout.get(k)]
-    if set_keys and str(algo.roots) != "trunk":
+    if rollout is not None and rollout.get("stagger_trunks") and str(algo.roots) != "trunk":
         raise ValueError(
-            f"rollout.{set_keys[0]} places decision points along trunks: it needs "
+            "rollout.stagger_trunks places decision points along trunks: it needs "
             f"algo.roots=trunk, got algo.roots={algo.roots}"
         )
     replay = algo.replay_groups

@@ -24,7 +24,6 @@ __all__ = [
     "GRPOName",
     "GRPOVariant",
     "TailPolicyName",
-    "TrunkPolicyName",
 ]
 
 
@@ -33,8 +32,6 @@ GRPOVariant = Literal["grpo_branch", "grpo_episode"]
 #: Who acts on greedy-tail branches after their explored steps (``algo.tail_policy``):
 #: the learner, or a scripted base policy whose ``Q(s, a)`` the groups then score.
 TailPolicy = Literal["learner", BasePolicyName]
-#: How the policy acts on the trunks decision points are taken from (``algo.trunk``).
-TrunkPolicy = Literal["sample", "greedy"]
 
 
 def _choices(name: str, choices: Any, doc: str) -> Any:
@@ -42,7 +39,6 @@ def _choices(name: str, choices: Any, doc: str) -> Any:
 
 
 GRPOName = _choices("GRPOName", GRPOVariant, "The GRPO variant.")
-TrunkPolicyName = _choices("TrunkPolicyName", TrunkPolicy, "How the policy acts on trunks.")
 TailPolicyName = _choices("TailPolicyName", TailPolicy, "Who acts on greedy-tail branches.")
 
 

@@ -7,20 +7,57 @@ at most the clip ratio per update, however costly the wrong action is. The cross
 to ``q(a|s) = softmax(A(s, a) / tau)`` (MPO's non-parametric target, here exact because
 every action was tried) pulls the policy towards the group's best action on every
 update, hardest where one action is much better than the others.
+
+``algo=grpo_lab``'s ``algo.group_fit_loss=cross_entropy`` and
+``algo.group_fit_weighting=spread``: importing this module registers them with the
+core's GRPO (:func:`~torchrl_grpo.training.algos.enumerated.register_group_fit`,
+:func:`~torchrl_grpo.training.algos.enumerated.register_group_fit_weighting`). The
+recipes fit each root by regression (:class:`~torchrl_grpo.objectives.AdvantageRegressionLoss`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, Literal
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential
+from torch import nn
 from torchrl.objectives import LossModule
 
+from torchrl_grpo.branching.keys import GROUP_ID
 from torchrl_grpo.objectives.loss_checks import check_finite, require
+from torchrl_grpo.training.algos.enumerated import (
+    GroupFit,
+    register_group_fit,
+    register_group_fit_weighting,
+)
+from torchrl_grpo.training.choices import choice_enum
 
-__all__ = ["GroupDistillLoss", "group_softmax_target", "group_spread"]
+__all__ = [
+    "GroupDistillLoss",
+    "GroupFitLossName",
+    "GroupFitWeightingName",
+    "group_softmax_target",
+    "group_spread",
+]
+
+#: What the group fit fits (``algo.group_fit_loss``): each root's softmax target by
+#: cross-entropy, or its advantages by the policy's centred logits (the recipes').
+GroupFitLoss = Literal["cross_entropy", "regression"]
+#: Weight of each root in the group fit (``algo.group_fit_weighting``): the same for
+#: all (the recipes'), or its group's spread (best minus worst advantage).
+GroupFitWeighting = Literal["uniform", "spread"]
+GroupFitLossName: Any = choice_enum(
+    "GroupFitLossName", GroupFitLoss, "What the group fit fits.", module=__name__
+)
+GroupFitWeightingName: Any = choice_enum(
+    "GroupFitWeightingName",
+    GroupFitWeighting,
+    "Weight of a root in the group fit.",
+    module=__name__,
+)
 
 
 def group_softmax_target(
@@ -198,3 +235,15 @@ class GroupDistillLoss(LossModule):
             distill_cross_entropy=cross_entropy.detach(),
             batch_size=[],
         )
+
+
+def _cross_entropy_targets(data: TensorDictBase, temperature: float) -> torch.Tensor:
+    return group_softmax_target(data.get("advantage"), data.get(GROUP_ID), temperature)
+
+
+def _cross_entropy_loss(policy: nn.Module, coeff: float, temperature: float) -> LossModule:
+    return GroupDistillLoss(policy, coeff=coeff)
+
+
+register_group_fit("cross_entropy", GroupFit(_cross_entropy_targets, _cross_entropy_loss))
+register_group_fit_weighting("spread", group_spread)

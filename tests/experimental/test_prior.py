@@ -1,7 +1,9 @@
-"""PriorLogits: a network's logits plus a fixed bonus on a scripted policy's action."""
+"""The experimental prior (``model=lab model.prior``): a network's logits plus a fixed bonus
+on a scripted policy's action, built by ``make_policy`` through its policy wrapper."""
 
 import pytest
 import torch
+from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torch import nn
@@ -9,10 +11,20 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_grpo.envs import HighwayEnv
 from torchrl_grpo.experimental.grpo_lab import GRPOLabModelConfig
-from torchrl_grpo.modules import KinematicsLayout, KinematicsMLP, RulePolicy, make_scripted_policy
-from torchrl_grpo.modules.prior import PriorLogits
+from torchrl_grpo.experimental.prior import PriorLogits
+from torchrl_grpo.modules import (
+    SCRIPTED_POLICIES,
+    KinematicsLayout,
+    KinematicsMLP,
+    RulePolicy,
+    make_scripted_policy,
+)
 from torchrl_grpo.modules.scripted.actions import SLOWER
+from torchrl_grpo.training import compose_config
+from torchrl_grpo.training.config_checks import check_config
 from torchrl_grpo.training.model_builder import make_policy
+
+pytestmark = pytest.mark.experimental
 
 
 class _Fixed(nn.Module):
@@ -96,3 +108,28 @@ def test_make_policy_refuses_a_prior_it_cannot_read(observation, problem):
     env = HighwayEnv("highway-fast-v0", config={"observation": observation}, seed=0)
     with pytest.raises(ValueError, match=f"model.prior=rule.*{problem}"):
         make_policy(cfg, env)
+
+
+def test_a_prior_policy_is_typed_and_its_weight_positive():
+    lab_run = ["experiment=smoke", "algo=grpo_lab", "model=lab"]
+    cfg = compose_config([*lab_run, "model.prior=rule", "model.prior_weight=3"])
+    check_config(cfg)
+    assert cfg.model.prior == "rule" and cfg.model.prior_weight == 3.0
+    with pytest.raises(ConfigCompositionException) as info:
+        compose_config([*lab_run, "model.prior=rules"])
+    assert "prior" in str(info.value.__cause__)
+    cfg.model.prior_weight = 0.0
+    with pytest.raises(ValueError, match="model.prior_weight must be > 0, got 0.0"):
+        check_config(cfg)
+
+
+def test_the_priors_are_scripted_policies():
+    from torchrl_grpo.experimental.prior import PriorName
+
+    assert {m.value for m in PriorName} < set(SCRIPTED_POLICIES)
+
+
+def test_without_a_prior_the_policy_is_the_network():
+    cfg = OmegaConf.structured(GRPOLabModelConfig(kind="mlp", num_cells=[8]))
+    actor = make_policy(cfg, HighwayEnv("highway-fast-v0", seed=0))
+    assert type(actor.module[0].module).__name__ == "KinematicsMLP"

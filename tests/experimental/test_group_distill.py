@@ -1,4 +1,6 @@
-"""GroupDistillLoss and its per-root targets, against per-group softmaxes and autograd."""
+"""The experimental cross-entropy group fit (``algo=grpo_lab algo.group_fit_loss=cross_entropy``):
+GroupDistillLoss and its per-root targets, against per-group softmaxes and autograd, and the
+spread weighting of roots (``algo.group_fit_weighting=spread``)."""
 
 from __future__ import annotations
 
@@ -8,12 +10,15 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
 
-from torchrl_grpo.objectives.group_distill import (
+from torchrl_grpo.experimental.group_distill import (
     GroupDistillLoss,
     group_softmax_target,
     group_spread,
 )
+from torchrl_grpo.objectives import AdvantageRegressionLoss
 from torchrl_grpo.training.algos.enumerated import distill_targets
+
+pytestmark = pytest.mark.experimental
 
 
 def _tabular_actor(table: torch.Tensor) -> ProbabilisticActor:
@@ -67,7 +72,7 @@ def test_spread_weighting_counts_each_root_by_its_spread_in_the_loss():
         group_id=torch.arange(3).repeat_interleave(5) + 10,
         batch_size=[15],
     )
-    data = distill_targets(data, 0.0, "spread")
+    data = distill_targets(data, 0.0, "spread", "cross_entropy")
     loss = GroupDistillLoss(_tabular_actor(table), coeff=1.0)(data)["loss_distill"]
     logp = torch.log_softmax(table.detach(), -1)
     ce0 = -logp[0, 1:].mean()  # four best actions share the hard target
@@ -158,3 +163,29 @@ def test_bad_inputs_are_refused_naming_them():
     loss.set_keys(target_weight="q")
     out = loss(TensorDict({**rows, "q": torch.tensor([1.0, 0.0])}, batch_size=[2]))
     assert float(out["distill_cross_entropy"]) == pytest.approx(0.6931, abs=1e-4)
+
+
+def _groups(advantage: torch.Tensor) -> TensorDict:
+    """One root per row of ``advantage`` ([roots, actions]), every action tried once."""
+    roots, n = advantage.shape
+    return TensorDict(
+        state=torch.arange(roots).repeat_interleave(n),
+        action=torch.arange(n).repeat(roots),
+        advantage=advantage.reshape(-1, 1),
+        group_id=torch.arange(roots).repeat_interleave(n) + 100,
+        batch_size=[roots * n],
+    )
+
+
+def test_spread_weights_count_each_root_by_its_spread():
+    table = torch.nn.Parameter(torch.randn(3, 5))
+    advantage = torch.tensor(
+        [[-8.0, 2.0, 2.0, 2.0, 2.0], [-0.5, 0.5, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 0.0]]
+    )
+    data = distill_targets(_groups(advantage), 1.0, "spread", "regression")
+    out = AdvantageRegressionLoss(_tabular_actor(table), coeff=1.0, temperature=1.0)(data)
+    centred = table.detach() - table.detach().mean(-1, keepdim=True)
+    per_root = (centred - advantage).pow(2).sum(-1)
+    # Spreads 10, 1 and 0 (a tie teaches nothing); each root's 5 rows carry its spread.
+    expected = (10 * per_root[0] + 1 * per_root[1]) / (5 * 11)
+    torch.testing.assert_close(out["distill_squared_error"], expected)
