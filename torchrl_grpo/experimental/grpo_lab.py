@@ -29,6 +29,7 @@ from torchrl.modules import ProbabilisticActor
 
 from torchrl_grpo.experimental.group_distill import GroupFitLossName, GroupFitWeightingName
 from torchrl_grpo.experimental.lagging_tail import check_tail_sync, lagging_copy
+from torchrl_grpo.experimental.neighbour_features import NeighboursKind
 from torchrl_grpo.experimental.prior import PriorName, check_prior
 from torchrl_grpo.experimental.trunk_clock import (
     TrunkPolicyName,
@@ -54,11 +55,19 @@ from torchrl_grpo.training.choices import (
     choice_enum,
 )
 from torchrl_grpo.training.group_schemas import GroupRolloutConfig, ModelConfig
+from torchrl_grpo.training.model_builder import ModelArchitecture
 
 __all__ = ["GRPOLab", "GRPOLabConfig", "GRPOLabModelConfig", "GRPOLabRolloutConfig"]
 
 GRPOLabName = choice_enum(
     "GRPOLabName", Literal["grpo_lab"], "The experimental GRPO.", module=__name__
+)
+#: ``model=lab``'s ``model.kind``: the core's networks and the lab's (``neighbours``).
+LabModelKind = choice_enum(
+    "LabModelKind",
+    Literal[ModelArchitecture, NeighboursKind],
+    "Network over the Kinematics table, the lab's kinds included.",
+    module=__name__,
 )
 
 
@@ -112,8 +121,9 @@ class GRPOLabRolloutConfig(GroupRolloutConfig):
 
 @dataclass
 class GRPOLabModelConfig(ModelConfig):
-    """``model=lab``: any network kind's sizes, a scripted prior, an ensemble."""
+    """``model=lab``: any kind's sizes (the lab's ``neighbours`` too), a prior, an ensemble."""
 
+    kind: LabModelKind = LabModelKind["mlp"]
     num_cells: list[int] = field(default_factory=lambda: [256, 256])
     embed_dim: int = 64
     num_heads: int = 2
