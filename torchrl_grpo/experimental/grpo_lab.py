@@ -75,6 +75,12 @@ LabModelKind = choice_enum(
 class GRPOLabConfig(GRPOConfig):
     """``algo=grpo_lab``: GRPOConfig plus every setting the recipes fix.
 
+    ``crash_label`` says what the crash head learns of a branch the horizon cut alive: 0
+    (``branch``), or its own crash estimate there (``bootstrap``). ``bootstrap=survival``
+    builds that estimate for the horizon bootstrap, and then it labels those rows too
+    whatever ``crash_label`` says (``experiment=best``'s teachers were trained so):
+    ``crash_label=branch`` keeps 0/1 labels only with the other bootstraps.
+
     Example:
         >>> from omegaconf import OmegaConf
         >>> cfg = OmegaConf.structured(GRPOLabConfig(name="grpo_lab"))
