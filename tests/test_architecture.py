@@ -155,6 +155,10 @@ MOVED_TO_EXPERIMENTAL = {
     "check_tail_sync": "torchrl_grpo.experimental.lagging_tail",
     "TrunkPolicyName": "torchrl_grpo.experimental.trunk_clock",
     "check_trunk_bounds": "torchrl_grpo.experimental.trunk_clock",
+    "NeighbourFeatures": "torchrl_grpo.experimental.neighbour_features",
+    "NeighbourMLP": "torchrl_grpo.experimental.neighbour_features",
+    "NeighboursKind": "torchrl_grpo.experimental.neighbour_features",
+    "build_neighbours": "torchrl_grpo.experimental.neighbour_features",
 }
 
 

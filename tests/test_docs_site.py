@@ -197,6 +197,8 @@ def test_config_reference_lists_every_schema_key(site):
     ]
     for schema in schemas:
         hints = typing.get_type_hints(schema)
+        # A group field typed Any (Config.model) names its schema in its metadata.
+        hints |= {f.name: f.metadata["schema"] for f in dataclasses.fields(schema) if f.metadata}
         prefix = "ray." if schema is group_schemas.RayConfig else ""
         for f in dataclasses.fields(schema):
             if schema in (config.Config, config.EvalConfig) and dataclasses.is_dataclass(

@@ -9,7 +9,6 @@ greedy evaluation protocol of ``scripts/evaluate.py`` (episodes from seeds 10000
 10001, ...).
 
 The teacher is the rule policy (``--teacher rule``): a network that cannot imitate it
-import _path  # noqa: F401  (benchmarks/ on sys.path)
 from these labels cannot learn its safety margins from the far noisier signal of RL
 either. Or the lookahead planner over the rule policy (``--teacher lookahead``), whose
 scores are exactly what the groups of ``algo.first_action=enumerate
@@ -22,12 +21,14 @@ best branch return minus that of the clone's action.
 
     python benchmarks/lab/bench_features.py --frames 5000 --steps 3000 --episodes 10
     python benchmarks/lab/bench_features.py --teacher lookahead --frames 1000 --episodes 30
+    python benchmarks/lab/bench_features.py --models scene neighbours  # the lab's network too
 """
 
 import argparse
 import logging
 import time
 
+import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
 from claims import claim
 from omegaconf import OmegaConf
@@ -35,9 +36,9 @@ from tensordict import TensorDict
 
 from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.envs import HighwayEnv
+from torchrl_grpo.experimental.grpo_lab import GRPOLabModelConfig  # the lab's kinds too
 from torchrl_grpo.modules import RulePolicy
 from torchrl_grpo.training import evaluate
-from torchrl_grpo.training.config import ModelConfig
 from torchrl_grpo.training.model_builder import make_policy
 from torchrl_grpo.training.results import format_table
 
@@ -148,7 +149,7 @@ if args.teacher != "rule":
 accuracy = {}
 for kind in args.models:
     torch.manual_seed(0)
-    policy = make_policy(OmegaConf.structured(ModelConfig(kind=kind)), env)
+    policy = make_policy(OmegaConf.structured(GRPOLabModelConfig(kind=kind)), env)
     optimizer = torch.optim.Adam(policy.parameters(), lr=1e-3)
     t0 = time.perf_counter()
     for _ in range(args.steps):

@@ -42,11 +42,11 @@ from torchrl_grpo.branching import branch_rollout
 from torchrl_grpo.branching.keys import MASK
 from torchrl_grpo.branching.lookahead import ActionThenBase
 from torchrl_grpo.envs import TensorHighwayEnv, tensor_params
+from torchrl_grpo.experimental.grpo_lab import GRPOLabModelConfig  # the lab's kinds too
 from torchrl_grpo.modules import CrashHead, make_scripted_policy
 from torchrl_grpo.sim.observation import observe
 from torchrl_grpo.sim.state import Vehicles
 from torchrl_grpo.training import make_env
-from torchrl_grpo.training.config import ModelConfig
 from torchrl_grpo.training.env_builder import make_layout
 from torchrl_grpo.training.model_builder import make_policy
 from torchrl_grpo.training.transfer import evaluate_on_tensor
@@ -190,7 +190,8 @@ def fit(args) -> None:
     held, train = split(q.shape[0], args.max_states)
     torch.manual_seed(args.seed)
     policy = make_policy(
-        OmegaConf.structured(ModelConfig(kind=args.model, num_cells=args.cells)), make_env(env_cfg)
+        OmegaConf.structured(GRPOLabModelConfig(kind=args.model, num_cells=args.cells)),
+        make_env(env_cfg),
     )
 
     def logits_of(rows: torch.Tensor) -> torch.Tensor:

@@ -204,9 +204,15 @@ def _summary(obj: Any) -> str:
     return doc.split("\n\n")[0].replace("\n", " ").strip()
 
 
+def field_types(schema: type) -> dict[str, Any]:
+    """Each field's type; a field typed ``Any`` names its schema in ``metadata["schema"]``."""
+    hints = typing.get_type_hints(schema)
+    return {f.name: f.metadata.get("schema", hints[f.name]) for f in dataclasses.fields(schema)}
+
+
 def schema_keys(schema: type, prefix: str = "") -> list[SchemaKey]:
     """Every key of a dataclass schema, in field order, nested dataclasses expanded."""
-    hints = typing.get_type_hints(schema)
+    hints = field_types(schema)
     keys: list[SchemaKey] = []
     for f in dataclasses.fields(schema):
         tp = hints[f.name]
@@ -290,7 +296,7 @@ def registered_schemas() -> tuple[dict[str, type], dict[str, dict[str, type]]]:
 
 def flatten(values: dict[str, Any], schema: type | None, prefix: str = "") -> dict[str, Any]:
     """YAML values by dotted key; a mapping is expanded where the schema has a dataclass."""
-    hints = typing.get_type_hints(schema) if schema is not None else {}
+    hints = field_types(schema) if schema is not None else {}
     flat: dict[str, Any] = {}
     for key, value in values.items():
         sub = hints.get(key)

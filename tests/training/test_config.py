@@ -297,7 +297,7 @@ def test_the_choices_are_the_librarys_literals():
     ]:
         assert [member.value for member in enum] == list(get_args(literal)), enum.__name__
     assert [m.value for m in config.Backend] == [*get_args(BranchBackend), "ray"]
-    assert [m.value for m in config.ModelKind] == [*get_args(NetworkKind), "scene", "neighbours"]
+    assert [m.value for m in config.ModelKind] == [*get_args(NetworkKind), "scene"]
     # The scripted base policies a greedy tail may name exist.
     assert set(get_args(BasePolicyName)) < set(SCRIPTED_POLICIES)
     assert {m.value for m in TailPolicyName} == {"learner", *get_args(BasePolicyName)}
@@ -351,7 +351,7 @@ def test_a_run_composes_at_most_fifty_keys(overrides, count):
     keys = _leaf_keys(OmegaConf.to_container(compose_config(overrides)))
     assert len(keys) == count <= 50, sorted(keys)
     # Every core option of a group, over the default run or this one: at most 50 too.
-    core = {"model": ["ego_attention", "mlp", "neighbours"], "rollout": ["ray"]}
+    core = {"model": ["ego_attention", "mlp"], "rollout": ["ray"]}
     core["logger"] = ["wandb_online", "csv", "none"]
     for group, options in core.items():
         for option in options:

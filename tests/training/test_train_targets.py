@@ -84,6 +84,21 @@ def test_a_survival_bootstrap_asks_the_crash_head_at_each_branchs_end(tmp_path):
         Trainer(cfg, run_dir=tmp_path / "refused")
 
 
+def test_the_survival_bootstrap_bootstraps_the_crash_labels_even_with_crash_label_branch(
+    tmp_path,
+):
+    # What the code does, and experiment=best's teachers were trained with: the survival
+    # estimate that algo.bootstrap=survival builds also labels the head's rows of branches
+    # the horizon cut alive, whatever algo.crash_label says (docs/experimental.md). A
+    # change of this is a change of the teachers' recipe: make it deliberately.
+    overrides = [*REPLAY, "model.crash_head=true", "algo.bootstrap=survival"]
+    overrides += ["algo.crash_label=branch", "algo.tail_policy=idle", "rollout.horizon=4"]
+    trainer = train_run(tmp_path, "survival_labels", [*overrides, "experiment.total_frames=60"])
+    labels = trainer.algo.replay[:]["branch_crashed"]
+    assert labels.is_floating_point()
+    assert bool(((labels > 0) & (labels < 1)).any()), "only 0/1 labels: the branch's own crash"
+
+
 def test_bootstrapped_crash_labels_are_the_heads_estimate_where_the_horizon_cut(tmp_path):
     # Three branches of 3 steps from roots at episode steps 2, 2 and 27 (limit 30): one
     # crashes at its second step, one is cut alive, one reaches the episode's end.

@@ -29,6 +29,7 @@ from torchrl.modules import ProbabilisticActor
 
 from torchrl_grpo.experimental.group_distill import GroupFitLossName, GroupFitWeightingName
 from torchrl_grpo.experimental.lagging_tail import check_tail_sync, lagging_copy
+from torchrl_grpo.experimental.neighbour_features import NeighboursKind
 from torchrl_grpo.experimental.prior import PriorName, check_prior
 from torchrl_grpo.experimental.trunk_clock import (
     TrunkPolicyName,
@@ -54,17 +55,31 @@ from torchrl_grpo.training.choices import (
     choice_enum,
 )
 from torchrl_grpo.training.group_schemas import GroupRolloutConfig, ModelConfig
+from torchrl_grpo.training.model_builder import ModelArchitecture
 
 __all__ = ["GRPOLab", "GRPOLabConfig", "GRPOLabModelConfig", "GRPOLabRolloutConfig"]
 
 GRPOLabName = choice_enum(
     "GRPOLabName", Literal["grpo_lab"], "The experimental GRPO.", module=__name__
 )
+#: ``model=lab``'s ``model.kind``: the core's networks and the lab's (``neighbours``).
+LabModelKind = choice_enum(
+    "LabModelKind",
+    Literal[ModelArchitecture, NeighboursKind],
+    "Network over the Kinematics table, the lab's kinds included.",
+    module=__name__,
+)
 
 
 @dataclass
 class GRPOLabConfig(GRPOConfig):
     """``algo=grpo_lab``: GRPOConfig plus every setting the recipes fix.
+
+    ``crash_label`` says what the crash head learns of a branch the horizon cut alive: 0
+    (``branch``), or its own crash estimate there (``bootstrap``). ``bootstrap=survival``
+    builds that estimate for the horizon bootstrap, and then it labels those rows too
+    whatever ``crash_label`` says (``experiment=best``'s teachers were trained so):
+    ``crash_label=branch`` keeps 0/1 labels only with the other bootstraps.
 
     Example:
         >>> from omegaconf import OmegaConf
@@ -112,8 +127,9 @@ class GRPOLabRolloutConfig(GroupRolloutConfig):
 
 @dataclass
 class GRPOLabModelConfig(ModelConfig):
-    """``model=lab``: any network kind's sizes, a scripted prior, an ensemble."""
+    """``model=lab``: any kind's sizes (the lab's ``neighbours`` too), a prior, an ensemble."""
 
+    kind: LabModelKind = LabModelKind["mlp"]
     num_cells: list[int] = field(default_factory=lambda: [256, 256])
     embed_dim: int = 64
     num_heads: int = 2

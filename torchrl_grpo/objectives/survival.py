@@ -9,9 +9,10 @@ crash; asked at a branch's last state for the action the policy would take, it t
 the bootstrap how much of the tail to credit, for no extra simulated step.
 
 The same probability can teach the head itself to look further
-(:func:`crash_label`, ``algo.crash_label=bootstrap``): a branch the horizon cut alive is
-labelled with the head's crash probability at its last state instead of 0, so the
-head learns the probability of crashing before the episode ends, one horizon of
+(:func:`crash_label`, ``algo.crash_label=bootstrap``; GRPO does so with
+``algo.bootstrap=survival`` too, whatever ``algo.crash_label`` says): a branch the
+horizon cut alive is labelled with the head's crash probability at its last state
+instead of 0, so the head learns the probability of crashing before the episode ends, one horizon of
 bootstrapping at a time (a temporal-difference target of the crash indicator).
 """
 
@@ -30,7 +31,8 @@ __all__ = ["CrashLabel", "TailSurvival", "crash_label"]
 
 #: What a crash head learns of a branch: ``"branch"``, whether it crashed within the
 #: horizon; ``"bootstrap"``, that, or where the horizon cut it alive, the head's own
-#: crash probability at its last state (:func:`crash_label`).
+#: crash probability at its last state (:func:`crash_label`). GRPO's survival bootstrap
+#: labels as ``"bootstrap"`` does, whatever this says.
 CrashLabel = Literal["branch", "bootstrap"]
 
 

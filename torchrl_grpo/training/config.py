@@ -40,6 +40,7 @@ from torchrl_grpo.training.algos.registry import ALGORITHMS, algorithm_for
 from torchrl_grpo.training.choices import EnvBackendName, LoggerBackend
 from torchrl_grpo.training.config_checks import check_config
 from torchrl_grpo.training.group_schemas import (
+    MODEL_SCHEMAS,
     AttentionModelConfig,
     GroupRolloutConfig,
     MLPModelConfig,
@@ -50,7 +51,7 @@ from torchrl_grpo.training.group_schemas import (
     StepRolloutConfig,
 )
 from torchrl_grpo.training.resolvers import CONF_DIR, register_resolvers
-from torchrl_grpo.training.retired_keys import SHARED_FIXED, LabRequired, migrate
+from torchrl_grpo.training.retired_keys import SHARED_FIXED, LabRequired, migrate, with_fixed
 
 __all__ = [
     "CONF_DIR",
@@ -177,7 +178,9 @@ class Config:
     """
 
     env: EnvConfig = MISSING
-    model: ModelConfig = MISSING
+    # A ModelConfig ("schema"), typed by the group's file alone (its kind's schema, or
+    # model=lab's): a field typed ModelConfig would hold model.kind to the core's kinds.
+    model: Any = field(default=MISSING, metadata={"schema": ModelConfig})
     algo: AlgoConfig = MISSING
     rollout: RolloutConfig = MISSING
     optim: OptimConfig = MISSING
@@ -274,13 +277,15 @@ def typed_config(container: Mapping[str, Any]) -> DictConfig:
     The ``algo`` group gets the schema of its algorithm, ``model`` its kind's and
     ``rollout`` its algorithm's. A config written before keys retired is migrated
     (:func:`~torchrl_grpo.training.retired_keys.migrate`): a GRPO run that used
-    values the recipe now fixes reads as an ``algo=grpo_lab`` run when
-    ``torchrl_grpo.experimental`` is imported. Older spellings of a choice read as
-    today's (``first_action: enumeration`` is ``enumerate``).
+    values the recipe now fixes, or a network kind beside the core's (``model.kind:
+    neighbours``, registered by ``torchrl_grpo.experimental``), reads as an
+    ``algo=grpo_lab`` run when ``torchrl_grpo.experimental`` is imported. Older
+    spellings of a choice read as today's (``first_action: enumeration`` is ``enumerate``).
 
     Raises:
-        ValueError: a retired key holds a value only ``algo=grpo_lab`` has, and the
-            experimental package is not imported; naming the key.
+        ValueError: a retired key holds a value only ``algo=grpo_lab`` has, or
+            ``model.kind`` is not a core kind, and the experimental package is not
+            imported (or the algorithm is not GRPO); naming the key.
         omegaconf.errors.ValidationError: a value does not fit its key's type.
 
     Example:
@@ -338,7 +343,17 @@ def _migrated(container: Mapping[str, Any], algorithm: type[Algorithm]) -> dict[
         fixed.setdefault(group, {}).update(values)
     keys = {group: _keys(schema) for group, schema in _schemas(algorithm, container).items()}
     try:
-        return migrate(container, fixed, keys)
+        out = migrate(container, fixed, keys)
+        kind = str((out.get("model") or {}).get("kind", "mlp"))
+        if kind in MODEL_SCHEMAS or algorithm is ALGORITHMS.get("grpo_lab"):
+            return out
+        # A registered network kind is the lab's: the run, with the settings its
+        # algorithm fixed, is a grpo_lab run of model=lab.
+        container = with_fixed(out, fixed)
+        raise LabRequired(
+            f"model.kind={kind!r} (a network of torchrl_grpo.experimental): a kind of "
+            "model=lab with algo=grpo_lab"
+        )
     except LabRequired as err:
         lab = ALGORITHMS.get("grpo_lab")
         if lab is None or not issubclass(lab, algorithm) or lab is algorithm:

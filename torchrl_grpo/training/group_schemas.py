@@ -57,7 +57,7 @@ class ModelConfig:
 
 @dataclass
 class MLPModelConfig(ModelConfig):
-    """``model=mlp``, ``model=scene``, ``model=neighbours``: an MLP over the features."""
+    """``model=mlp``, ``model=scene``: an MLP over the table or the scene's features."""
 
     num_cells: list[int] = field(default_factory=lambda: [256, 256])
 
@@ -73,11 +73,11 @@ class AttentionModelConfig(ModelConfig):
     decoder_cells: list[int] = field(default_factory=lambda: [64, 64])
 
 
-#: Each network kind's schema.
+#: Each of the core's network kinds' schema (a registered kind brings its own:
+#: :func:`~torchrl_grpo.training.model_builder.register_network_kind`).
 MODEL_SCHEMAS: dict[str, type[ModelConfig]] = {
     "mlp": MLPModelConfig,
     "scene": MLPModelConfig,
-    "neighbours": MLPModelConfig,
     "ego_attention": AttentionModelConfig,
 }
 

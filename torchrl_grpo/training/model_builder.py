@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Literal
+from typing import Literal, get_args
 
 from omegaconf import DictConfig
 from torch import nn
@@ -13,9 +13,8 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl_grpo.modules.actors import make_discrete_actor, make_value_net
 from torchrl_grpo.modules.crash_head import CrashHead
 from torchrl_grpo.modules.ensemble import PolicyEnsemble
-from torchrl_grpo.modules.neighbour_features import NeighbourMLP
 from torchrl_grpo.modules.networks import NetworkKind, make_network
-from torchrl_grpo.modules.scene_features import DEFAULT_TARGET_SPEEDS, SceneMLP
+from torchrl_grpo.modules.scene_features import DEFAULT_TARGET_SPEEDS, FeatureMLP, SceneMLP
 from torchrl_grpo.modules.scripted.actions import ScriptedPolicy
 from torchrl_grpo.modules.scripted.policy_registry import make_scripted_policy
 from torchrl_grpo.training.env_builder import make_layout
@@ -24,15 +23,19 @@ __all__ = [
     "BasePolicyName",
     "ModelArchitecture",
     "make_base_policy",
+    "make_feature_mlp",
     "make_net",
     "make_policy",
     "make_value",
+    "register_network_kind",
     "register_policy_wrapper",
 ]
 
-#: The network of ``model.kind``: one of :func:`~torchrl_grpo.modules.networks.make_network`'s
-#: kinds, or ``"scene"`` (:class:`~torchrl_grpo.modules.SceneMLP`).
-ModelArchitecture = Literal[NetworkKind, "scene", "neighbours"]
+#: The core's networks of ``model.kind``: one of
+#: :func:`~torchrl_grpo.modules.networks.make_network`'s kinds, or ``"scene"``
+#: (:class:`~torchrl_grpo.modules.SceneMLP`). Others are registered
+#: (:func:`register_network_kind`).
+ModelArchitecture = Literal[NetworkKind, "scene"]
 #: The scripted policies that drive deterministically (names of
 #: :data:`~torchrl_grpo.modules.SCRIPTED_POLICIES`): a greedy tail's base (or a prior's).
 BasePolicyName = Literal["idle", "slower", "rule", "conservative", "cautious"]
@@ -45,6 +48,45 @@ PolicyWrapper = Callable[[DictConfig, EnvBase, nn.Module, int], nn.Module]
 #: imports (``torchrl_grpo.experimental``'s scripted prior), changes the policy every
 #: builder of a run makes (training, evaluation, a teacher's reload).
 POLICY_WRAPPERS: list[PolicyWrapper] = []
+
+#: A builder of a registered network kind: ``(model_cfg, env, out_features) -> net``.
+NetworkBuilder = Callable[[DictConfig, EnvBase, int], nn.Module]
+#: The network kinds beside the core's (:data:`ModelArchitecture`), by name: their builder
+#: and the ``model`` schema of the keys they read (:func:`register_network_kind`). How a
+#: package the core never imports (``torchrl_grpo.experimental``'s ``neighbours``) adds a
+#: network that :func:`make_net` builds for training, evaluation and a teacher's reload.
+NETWORK_KINDS: dict[str, tuple[NetworkBuilder, type]] = {}
+
+
+def register_network_kind(name: str, builder: NetworkBuilder, schema: type) -> NetworkBuilder:
+    """Registers the network kind ``name``: :func:`make_net` builds it with ``builder``.
+
+    ``builder(model_cfg, env, out_features)`` returns the network; ``schema`` is the
+    ``model`` dataclass of the keys the kind reads (those an old config of that kind
+    holds). Registering the same builder again is a no-op.
+
+    Raises:
+        ValueError: ``name`` is one of the core's kinds, or has another builder.
+
+    Example:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_grpo.training.group_schemas import MLPModelConfig
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> def linear(model_cfg, env, out_features):
+        ...     return nn.Sequential(nn.Flatten(-2), nn.LazyLinear(out_features))
+        >>> _ = register_network_kind("linear", linear, MLPModelConfig)
+        >>> cfg = OmegaConf.create({"kind": "linear"})
+        >>> type(make_net(cfg, HighwayEnv(seed=0), 5)).__name__
+        'Sequential'
+        >>> del NETWORK_KINDS["linear"]  # leave the registry as it was
+    """
+    if name in get_args(ModelArchitecture) or name in get_args(NetworkKind):
+        raise ValueError(f"model.kind={name} is one of the core's network kinds")
+    known = NETWORK_KINDS.get(name)
+    if known is not None and known[0] is not builder:
+        raise ValueError(f"model.kind={name} is registered already, by {known[0].__qualname__}")
+    NETWORK_KINDS[name] = (builder, schema)
+    return builder
 
 
 def register_policy_wrapper(wrapper: PolicyWrapper) -> PolicyWrapper:
@@ -100,23 +142,11 @@ def make_net(model_cfg: DictConfig, env: EnvBase, out_features: int) -> nn.Modul
     """
     n_vehicles, n_features = _table_shape(env)
     kind = str(model_cfg.kind)
-    if kind in ("scene", "neighbours"):
-        layout = make_layout(env)
-        if layout is None:
-            raise ValueError(
-                f"model.kind={kind} reads highway-env's Kinematics observation; this env "
-                "observes something else"
-            )
-        try:
-            # The speed feature is centred on the env's own target speeds.
-            action = (getattr(env, "config", None) or {}).get("action", {})
-            speeds = action.get("target_speeds") or DEFAULT_TARGET_SPEEDS
-            net_class = SceneMLP if kind == "scene" else NeighbourMLP
-            return net_class(
-                layout, out_features, num_cells=list(model_cfg.num_cells), target_speeds=speeds
-            )
-        except ValueError as err:
-            raise ValueError(f"model.kind={kind}: {err}") from err
+    registered = NETWORK_KINDS.get(kind)
+    if registered is not None:
+        return registered[0](model_cfg, env, out_features)
+    if kind == "scene":
+        return make_feature_mlp(SceneMLP, model_cfg, env, out_features)
     if kind == "mlp":
         kwargs = {"num_cells": list(model_cfg.num_cells)}
     else:
@@ -129,6 +159,38 @@ def make_net(model_cfg: DictConfig, env: EnvBase, out_features: int) -> nn.Modul
     return make_network(
         kind, n_vehicles=n_vehicles, n_features=n_features, out_features=out_features, **kwargs
     )
+
+
+def make_feature_mlp(
+    net_class: type[FeatureMLP], model_cfg: DictConfig, env: EnvBase, out_features: int
+) -> nn.Module:
+    """A :class:`~torchrl_grpo.modules.scene_features.FeatureMLP` of ``model.num_cells``.
+
+    Its features are decoded from the env's Kinematics table, the speed centred on the
+    env's own target speeds; errors name ``model.kind``.
+
+    Example:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> cfg = OmegaConf.create({"kind": "scene", "num_cells": [8]})
+        >>> type(make_feature_mlp(SceneMLP, cfg, HighwayEnv(seed=0), 5)).__name__
+        'SceneMLP'
+    """
+    kind = str(model_cfg.kind)
+    layout = make_layout(env)
+    if layout is None:
+        raise ValueError(
+            f"model.kind={kind} reads highway-env's Kinematics observation; this env "
+            "observes something else"
+        )
+    try:
+        action = (getattr(env, "config", None) or {}).get("action", {})
+        speeds = action.get("target_speeds") or DEFAULT_TARGET_SPEEDS
+        return net_class(
+            layout, out_features, num_cells=list(model_cfg.num_cells), target_speeds=speeds
+        )
+    except ValueError as err:
+        raise ValueError(f"model.kind={kind}: {err}") from err
 
 
 def make_policy(model_cfg: DictConfig, env: EnvBase) -> ProbabilisticActor:

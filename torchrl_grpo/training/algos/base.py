@@ -39,6 +39,7 @@ from torchrl_grpo.training.group_schemas import (
     collects_on_ray,
 )
 from torchrl_grpo.training.metrics import PhaseTimer, metric_name
+from torchrl_grpo.training.model_builder import NETWORK_KINDS
 from torchrl_grpo.training.optim_builder import make_optimizer
 from torchrl_grpo.training.retired_keys import SHARED_FIXED, with_fixed
 
@@ -166,8 +167,25 @@ class Algorithm:
 
     @classmethod
     def model_schema(cls, kind: str) -> type[ModelConfig]:
-        """The ``model`` schema of a network ``kind`` for this algorithm."""
-        return MODEL_SCHEMAS[kind]
+        """The ``model`` schema of a network ``kind`` for this algorithm.
+
+        A kind beside the core's has the schema it was registered with
+        (:func:`~torchrl_grpo.training.model_builder.register_network_kind`).
+
+        Raises:
+            ValueError: ``kind`` is neither a core kind nor registered.
+        """
+        if kind in MODEL_SCHEMAS:
+            return MODEL_SCHEMAS[kind]
+        registered = NETWORK_KINDS.get(kind)
+        if registered is None:
+            core = ", ".join(MODEL_SCHEMAS)
+            raise ValueError(
+                f"model.kind={kind!r} is not a network kind of the core ({core}); the lab's "
+                "kinds are registered by 'import torchrl_grpo.experimental' and run with "
+                "algo=grpo_lab model=lab"
+            )
+        return registered[1]
 
     @classmethod
     def extra_schemas(cls) -> dict[str, type]:

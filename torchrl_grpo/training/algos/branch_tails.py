@@ -4,8 +4,9 @@ A greedy-tail branch explores its first steps, then a tail actor drives it: the 
 or a scripted base policy (``algo.tail_policy``). A branch the
 horizon cuts is credited the episode steps left (``algo.bootstrap``); with
 ``algo.bootstrap=survival``, times the crash head's probability of surviving them. With
-``algo.crash_label=bootstrap`` the same probability labels the head's own training rows
-of branches cut alive.
+``algo.crash_label=bootstrap``, or with ``algo.bootstrap=survival`` whatever
+``algo.crash_label`` says, the same probability labels the head's own training rows of
+branches cut alive (:func:`crash_labels` uses it wherever it was built).
 """
 
 from __future__ import annotations
@@ -74,8 +75,10 @@ def crash_labels(
 ) -> torch.Tensor:
     """``[R, G, T]``: each branch's crash label, on every step of the branch.
 
-    Whether the branch crashed; with ``survival`` (``algo.crash_label=bootstrap``, after
-    ``survival`` has written its key), :func:`~torchrl_grpo.objectives.survival.crash_label`:
+    Whether the branch crashed; with ``survival`` (built for ``algo.crash_label=bootstrap``
+    and for ``algo.bootstrap=survival``, which so bootstraps the labels even with
+    ``algo.crash_label=branch``; after ``survival`` has written its key),
+    :func:`~torchrl_grpo.objectives.survival.crash_label`:
     where the horizon cut the branch before its episode's last step
     (:meth:`~torchrl_grpo.objectives.HorizonBootstrap.steps_left` > 0), the head's crash
     probability at its last state.

@@ -9,17 +9,32 @@ for the ego's lane and the lanes beside it, the two nearest vehicles ahead and t
 nearest behind (gap, closing speed, inverse time to collision), and the ego's own
 lateral offset and speed; :class:`NeighbourMLP` is an MLP over them. A vehicle more than
 two lengths behind is in the table only with the observation's ``see_behind=True``.
+
+``model=lab model.kind=neighbours``: :func:`build_neighbours` is registered with
+:func:`~torchrl_grpo.training.model_builder.register_network_kind` when this module is
+imported (``import torchrl_grpo.experimental``). No recipe uses it: measured in the lab
+notes (``docs/lab/tensor_sim.md``), it crashed more than the scene features.
 """
 
 from __future__ import annotations
 
+from typing import Literal, get_args
+
 import torch
+from omegaconf import DictConfig
+from torch import nn
+from torchrl.envs import EnvBase
 
 from torchrl_grpo.modules.kinematics_table import VEHICLE_LENGTH
 from torchrl_grpo.modules.scene_features import FeatureMLP, SceneFeatures
 from torchrl_grpo.modules.scripted.scene import Scene
+from torchrl_grpo.training.group_schemas import MLPModelConfig
+from torchrl_grpo.training.model_builder import make_feature_mlp, register_network_kind
 
-__all__ = ["NeighbourFeatures", "NeighbourMLP"]
+__all__ = ["NeighbourFeatures", "NeighbourMLP", "NeighboursKind", "build_neighbours"]
+
+#: The network kind this module registers (``model.kind``).
+NeighboursKind = Literal["neighbours"]
 
 # Gaps beyond this many metres (or no vehicle at all) read as this far.
 _FAR = 100.0
@@ -137,3 +152,19 @@ class NeighbourMLP(FeatureMLP):
     """
 
     features_class = NeighbourFeatures
+
+
+def build_neighbours(model_cfg: DictConfig, env: EnvBase, out_features: int) -> nn.Module:
+    """``model.kind=neighbours``: a :class:`NeighbourMLP` of ``model.num_cells`` for ``env``.
+
+    Example:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> cfg = OmegaConf.create({"kind": "neighbours", "num_cells": [8]})
+        >>> type(build_neighbours(cfg, HighwayEnv(seed=0), 5)).__name__
+        'NeighbourMLP'
+    """
+    return make_feature_mlp(NeighbourMLP, model_cfg, env, out_features)
+
+
+register_network_kind(get_args(NeighboursKind)[0], build_neighbours, MLPModelConfig)
