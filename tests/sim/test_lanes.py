@@ -50,17 +50,19 @@ def test_lane_functions_match_highway_env(road):
         lane = network.get_lane(key)
         idx = torch.full((len(x),), k)
         s, r = L.local_coordinates(tx, ty, idx, graph.geometry)
-        ref = np.array([lane.local_coordinates(np.array([a, b])) for a, b in zip(x, y)])
+        ref = np.array(
+            [lane.local_coordinates(np.array([a, b])) for a, b in zip(x, y, strict=True)]
+        )
         tol = _tol(lane)
         np.testing.assert_allclose(s.numpy(), ref[:, 0], rtol=0, atol=tol * 500)
         np.testing.assert_allclose(r.numpy(), ref[:, 1], rtol=0, atol=tol * 500)
         # Thresholds from highway-env's own (s, r), so a 1e-12 drift cannot flip a test.
         rs, rr = torch.from_numpy(ref[:, 0]), torch.from_numpy(ref[:, 1])
-        on = [lane.on_lane(np.array([a, b]), margin=1) for a, b in zip(x, y)]
+        on = [lane.on_lane(np.array([a, b]), margin=1) for a, b in zip(x, y, strict=True)]
         assert L.on_lane(rs, rr, idx, graph.geometry, margin=1).tolist() == on
-        reach = [lane.is_reachable_from(np.array([a, b])) for a, b in zip(x, y)]
+        reach = [lane.is_reachable_from(np.array([a, b])) for a, b in zip(x, y, strict=True)]
         assert L.is_reachable(rs, rr, idx, graph.geometry).tolist() == reach
-        end = [lane.after_end(np.array([a, b])) for a, b in zip(x, y)]
+        end = [lane.after_end(np.array([a, b])) for a, b in zip(x, y, strict=True)]
         assert L.after_end(rs, idx, graph.geometry).tolist() == end
         heading = L.heading_at(rs, idx, graph.geometry).numpy()
         np.testing.assert_allclose(heading, [lane.heading_at(v) for v in ref[:, 0]], atol=tol)
@@ -80,7 +82,7 @@ def test_distance_and_closest_lane_match_highway_env(road):
     ref = np.array(
         [
             [ln.distance_with_heading(np.array([a, b]), c) for ln in lanes]
-            for a, b, c in zip(x, y, h)
+            for a, b, c in zip(x, y, h, strict=True)
         ]
     )
     np.testing.assert_allclose(d, ref, rtol=0, atol=1e-9)
@@ -89,7 +91,7 @@ def test_distance_and_closest_lane_match_highway_env(road):
     ).tolist()
     expected = [
         graph.keys.index(network.get_closest_lane_index(np.array([a, b]), c))
-        for a, b, c in zip(x, y, h)
+        for a, b, c in zip(x, y, h, strict=True)
     ]
     agree = np.mean(np.array(closest) == np.array(expected))
     assert agree == 1.0
@@ -104,7 +106,9 @@ def test_merge_straight_lanes_are_bitwise():
         s, r = L.local_coordinates(
             torch.from_numpy(x), torch.from_numpy(y), torch.full((300,), k), graph.geometry
         )
-        ref = np.array([lane.local_coordinates(np.array([a, b])) for a, b in zip(x, y)])
+        ref = np.array(
+            [lane.local_coordinates(np.array([a, b])) for a, b in zip(x, y, strict=True)]
+        )
         assert np.array_equal(s.numpy(), ref[:, 0]) and np.array_equal(r.numpy(), ref[:, 1])
 
 
