@@ -219,8 +219,8 @@ def heading_at(s: torch.Tensor, lane: torch.Tensor, geo: LaneGeometry) -> torch.
 
     Example:
         >>> geo = LaneGeometry.of([straight((0.0, 0.0), (0.0, 5.0))])
-        >>> heading_at(torch.tensor(1.0), torch.tensor(0), geo).item() == math.pi / 2
-        True
+        >>> float(heading_at(torch.tensor(1.0, dtype=torch.float64), torch.tensor(0), geo))
+        1.5707963267948966
     """
     s, lane = torch.broadcast_tensors(s, lane)
     c = _gather(geo, lane, s)

@@ -30,7 +30,7 @@ Example:
     >>> from torchrl_grpo.sim.state import empty_world
     >>> params = tensor_params("merge-v0")
     >>> world = empty_world(2, params.num_vehicles, torch.float64)
-    >>> draws = torch.tensor([[1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0]] * 2, dtype=torch.float64)
+    >>> draws = torch.tensor([[1.0, 0, 0, 0, 0, 0, 1.0, 0, 0]] * 2, dtype=torch.float64)
     >>> world = reset_merge(world, torch.ones(2, dtype=torch.bool), draws, params)
     >>> world, out = merge_step(world, torch.tensor([1, 3]), params)
     >>> world.steps.tolist(), out["observation"].shape
