@@ -130,19 +130,24 @@ def straight(start: tuple[float, float], end: tuple[float, float], width: float 
     }  # fmt: skip
 
 
+_FLOATS = tuple(f.name for f in fields(LaneGeometry) if f.name not in ("kind", "forbidden"))
+
+
 @functools.lru_cache(maxsize=64)
-def _table(geo: LaneGeometry, dtype: torch.dtype, device: torch.device) -> dict[str, torch.Tensor]:
-    out = {}
-    for f in fields(LaneGeometry):
-        values = getattr(geo, f.name)
-        kind = torch.bool if f.name == "forbidden" else (torch.int64 if f.name == "kind" else dtype)
-        out[f.name] = torch.tensor(values, dtype=kind, device=device)
-    return out
+def _table(geo: LaneGeometry, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``[L, F + 2]``: every float constant per lane, then ``kind`` and ``forbidden`` as floats."""
+    columns = [getattr(geo, name) for name in _FLOATS] + [geo.kind, geo.forbidden]
+    return torch.tensor(list(zip(*columns, strict=True)), dtype=dtype, device=device)
 
 
 def _gather(geo: LaneGeometry, lane: torch.Tensor, like: torch.Tensor) -> dict[str, torch.Tensor]:
+    # One index_select of whole rows: far cheaper on a CPU than one advanced index per field.
     table = _table(geo, like.dtype, like.device)
-    return {name: t[lane] for name, t in table.items()}
+    rows = table.index_select(0, lane.reshape(-1)).view(*lane.shape, table.shape[1])
+    out = dict(zip(_FLOATS, rows.unbind(-1), strict=False))
+    out["kind"] = rows[..., -2]
+    out["forbidden"] = rows[..., -1] != 0
+    return out
 
 
 def _circular(geo: LaneGeometry) -> bool:
@@ -293,7 +298,7 @@ def distance_with_heading(
     lanes = torch.arange(geo.count, device=x.device)
     xs, ys, hs = x.unsqueeze(-1), y.unsqueeze(-1), heading.unsqueeze(-1)
     s, r = local_coordinates(xs, ys, lanes, geo)
-    length = _table(geo, x.dtype, x.device)["length"]
+    length = _table(geo, x.dtype, x.device)[:, _FLOATS.index("length")]
     angle = wrap_to_pi(hs - heading_at(s, lanes, geo)).abs()
     return ((r.abs() + torch.clamp(s - length, min=0)) + torch.clamp(0 - s, min=0)) + 1.0 * angle
 

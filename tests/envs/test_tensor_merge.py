@@ -1,0 +1,157 @@
+"""TensorHighwayEnv("merge-v0"): specs, highway-env's own resets, the bridge, branches, errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+from torchrl_grpo.branching import MASK, branch_rollout, make_roots, reset_roots
+from torchrl_grpo.envs import HighwayEnv, TensorHighwayEnv, state_differences
+
+SCENARIO = "merge-v0"
+
+
+@pytest.mark.parametrize("kwargs", [{}, {"dtype": torch.float64, "return_state": True}])
+def test_check_env_specs(kwargs):
+    check_env_specs(TensorHighwayEnv(SCENARIO, num_envs=4, seed=0, **kwargs))
+
+
+def test_same_keys_and_specs_as_highway_env():
+    tensor = TensorHighwayEnv(SCENARIO, num_envs=3, seed=0)
+    highway = HighwayEnv(SCENARIO, seed=0)
+    for name in ("observation_spec", "reward_spec", "done_spec", "action_spec"):
+        a, b = getattr(tensor, name), getattr(highway, name)
+        if hasattr(b, "keys"):
+            assert set(a.keys(True, True)) == set(b.keys(True, True))
+            for key in b.keys(True, True):
+                assert a[key].shape[1:] == b[key].shape, key
+                assert a[key].dtype == b[key].dtype, key
+        else:
+            assert a.shape[1:] == b.shape and (a.dtype, type(a)) == (b.dtype, type(b))
+
+
+def test_fresh_worlds_are_highway_envs_own_episodes():
+    # Row i of seed s is highway-env's reset(seed=s + i), and its next episode the
+    # generator's next reset: bit for bit, through the bridge.
+    env = TensorHighwayEnv(SCENARIO, num_envs=3, seed=11, dtype=torch.float64)
+    env.reset()
+    first = env.state_to_highway(env.get_state())
+    env.reset()  # every row: its second episode
+    second = env.state_to_highway(env.get_state())
+    for i in range(3):
+        hw = HighwayEnv(SCENARIO, seed=11 + i)
+        hw.reset()
+        assert state_differences(first[i], hw.get_state()) == [], i
+        hw.reset()
+        assert state_differences(second[i], hw.get_state()) == [], i
+
+
+def visited_states(episodes=3, steps=10):
+    env = HighwayEnv(SCENARIO, seed=0)
+    rng = np.random.default_rng(0)
+    states = []
+    for _ in range(episodes):
+        env.reset()
+        for _ in range(steps):
+            states.append(env.get_state())
+            td = env.step(TensorDict(action=torch.tensor(int(rng.integers(5)))))
+            if bool(td["next", "done"]):
+                states.append(env.get_state())
+                break
+    return torch.stack(states)
+
+
+LAST_ACTION = ("output", "reward_components", "lane_change_reward")
+
+
+def test_round_trip_from_highway_env_is_bitwise():
+    states = visited_states()
+    env = TensorHighwayEnv(SCENARIO, num_envs=1, dtype=torch.float64)
+    back = env.state_to_highway(env.state_from_highway(states))
+    lost = 0
+    for i in range(states.shape[0]):
+        # The tensor state holds the world, not the last action: a restored state's
+        # cached lane-change term reads 0 (its next step computes it again).
+        diff = state_differences(states[i], back[i])
+        lost += diff == [str(LAST_ACTION)]
+        assert diff in ([], [str(LAST_ACTION)]), i
+        assert float(back[i][LAST_ACTION].view(torch.float32)) == 0.0 or not diff
+    assert lost < states.shape[0]
+
+
+def test_tensor_steps_continue_in_highway_env_and_render():
+    env = TensorHighwayEnv(SCENARIO, num_envs=2, seed=4, dtype=torch.float64)
+    env.reset()
+    env.step(TensorDict(action=torch.tensor([3, 1]), batch_size=[2]))
+    state = env.get_state()
+    hw = HighwayEnv(SCENARIO)
+    hw.set_state(env.state_to_highway(state)[0])
+    hw_next = hw.step(TensorDict(action=torch.tensor(2)))["next"]
+    td = env.step(TensorDict(action=torch.tensor([2, 2]), batch_size=[2]))["next"]
+    assert torch.allclose(td["observation"][0].float(), hw_next["observation"], atol=1e-6)
+    assert abs(float(td["reward"][0]) - float(hw_next["reward"])) < 1e-6  # float32 there
+    frames = env.render_frames(state)
+    assert len(frames) == 2 and frames[0].ndim == 3 and frames[0].std() > 0
+
+
+def test_rollout_resets_finished_rows_into_new_episodes():
+    env = TensorHighwayEnv(SCENARIO, num_envs=2, seed=0)
+    policy = lambda td: td.set("action", torch.full((2,), 3))  # noqa: E731 - FASTER
+    td = env.rollout(14, policy, break_when_any_done=False)  # x > 370 by step 12 at 30 m/s
+    done = td["next", "done"].squeeze(-1)
+    assert bool(done.any(-1).all())
+    t = int(done[0].nonzero()[0])
+    assert t + 1 < done.shape[1]
+    # The next step starts a fresh episode: the ego back at its spawn (x = 30 + 30 m/s).
+    assert float(td["next", "ego_position"][0, t + 1, 0]) < float(
+        td["next", "ego_position"][0, t, 0]
+    )
+
+
+def test_branch_rollout_runs_rows_as_highway_env_does():
+    highway_roots = reset_roots(HighwayEnv(SCENARIO), 2, seed=3)
+
+    def policy(td):  # always FASTER
+        return td.set("action", torch.full(td.batch_size, 3, dtype=torch.int64))
+
+    highway = branch_rollout(HighwayEnv(SCENARIO), policy, highway_roots, 2, 6)
+    env = TensorHighwayEnv(SCENARIO, num_envs=4, dtype=torch.float64)
+    roots = make_roots(env.state_from_highway(highway_roots["state"]))
+    tensor = branch_rollout(env, policy, roots, 2, 6)
+    assert torch.equal(tensor[MASK], highway[MASK])
+    mask = highway[MASK]
+    a, b = tensor["next", "reward"][mask].double(), highway["next", "reward"][mask].double()
+    assert torch.allclose(a, b, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("config", "match"),
+    [
+        ({"other_vehicles_type": "highway_env.vehicle.behavior.LinearVehicle"}, "other_vehicles"),
+        ({"lanes_count": 3}, "unknown config key 'lanes_count'"),
+        ({"observation": {"type": "Kinematics", "features_range": {"x": [0, 1]}}}, "features_range"),
+        ({"collision_reward": -0.5, "merging_speed_reward": 0.0, "high_speed_reward": -0.6,
+          "right_lane_reward": 0.1}, "collision_reward"),
+    ],
+)  # fmt: skip
+def test_uncovered_configs_are_value_errors_naming_the_key(config, match):
+    with pytest.raises(ValueError, match=match):
+        TensorHighwayEnv(SCENARIO, config)
+
+
+def test_covered_overrides_change_the_reward():
+    base = TensorHighwayEnv(SCENARIO, num_envs=2, seed=0, dtype=torch.float64)
+    other = TensorHighwayEnv(SCENARIO, {"lane_change_reward": -0.5}, num_envs=2, seed=0,
+                             dtype=torch.float64)  # fmt: skip
+    action = TensorDict(action=torch.tensor([0, 1]), batch_size=[2])
+    a, b = base.step(action.clone())["next", "reward"], other.step(action.clone())["next", "reward"]
+    assert float(a[1]) == float(b[1]) and float(a[0]) != float(b[0])
+
+
+def test_compile_leaves_the_merge_step_eager():
+    env = TensorHighwayEnv(SCENARIO, num_envs=2, seed=0)
+    assert env.compile() is env
+    env.rollout(2)
