@@ -74,120 +74,166 @@ def _steer(x, y, speed, heading, target, params: MergeParams) -> torch.Tensor:
     return steer_to(r, future, speed, heading, params)
 
 
-class _Scene:
-    """What a substep's decisions read and no decision changes: positions, speeds, targets."""
+def _pick(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``table[b, index[b, k]]`` for ``[B, N]`` tables and ``[B, K]`` indices (-1 clamped to 0)."""
+    return table.gather(1, index.clamp(min=0))
+
+
+class _Others:
+    """The IDM vehicles (rows ``1 .. obstacle_row - 1``) deciding at once, as ``[B, K]`` tensors.
+
+    What they read and no decision of this substep changes: positions, speeds, lanes,
+    target speeds; each vehicle's coordinates along its own current lane.
+    """
 
     def __init__(self, v: Vehicles, params: MergeParams) -> None:
-        self.v, self.params = v, params
+        self.v, self.params, self.geo = v, params, params.road.lanes
+        n = v.x.shape[1]
+        self.ids = torch.arange(1, params.obstacle_row, device=v.x.device)
+        self.rows = self.ids.expand(v.x.shape[0], -1)  # [B, K]
         self.cos, self.sin = torch.cos(v.heading), torch.sin(v.heading)
-        # The obstacle is found as a front vehicle, but is no Vehicle as a follower.
-        self.is_vehicle = torch.ones_like(v.present)
-        self.is_vehicle[:, params.obstacle_row] = False
+        # The obstacle is found in front, but is no Vehicle as a follower nor in the abort scan.
+        self.is_vehicle = torch.arange(n, device=v.x.device) < params.obstacle_row
+        self.not_me = self.ids.unsqueeze(1) != torch.arange(n, device=v.x.device)  # [K, N]
+        self.lane = v.lane[:, 1 : params.obstacle_row]
+        self.s_cur, self.r_cur = self.frames(self.lane)
+        self.s_me = self.diagonal(self.s_cur)
 
-    def along(self, lane: torch.Tensor) -> torch.Tensor:
-        """``[B, N]``: every row's longitudinal coordinate in lane ``lane`` (``[B]``)."""
+    def frames(self, lane: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``[B, K, N]``: every row's (s, r) in lane ``lane[b, k]``."""
         v = self.v
-        return L.local_coordinates(v.x, v.y, lane.unsqueeze(1), self.params.road.lanes)[0]
+        return L.local_coordinates(v.x.unsqueeze(1), v.y.unsqueeze(1), lane.unsqueeze(2), self.geo)
 
-    def car(self, at: torch.Tensor, s: torch.Tensor, exists: torch.Tensor | None = None) -> Car:
-        """The :class:`~.idm.Car` of row ``at`` (``[B]``, clamped), placed at ``s`` along a lane."""
-        v, i = self.v, at.clamp(min=0).unsqueeze(1)
-        pick = lambda t: t.gather(1, i).squeeze(1)  # noqa: E731
-        return Car(s, pick(v.speed), pick(self.cos), pick(self.sin), pick(v.target_speed), exists)
+    def diagonal(self, table: torch.Tensor) -> torch.Tensor:
+        """``[B, K]``: entry ``[b, k, row k]`` of a ``[B, K, N]`` table."""
+        return table.gather(2, self.rows.unsqueeze(2)).squeeze(2)
 
-    def neighbours(self, me: int, lane: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``Road.neighbour_vehicles(vehicle me, lane)``: front and rear rows (-1: none)."""
-        v, geo = self.v, self.params.road.lanes
-        s, r = L.local_coordinates(v.x, v.y, lane.unsqueeze(1), geo)
-        member = L.on_lane(s, r, lane.unsqueeze(1), geo, margin=1.0) & v.present
-        member[:, me] = False
-        mine = s[:, me : me + 1]
+    def car(self, rows: torch.Tensor, s: torch.Tensor, exists=None) -> Car:
+        """The :class:`~.idm.Car` of ``rows`` (``[B, K]``), placed at ``s`` along a lane."""
+        v = self.v
+        fields = (v.speed, self.cos, self.sin, v.target_speed)
+        return Car(s, *(_pick(t, rows) for t in fields), exists)
+
+    def neighbours(self, lane, frames=None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``Road.neighbour_vehicles(vehicle k, lane[b, k])``: front and rear rows (-1: none)."""
+        s, r = self.frames(lane) if frames is None else frames
+        member = L.on_lane(
+            s, r, lane.unsqueeze(2), self.geo, margin=1.0
+        ) & self.v.present.unsqueeze(1)
+        member = member & self.not_me
+        mine = self.diagonal(s).unsqueeze(2)
         inf = torch.full_like(s, float("inf"))
         ahead = torch.where(member & (mine <= s), s, inf)
-        n = s.shape[1]
+        n = s.shape[2]
         # Ties: the later row in front (``s_v <= s_front``), the first behind (``s_v > s_rear``).
-        front = (n - 1) - ahead.flip(-1).argmin(-1)
-        front = torch.where(ahead.amin(-1) < float("inf"), front, -1)
+        front = torch.where(ahead.amin(-1) < float("inf"), (n - 1) - ahead.flip(-1).argmin(-1), -1)
         behind = torch.where(member & (s < mine), s, -inf)
         rear = torch.where(behind.amax(-1) > -float("inf"), behind.argmax(-1), -1)
         return front, rear
 
-    def idm(self, me: int, front: torch.Tensor, s_mine: torch.Tensor, delta, free) -> torch.Tensor:
-        """``acceleration(me, front)`` with ``s_mine`` the rows' coordinates in me's lane."""
-        pick = lambda t, i: t.gather(1, i.clamp(min=0).unsqueeze(1)).squeeze(1)  # noqa: E731
-        ego = self.car(torch.full_like(front, me), s_mine[:, me])
-        ahead = self.car(front, pick(s_mine, front), exists=front >= 0)
-        return free - interaction(ego, ahead, self.params)
+    def behind(self, front: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
+        """IDM's acceleration of each vehicle behind ``front``, measured along its own lane."""
+        me = self.car(self.rows, self.s_me)
+        ahead = self.car(
+            front, self.s_cur.gather(2, front.clamp(min=0).unsqueeze(2)).squeeze(2), front >= 0
+        )
+        return free - interaction(me, ahead, self.params)
+
+    def mobil(self, candidate: torch.Tensor, acc_now: torch.Tensor, free: torch.Tensor):
+        """``IDMVehicle.mobil(candidate)`` of every vehicle (route-less: the plain test)."""
+        v, params, idm = self.v, self.params, self.params.idm
+        new_front, new_rear = self.neighbours(candidate)
+        delta = v.delta[:, 1 : params.obstacle_row]
+        # The new follower brakes for me, along ITS current lane, with MY exponent.
+        rear_lane = _pick(v.lane, new_rear)
+        s_rear, _ = L.local_coordinates(
+            _pick(v.x, new_rear), _pick(v.y, new_rear), rear_lane, self.geo
+        )
+        s_me, _ = L.local_coordinates(
+            v.x[:, 1 : params.obstacle_row], v.y[:, 1 : params.obstacle_row], rear_lane, self.geo
+        )
+        exists = (new_rear >= 0) & self.is_vehicle[new_rear.clamp(min=0)]
+        follower = self.car(new_rear, s_rear, exists)
+        pred = free_road(follower, delta, params) - interaction(
+            follower, self.car(self.rows, s_me), params
+        )
+        unsafe = pred < -idm.lane_change_max_braking_imposed
+        # Politeness is 0 in highway-env; merge_config refuses other values.
+        jerk = self.behind(new_front, free) - acc_now
+        return ~unsafe & ~(jerk < idm.lane_change_min_acc_gain)
 
 
-def _mobil(scene: _Scene, me: int, candidate, s_mine, acc_now, free) -> torch.Tensor:
-    """``IDMVehicle.mobil(candidate)`` of row ``me`` (route-less: the plain MOBIL test)."""
-    v, params, idm = scene.v, scene.params, scene.params.idm
-    new_front, new_rear = scene.neighbours(me, candidate)
-    delta = v.delta[:, me]
-    # The new follower brakes for me, measured in ITS current lane, with MY exponent.
-    rear_lane = v.lane.gather(1, new_rear.clamp(min=0).unsqueeze(1)).squeeze(1)
-    s_rear = scene.along(rear_lane)
-    exists = (new_rear >= 0) & scene.is_vehicle.gather(
-        1, new_rear.clamp(min=0).unsqueeze(1)
-    ).squeeze(1)
-    follower = scene.car(
-        new_rear, s_rear.gather(1, new_rear.clamp(min=0).unsqueeze(1)).squeeze(1), exists
-    )
-    me_there = scene.car(torch.full_like(new_rear, me), s_rear[:, me])
-    pred = free_road(follower, delta, params) - interaction(follower, me_there, params)
-    unsafe = pred < -idm.lane_change_max_braking_imposed
-    self_pred = scene.idm(me, new_front, s_mine, delta, free)
-    # Politeness is 0 in highway-env; merge_config refuses other values.
-    jerk = self_pred - acc_now
-    return ~unsafe & ~(jerk < idm.lane_change_min_acc_gain)
+def _aborts(o: _Others, old, follow, decided, changing, acting, ego_target) -> torch.Tensor:
+    """The abort scans, vehicle after vehicle in road order, and the final targets.
 
-
-def _idm_act(v: Vehicles, scene: _Scene, me: int, cols: dict, params: MergeParams) -> None:
-    """``IDMVehicle.act`` of row ``me``, writing its target, timer and commands into ``cols``."""
-    road, geo, idm = params.road, params.road.lanes, params.idm
-    x, y, speed = v.x[:, me], v.y[:, me], v.speed[:, me]
-    acting = ~v.crashed[:, me]
-    lane = v.lane[:, me]
-    target = _follow_road(x, y, cols["target_lane"][:, me], params)
-    road_of = _const(road.road, x)
-    changing = lane != target
-    s_mine = scene.along(lane)
-    # The abort scan: someone else heads for my target lane, ahead of me within my gap.
-    others = cols["target_lane"]
-    me_car = scene.car(torch.full_like(lane, me), s_mine[:, me])
+    Vehicle k aborts (target = lane) if another vehicle, not in k's target lane but
+    heading for it, is ahead along k's lane by less than k's desired gap; it sees the
+    final targets of the vehicles before it (the ego's included) and the targets the
+    ones after it had before this substep.
+    """
+    v, params = o.v, o.params
+    road_of = _const(params.road.road, v.x)
+    me = Car(*(t.unsqueeze(2) for t in o.car(o.rows, o.s_me)[:5]))
     gap = desired_gap(
-        Car(*(t.unsqueeze(1) for t in me_car[:5])),
-        Car(s_mine, v.speed, scene.cos, scene.sin, v.target_speed),
+        me,
+        Car(
+            o.s_cur,
+            v.speed.unsqueeze(1),
+            o.cos.unsqueeze(1),
+            o.sin.unsqueeze(1),
+            v.target_speed.unsqueeze(1),
+        ),
         params,
     )
-    d = s_mine - s_mine[:, me : me + 1]
-    rows = scene.is_vehicle & (torch.arange(v.x.shape[1], device=x.device) != me)
-    heading_there = rows & (v.lane != target.unsqueeze(1)) & (others == target.unsqueeze(1))
-    blocked = (heading_there & (0 < d) & (d < gap)).any(-1)
-    abort = changing & (road_of[lane] == road_of[target]) & blocked
-    target = torch.where(abort, lane, target)
-    # MOBIL, every lane_change_delay seconds, while not changing lanes.
-    free = free_road(me_car, v.delta[:, me], params)
-    front, _ = scene.neighbours(me, lane)
-    acc = scene.idm(me, front, s_mine, v.delta[:, me], free)
-    due = ~changing & (idm.lane_change_delay < cols["timer"][:, me])
-    timer = torch.where(due, torch.zeros_like(x), cols["timer"][:, me])
+    d = o.s_cur - o.s_me.unsqueeze(2)
+    blocks = (
+        o.is_vehicle & o.not_me & (v.lane.unsqueeze(1) != follow.unsqueeze(2)) & (0 < d) & (d < gap)
+    )
+    scan = changing & (road_of[o.lane] == road_of[follow]) & acting
+    final = torch.where(acting, decided, old)
+    if not bool((scan & blocks.any(-1)).any()):
+        return final
+    seen = torch.cat([ego_target.unsqueeze(1), old], 1)  # [B, N - 1]: targets before this substep
+    for k in range(final.shape[1]):
+        heading_there = seen == follow[:, k : k + 1]
+        aborted = scan[:, k] & (blocks[:, k, :-1] & heading_there).any(-1)
+        final[:, k] = torch.where(aborted, o.lane[:, k], final[:, k])
+        seen[:, k + 1] = final[:, k]
+    return final
+
+
+def _others_act(v: Vehicles, cols: dict, params: MergeParams) -> None:
+    """Every IDM vehicle's ``act()``, writing targets, timers and commands into ``cols``."""
+    geo, road, idm = params.road.lanes, params.road, params.idm
+    o = _Others(v, params)
+    k = slice(1, params.obstacle_row)
+    x, y, speed, heading = v.x[:, k], v.y[:, k], v.speed[:, k], v.heading[:, k]
+    acting = ~v.crashed[:, k]
+    old = cols["target_lane"][:, k].clone()
+    follow = _follow_road(x, y, old, params)
+    changing = o.lane != follow
+    free = free_road(o.car(o.rows, o.s_me), v.delta[:, k], params)
+    acc = o.behind(o.neighbours(o.lane, (o.s_cur, o.r_cur))[0], free)
+    # MOBIL, every lane_change_delay seconds, for the vehicles not changing lanes.
+    due = acting & ~changing & (idm.lane_change_delay < cols["timer"][:, k])
+    timer = torch.where(due, torch.zeros_like(x), cols["timer"][:, k])
+    decided = follow
     if bool(due.any()):
         moving = ~(speed.abs() < 1)
         for side in (road.side_left, road.side_right):  # left, then right: right wins
-            candidate = _const(side, x)[lane]
+            candidate = _const(side, x)[o.lane]
             exists = candidate >= 0
             candidate = candidate.clamp(min=0)
             s_c, r_c = L.local_coordinates(x, y, candidate, geo)
             ok = due & exists & moving & L.is_reachable(s_c, r_c, candidate, geo)
             if bool(ok.any()):
-                ok = ok & _mobil(scene, me, candidate, s_mine, acc, free)
-                target = torch.where(ok, candidate, target)
-    steer = _steer(x, y, speed, v.heading[:, me], target, params)
-    target_front, _ = scene.neighbours(me, target)
-    acc_target = scene.idm(me, target_front, s_mine, v.delta[:, me], free)
-    acc = torch.where(lane != target, torch.minimum(acc, acc_target), acc)
+                ok = ok & o.mobil(candidate, acc, free)
+                decided = torch.where(ok, candidate, decided)
+    target = _aborts(o, old, follow, decided, changing, acting, cols["target_lane"][:, 0])
+    steer = _steer(x, y, speed, heading, target, params)
+    off = o.lane != target
+    if bool(off.any()):  # while changing lanes, IDM also brakes for the target lane's front
+        acc = torch.where(off, torch.minimum(acc, o.behind(o.neighbours(target)[0], free)), acc)
     acc = torch.clamp(acc, -idm.acc_max, idm.acc_max)
     for name, value in (
         ("target_lane", target),
@@ -195,7 +241,7 @@ def _idm_act(v: Vehicles, scene: _Scene, me: int, cols: dict, params: MergeParam
         ("steering", steer),
         ("acceleration", acc),
     ):
-        cols[name][:, me] = torch.where(acting, value, cols[name][:, me])
+        cols[name][:, k] = torch.where(acting, value, cols[name][:, k])
 
 
 def _ego_act(v: Vehicles, index, action, first, cols: dict, params: MergeParams):
@@ -275,9 +321,7 @@ def merge_substep(world: World, action: torch.Tensor, params: MergeParams) -> Wo
     }
     index = _ego_act(v, world.speed_index, action, first, cols, params)
     v = v._replace(target_speed=cols["target_speed"])
-    scene = _Scene(v, params)
-    for me in range(1, params.obstacle_row):
-        _idm_act(v, scene, me, cols, params)
+    _others_act(v, cols, params)
     o = params.obstacle_row
     moved = step_vehicles(
         v._replace(**cols),
