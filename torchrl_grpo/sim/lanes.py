@@ -130,24 +130,31 @@ def straight(start: tuple[float, float], end: tuple[float, float], width: float 
     }  # fmt: skip
 
 
-_FLOATS = tuple(f.name for f in fields(LaneGeometry) if f.name not in ("kind", "forbidden"))
-
-
-@functools.lru_cache(maxsize=64)
-def _table(geo: LaneGeometry, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """``[L, F + 2]``: every float constant per lane, then ``kind`` and ``forbidden`` as floats."""
-    columns = [getattr(geo, name) for name in _FLOATS] + [geo.kind, geo.forbidden]
+@functools.lru_cache(maxsize=256)
+def _table(
+    geo: LaneGeometry, names: tuple[str, ...], dtype: torch.dtype, device: torch.device
+) -> torch.Tensor:
+    """``[L, len(names)]``: the named constants per lane (booleans and kinds as floats)."""
+    columns = [getattr(geo, name) for name in names]
     return torch.tensor(list(zip(*columns, strict=True)), dtype=dtype, device=device)
 
 
-def _gather(geo: LaneGeometry, lane: torch.Tensor, like: torch.Tensor) -> dict[str, torch.Tensor]:
-    # One index_select of whole rows: far cheaper on a CPU than one advanced index per field.
-    table = _table(geo, like.dtype, like.device)
-    rows = table.index_select(0, lane.reshape(-1)).view(*lane.shape, table.shape[1])
-    out = dict(zip(_FLOATS, rows.unbind(-1), strict=False))
-    out["kind"] = rows[..., -2]
-    out["forbidden"] = rows[..., -1] != 0
-    return out
+def _gather(
+    geo: LaneGeometry, lane: torch.Tensor, like: torch.Tensor, *names: str
+) -> dict[str, torch.Tensor]:
+    """The named constants of each lane, shaped like ``lane`` (they broadcast from there).
+
+    One ``index_select`` of whole rows of the columns asked for: far cheaper on a CPU than
+    an advanced index per field, and done at ``lane``'s own shape, before broadcasting.
+    """
+    table = _table(geo, names, like.dtype, like.device)
+    rows = table.index_select(0, lane.reshape(-1)).view(*lane.shape, len(names))
+    return dict(zip(names, rows.unbind(-1), strict=True))
+
+
+_STRAIGHT = ("start_x", "start_y", "dir_x", "dir_y", "lat_x", "lat_y")
+_SINE = ("amplitude", "pulsation", "phase")
+_ROUND = ("kind", "center_x", "center_y", "radius", "start_phase", "turn")
 
 
 def _circular(geo: LaneGeometry) -> bool:
@@ -175,8 +182,7 @@ def local_coordinates(
         >>> s.item(), r.item()
         (3.0, 1.0)
     """
-    x, y, lane = torch.broadcast_tensors(x, y, lane)
-    c = _gather(geo, lane, x)
+    c = _gather(geo, lane, x, *_STRAIGHT, *_SINE, *(_ROUND if _circular(geo) else ()))
     dx, dy = x - c["start_x"], y - c["start_y"]
     # np.dot of 2-vectors: fma(d1, u1, d0 * u0); exact for the axis-aligned lanes here.
     s = torch.addcmul(dx * c["dir_x"], dy, c["dir_y"])
@@ -205,8 +211,7 @@ def position(
         >>> x.item(), y.item()
         (3.0, 5.0)
     """
-    s, r, lane = torch.broadcast_tensors(s, r, lane)
-    c = _gather(geo, lane, s)
+    c = _gather(geo, lane, s, *_STRAIGHT, *_SINE, *(_ROUND if _circular(geo) else ()))
     r_sine = r + c["amplitude"] * torch.sin(c["pulsation"] * s + c["phase"])
     x = (c["start_x"] + s * c["dir_x"]) + r_sine * c["lat_x"]
     y = (c["start_y"] + s * c["dir_y"]) + r_sine * c["lat_y"]
@@ -227,8 +232,7 @@ def heading_at(s: torch.Tensor, lane: torch.Tensor, geo: LaneGeometry) -> torch.
         >>> float(heading_at(torch.tensor(1.0, dtype=torch.float64), torch.tensor(0), geo))
         1.5707963267948966
     """
-    s, lane = torch.broadcast_tensors(s, lane)
-    c = _gather(geo, lane, s)
+    c = _gather(geo, lane, s, "heading", *_SINE, *(_ROUND if _circular(geo) else ()))
     h = c["heading"] + torch.atan(
         (c["amplitude"] * c["pulsation"]) * torch.cos(c["pulsation"] * s + c["phase"])
     )
@@ -249,7 +253,7 @@ def on_lane(
         ...         torch.tensor(0), geo).tolist()
         [True, True, False]
     """
-    c = _gather(geo, lane, s)
+    c = _gather(geo, lane, s, "width", "length")
     return (
         (r.abs() <= c["width"] / 2 + margin)
         & (-VEHICLE_LENGTH <= s)
@@ -268,9 +272,9 @@ def is_reachable(
         ...              torch.tensor(0), geo).tolist()
         [True, False]
     """
-    c = _gather(geo, lane, s)
+    c = _gather(geo, lane, s, "width", "length", "forbidden")
     close = (r.abs() <= 2 * c["width"]) & (0 <= s) & (s < c["length"] + VEHICLE_LENGTH)
-    return close & ~c["forbidden"]
+    return close & (c["forbidden"] == 0)
 
 
 def after_end(s: torch.Tensor, lane: torch.Tensor, geo: LaneGeometry) -> torch.Tensor:
@@ -281,7 +285,7 @@ def after_end(s: torch.Tensor, lane: torch.Tensor, geo: LaneGeometry) -> torch.T
         >>> after_end(torch.tensor([7.5, 7.6]), torch.tensor(0), geo).tolist()
         [False, True]
     """
-    return s > _gather(geo, lane, s)["length"] - VEHICLE_LENGTH / 2
+    return s > _gather(geo, lane, s, "length")["length"] - VEHICLE_LENGTH / 2
 
 
 def distance_with_heading(
@@ -298,7 +302,7 @@ def distance_with_heading(
     lanes = torch.arange(geo.count, device=x.device)
     xs, ys, hs = x.unsqueeze(-1), y.unsqueeze(-1), heading.unsqueeze(-1)
     s, r = local_coordinates(xs, ys, lanes, geo)
-    length = _table(geo, x.dtype, x.device)[:, _FLOATS.index("length")]
+    length = _gather(geo, lanes, x, "length")["length"]
     angle = wrap_to_pi(hs - heading_at(s, lanes, geo)).abs()
     return ((r.abs() + torch.clamp(s - length, min=0)) + torch.clamp(0 - s, min=0)) + 1.0 * angle
 
