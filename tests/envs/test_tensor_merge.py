@@ -155,3 +155,24 @@ def test_compile_leaves_the_merge_step_eager():
     env = TensorHighwayEnv(SCENARIO, num_envs=2, seed=0)
     assert env.compile() is env
     env.rollout(2)
+
+
+def test_reseeded_rows_draw_highway_envs_episode_of_that_seed():
+    env = TensorHighwayEnv(SCENARIO, num_envs=2, seed=0, dtype=torch.float64)
+    state = env.reseed_state(env.get_state(), [5, 6])
+    env.reset(TensorDict(state=state, batch_size=[2]), set_state=True)
+    env.reset()
+    hw = HighwayEnv(SCENARIO, seed=6)
+    hw.reset()
+    assert state_differences(env.state_to_highway(env.get_state())[1], hw.get_state()) == []
+
+
+def test_a_bad_lane_is_refused_naming_it_and_the_env_stays_usable():
+    from torchrl_grpo.envs import StateCorruptedError
+
+    env = TensorHighwayEnv(SCENARIO, num_envs=2, seed=0)
+    state = env.get_state()
+    state["vehicles", "lane"][1, 2] = 9  # the merge road has lanes 0..8
+    with pytest.raises(StateCorruptedError, match="vehicles.lane"):
+        env.reset(TensorDict(state=state, batch_size=[2]), set_state=True)
+    env.rollout(2)
