@@ -299,12 +299,49 @@ def distance_with_heading(
         ...                       torch.tensor([0.5]), geo).tolist()
         [[3.5]]
     """
-    lanes = torch.arange(geo.count, device=x.device)
     xs, ys, hs = x.unsqueeze(-1), y.unsqueeze(-1), heading.unsqueeze(-1)
-    s, r = local_coordinates(xs, ys, lanes, geo)
-    length = _gather(geo, lanes, x, "length")["length"]
-    angle = wrap_to_pi(hs - heading_at(s, lanes, geo)).abs()
-    return ((r.abs() + torch.clamp(s - length, min=0)) + torch.clamp(0 - s, min=0)) + 1.0 * angle
+    plain, curved = _split(geo)
+    parts = []
+    for group, trig in ((plain, False), (curved, True)):
+        if not group:
+            continue
+        lanes = torch.tensor(group, device=x.device)
+        if trig:
+            s, r = local_coordinates(xs, ys, lanes, geo)
+            lane_heading = heading_at(s, lanes, geo)
+        else:
+            # Straight lanes: a sine of amplitude 0 subtracts and adds exact zeros, so the
+            # trigonometry is skipped with the same bits.
+            c = _gather(geo, lanes, x, *_STRAIGHT, "heading")
+            dx, dy = xs - c["start_x"], ys - c["start_y"]
+            s = torch.addcmul(dx * c["dir_x"], dy, c["dir_y"])
+            r = torch.addcmul(dx * c["lat_x"], dy, c["lat_y"])
+            lane_heading = c["heading"]
+        length = _gather(geo, lanes, x, "length")["length"]
+        angle = wrap_to_pi(hs - lane_heading).abs()
+        parts.append(
+            ((r.abs() + torch.clamp(s - length, min=0)) + torch.clamp(0 - s, min=0)) + 1.0 * angle
+        )
+    out = torch.cat(parts, -1)
+    order = _order(geo)
+    return out if order is None else out.index_select(-1, torch.tensor(order, device=x.device))
+
+
+@functools.lru_cache(maxsize=64)
+def _split(geo: LaneGeometry) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """The straight lanes (no trigonometry) and the others, in flat order each."""
+    straight_ = tuple(k for k in range(geo.count) if geo.kind[k] == 0 and geo.amplitude[k] == 0)
+    return straight_, tuple(k for k in range(geo.count) if k not in straight_)
+
+
+@functools.lru_cache(maxsize=64)
+def _order(geo: LaneGeometry) -> tuple[int, ...] | None:
+    """Where each flat lane sits in ``plain + curved`` (``None``: already in order)."""
+    plain, curved = _split(geo)
+    joined = plain + curved
+    if joined == tuple(range(geo.count)):
+        return None
+    return tuple(joined.index(k) for k in range(geo.count))
 
 
 def closest_lane(
