@@ -99,16 +99,17 @@ def test_tensor_steps_continue_in_highway_env_and_render():
 
 def test_rollout_resets_finished_rows_into_new_episodes():
     env = TensorHighwayEnv(SCENARIO, num_envs=2, seed=0)
-    policy = lambda td: td.set("action", torch.full((2,), 3))  # noqa: E731 - FASTER
-    td = env.rollout(14, policy, break_when_any_done=False)  # x > 370 by step 12 at 30 m/s
+    state = env.get_state()
+    # Row 0's ego 25 m before the end of the ramp zone (x > 370 ends the episode).
+    state["vehicles", "x"][0, 0] = 350.0
+    state["vehicles", "lane"][0, 0] = state["vehicles", "target_lane"][0, 0] = 6  # (c, d, 1)
+    td = env.reset(TensorDict(state=state, batch_size=[2]), set_state=True)
+    policy = lambda td: td.set("action", torch.full((2,), 1))  # noqa: E731 - IDLE
+    td = env.rollout(3, policy, break_when_any_done=False, auto_reset=False, tensordict=td)
     done = td["next", "done"].squeeze(-1)
-    assert bool(done.any(-1).all())
-    t = int(done[0].nonzero()[0])
-    assert t + 1 < done.shape[1]
-    # The next step starts a fresh episode: the ego back at its spawn (x = 30 + 30 m/s).
-    assert float(td["next", "ego_position"][0, t + 1, 0]) < float(
-        td["next", "ego_position"][0, t, 0]
-    )
+    assert done[0].tolist() == [True, False, False] and not bool(done[1].any())
+    # The next step starts a fresh episode: the ego back near its spawn (x = 30).
+    assert float(td["next", "ego_position"][0, 1, 0]) < 100.0
 
 
 def test_branch_rollout_runs_rows_as_highway_env_does():
