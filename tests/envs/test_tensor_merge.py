@@ -177,3 +177,33 @@ def test_a_bad_lane_is_refused_naming_it_and_the_env_stays_usable():
     with pytest.raises(StateCorruptedError, match="vehicles.lane"):
         env.reset(TensorDict(state=state, batch_size=[2]), set_state=True)
     env.rollout(2)
+
+
+def test_a_car_driving_into_the_obstacle_crashes_as_in_highway_env():
+    from torchrl_grpo.sim.state import world_from_tensordict
+
+    env = TensorHighwayEnv(SCENARIO, num_envs=2, seed=0, dtype=torch.float64)
+    state = env.get_state()
+    # Row 0: the ego on the merge lane (b, c, 2), 12 m before the obstacle at (310, 8);
+    # row 1: the merging car there instead.
+    for row, vehicle in ((0, 0), (1, 4)):
+        state["vehicles", "x"][row, vehicle] = 298.0
+        state["vehicles", "y"][row, vehicle] = 8.0
+        state["vehicles", "lane"][row, vehicle] = 4
+        state["vehicles", "target_lane"][row, vehicle] = 4
+    env.reset(TensorDict(state=state, batch_size=[2]), set_state=True)
+    before = env.state_to_highway(env.get_state())
+    td = env.step(TensorDict(action=torch.tensor([1, 1]), batch_size=[2]))["next"]
+    mine = world_from_tensordict(env.get_state()).vehicles
+    hw = HighwayEnv(SCENARIO)
+    for row in range(2):
+        hw.set_state(before[row])
+        hw.step(TensorDict(action=torch.tensor(1)))
+        assert hw.gym_env.unwrapped.road.objects[0].crashed  # the obstacle is hit in both
+        ref = world_from_tensordict(env.state_from_highway(hw.get_state().unsqueeze(0))).vehicles
+        for name in ("x", "y", "heading", "speed", "impact_x", "impact_y"):
+            assert torch.allclose(getattr(mine, name)[row], getattr(ref, name)[0], atol=1e-9)
+        for name in ("crashed", "impact", "lane", "target_lane"):
+            assert torch.equal(getattr(mine, name)[row], getattr(ref, name)[0]), name
+    assert bool(td["crashed"][0]) and not bool(td["crashed"][1])
+    assert bool(mine.crashed[1, 4]) and bool(mine.crashed[:, 5].all())

@@ -39,10 +39,12 @@ Example:
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from torchrl_grpo.sim import lanes as L
-from torchrl_grpo.sim.collision import _all_pairs, _reach, separating_axes
+from torchrl_grpo.sim.collision import _all_pairs, separating_axes
 from torchrl_grpo.sim.control import FASTER, LANE_LEFT, LANE_RIGHT, SLOWER, speed_to_index, steer_to
 from torchrl_grpo.sim.idm import Car, desired_gap, free_road, interaction
 from torchrl_grpo.sim.kinematics import step_vehicles
@@ -275,9 +277,10 @@ def _collide(v: Vehicles, params: MergeParams) -> Vehicles:
     ox, oy = v.x[:, o : o + 1], v.y[:, o : o + 1]
     traffic = params.traffic
     dx, dy = ox - cars.x, oy - cars.y
-    diagonal = (traffic.obstacle_length**2 + traffic.obstacle_width**2) ** 0.5
-    reach = _reach(cars.speed, params) - (_reach(cars.speed * 0, params)) / 2
-    reach = reach + diagonal / 2
+    # The prefilter: (the car's diagonal + the obstacle's) / 2 + the car's travel over dt.
+    car = math.sqrt(params.vehicle.length**2 + params.vehicle.width**2)
+    obstacle = math.sqrt(traffic.obstacle_length**2 + traffic.obstacle_width**2)
+    reach = (car + obstacle) / 2 + cars.speed * params.time.dt
     near = ~(torch.sqrt(torch.addcmul(dx * dx, dy, dy)) > reach)
     near = near & (cars.check_collisions | v.check_collisions[:, o : o + 1])
     hit = torch.zeros_like(near)
