@@ -74,6 +74,20 @@ def test_c_whole_episodes(merge_worlds):
     assert bool((horizons == -1).all()), horizons
 
 
+def test_d_fresh_worlds_match_highway_env_initial_statistics():
+    from torchrl_grpo.envs.highway.parity_resets import _initial_statistics
+    from torchrl_grpo.envs.highway.parity_stats import chi2_counts, ks_2samp
+
+    reference = json.loads((REFERENCE / f"{SCENARIO}.json").read_text())
+    env = TensorHighwayEnv(SCENARIO, num_envs=300, seed=FRESH_SEED, dtype=torch.float64)
+    mine = _initial_statistics(env.reset()["state"], env.params)
+    theirs = {k: torch.tensor([v for w in reference["initial"] for v in w[k]]) for k in mine}
+    tests = [ks_2samp(mine[k], theirs[k]) for k in ("gaps", "speeds")]
+    tests.append(chi2_counts(mine["lanes"], theirs["lanes"], 3))
+    assert all(p >= 0.01 / 3 for _, p in tests), tests
+
+
+@pytest.mark.slow
 def test_d_fresh_resets_match_highway_env_statistics():
     reference = json.loads((REFERENCE / f"{SCENARIO}.json").read_text())
     env = TensorHighwayEnv(SCENARIO, num_envs=1)
