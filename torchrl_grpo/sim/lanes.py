@@ -72,6 +72,10 @@ class LaneGeometry:
         start_phase: the circle's start angle (rad).
         turn: ``1`` clockwise, ``-1`` counter-clockwise (highway-env's ``direction``).
         forbidden: the lane cannot be entered by a lane change.
+
+    Example:
+        >>> LaneGeometry.of([straight((0.0, 0.0), (10.0, 0.0))]).count
+        1
     """
 
     kind: tuple[int, ...]

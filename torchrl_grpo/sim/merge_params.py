@@ -51,6 +51,11 @@ class MergeRoad:
         next_lane: ``next_lane`` at the lane's end (itself where no road leaves it).
         lanes_count: 9.
         speed_limit: every lane's speed limit (m/s); IDM clips target speeds to it.
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> tensor_params("merge-v0").road.next_lane  # the ramp (8) hands over to (b, c, 2)
+        (2, 3, 5, 6, 6, 5, 6, 8, 4)
     """
 
     lanes: LaneGeometry
@@ -89,6 +94,11 @@ class MergeTraffic:
         obstacle_length: its length (m).
         obstacle_width: its width (m).
         others_check_collisions: True: every vehicle checks collisions.
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> tensor_params("merge-v0").traffic.obstacle_x
+        310.0
     """
 
     vehicles_count: int
@@ -125,6 +135,11 @@ class MergeReward:
         reward_speed_range: speeds mapped to [0, 1] (unclipped).
         merge_lane: the lane whose vehicles' speed deficits count (flat id).
         terminal_x: the episode ends past this x (m).
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> tensor_params("merge-v0").reward.merge_lane
+        4
     """
 
     collision_reward: float
@@ -150,6 +165,11 @@ class MergeParams:
         traffic: the reset's spawn table and the obstacle.
         reward: the reward and the episode's end.
         observation: the Kinematics table (``features_range`` as fixed at reset).
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> tensor_params("merge-v0").num_vehicles
+        6
     """
 
     road: MergeRoad

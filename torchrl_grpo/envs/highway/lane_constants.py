@@ -42,6 +42,11 @@ class RoadGraph:
         next_lane: the flat lane ``next_lane`` hands over to without a route (itself
             where no road leaves the lane's end).
         speed_limit: each lane's speed limit (m/s).
+
+    Example:
+        >>> from highway_env.road.road import RoadNetwork
+        >>> road_graph(RoadNetwork.straight_road_network(2)).lane_id
+        (0, 1)
     """
 
     keys: tuple[tuple[str, str, int], ...]

@@ -54,6 +54,10 @@ class TensorModel(NamedTuple):
         bridge: the bridge class.
         draws_from_words: fresh worlds come from the words (not the sim's streams).
         compiles: the step has compiled stages (``TensorHighwayEnv.compile``).
+
+    Example:
+        >>> tensor_model("merge-v0").bridge.__name__
+        'MergeBridge'
     """
 
     components: tuple[str, ...]
