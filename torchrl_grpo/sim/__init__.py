@@ -1,8 +1,8 @@
 """A batched highway-env simulator in pure tensors: B worlds stepped at once, on CPU or GPU.
 
 This package re-implements highway-env 1.12.1's highway scenarios (``highway-v0``,
-``highway-fast-v0``) as pure functions of batched tensors, in the style of TorchRL's
-``envs/custom/pendulum.py`` and Brax: the state (:class:`World`, or its TensorDict
+``highway-fast-v0``) and ``merge-v0`` as pure functions of batched tensors, in the style
+of TorchRL's ``envs/custom/pendulum.py`` and Brax: the state (:class:`World`, or its TensorDict
 form), the road and the constants (:class:`HighwayParams`) go in, the new state comes
 out. It imports only torch and tensordict; the TorchRL env around it
 (``TensorHighwayEnv``) and the bridge to highway-env's own states live in
@@ -12,7 +12,9 @@ One file per model: :mod:`.road` (lane geometry), :mod:`.neighbours` (front and 
 vehicles from one sort per substep), :mod:`.idm`, :mod:`.mobil`, :mod:`.control` (the
 steering and speed controllers, the ego's meta-actions), :mod:`.kinematics`,
 :mod:`.collision`, :mod:`.observation`, :mod:`.reward`, :mod:`.reset`, composed by
-:mod:`.simulate`; :mod:`.state` holds the state's layout and checks, :mod:`.rng` the
+:mod:`.simulate`; merge-v0 adds :mod:`.lanes` (straight, sine and circular lanes of a
+road graph), :mod:`.merge` (its step), :mod:`.merge_reset`, :mod:`.merge_output` and
+:mod:`.merge_params`; :mod:`.state` holds the state's layout and checks, :mod:`.rng` the
 per-world random streams, :mod:`.params` the constants. docs/sim.md describes the
 parity with highway-env, measured step by step.
 

@@ -58,7 +58,9 @@ def _interval_distance(min_a, max_a, min_b, max_b):
     return torch.where(min_a < min_b, min_b - max_a, min_a - max_b)
 
 
-def separating_axes(a: tuple, b: tuple, dt: float, length: float, width: float):
+def separating_axes(
+    a: tuple, b: tuple, dt: float, length: float, width: float, b_size: tuple | None = None
+):
     """``are_polygons_intersecting`` for batches of rectangle pairs.
 
     Args:
@@ -67,6 +69,8 @@ def separating_axes(a: tuple, b: tuple, dt: float, length: float, width: float):
         dt: the sweep time of the displacements ``speed (cos, sin)(heading) dt``.
         length: rectangle length.
         width: rectangle width.
+        b_size: ``(length, width)`` of the second rectangles if they differ (an
+            obstacle's 2 x 2 m square).
 
     Returns:
         ``(intersecting, will_intersect, tx, ty)``, each of shape S; the translation
@@ -83,7 +87,7 @@ def separating_axes(a: tuple, b: tuple, dt: float, length: float, width: float):
     parts = torch.broadcast_tensors(*a, *b)
     a, b = parts[:4], parts[4:]
     ax, ay = _corners(a[0], a[1], a[2], length, width)
-    bx, by = _corners(b[0], b[1], b[2], length, width)
+    bx, by = _corners(b[0], b[1], b[2], *(b_size or (length, width)))
     # Each rectangle's 4 edges, a's then b's: the 8 candidate axes, [..., 8].
     ex = torch.cat([ax, bx], -1)
     ey = torch.cat([ay, by], -1)

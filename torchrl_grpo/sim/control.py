@@ -32,6 +32,7 @@ __all__ = [
     "SLOWER",
     "apply_meta_action",
     "speed_to_index",
+    "steer_to",
     "steering_control",
 ]
 
@@ -56,13 +57,35 @@ def steering_control(
         >>> float(steering_control(z, z, z + 20.0, z, torch.tensor([0]), params))
         0.0
     """
+    return steer_to(lateral(y, target_lane, params.road), 0.0, speed, heading, params)
+
+
+def steer_to(
+    lat: torch.Tensor,
+    lane_heading: torch.Tensor | float,
+    speed: torch.Tensor,
+    heading: torch.Tensor,
+    params: HighwayParams,
+) -> torch.Tensor:
+    """The steering cascade from a lateral offset and the lane's look-ahead heading.
+
+    ``ControlledVehicle.steering_control`` after its lane look-ups: ``lat`` is the
+    vehicle's lateral coordinate in the target lane, ``lane_heading`` that lane's
+    heading at ``s + speed * tau_pursuit`` (``0.0`` on straight lanes along x).
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> params = tensor_params("highway-fast-v0")
+        >>> z = torch.zeros(1, dtype=torch.float64)
+        >>> float(steer_to(z, 0.0, z + 20.0, z, params))
+        0.0
+    """
     c = params.control
-    lat = lateral(y, target_lane, params.road)
     speed_nz = not_zero(speed)
     lateral_speed_command = -c.kp_lateral * lat
     heading_command = torch.asin(torch.clamp(lateral_speed_command / speed_nz, -1, 1))
-    # The lane's heading (0.0) plus the clipped command, as highway-env adds them.
-    heading_ref = 0.0 + torch.clamp(heading_command, -math.pi / 4, math.pi / 4)
+    # The lane's heading plus the clipped command, as highway-env adds them.
+    heading_ref = lane_heading + torch.clamp(heading_command, -math.pi / 4, math.pi / 4)
     heading_rate_command = c.kp_heading * wrap_to_pi(heading_ref - heading)
     slip = params.vehicle.length / 2 / speed_nz * heading_rate_command
     slip_angle = torch.asin(torch.clamp(slip, -1, 1))

@@ -29,6 +29,8 @@ Example:
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 from torchrl_grpo.sim.params import HighwayParams
@@ -62,13 +64,15 @@ def clip_commands(v: Vehicles, params: HighwayParams) -> tuple[torch.Tensor, tor
     return steering, acc
 
 
-def step_vehicles(v: Vehicles, params: HighwayParams) -> Vehicles:
+def step_vehicles(v: Vehicles, params: HighwayParams, closest: Callable | None = None) -> Vehicles:
     """Every present vehicle's ``step(dt)`` (the ego's included).
 
     Args:
         v: the vehicle table, with this substep's commands in ``steering`` and
             ``acceleration``.
         params: the constants.
+        closest: ``(x, y, heading) -> lane`` on the scenario's road (default: the
+            straight parallel lanes of :func:`~torchrl_grpo.sim.road.closest_lane`).
 
     Returns:
         The table after the substep; ``steering`` and ``acceleration`` hold the clipped
@@ -98,7 +102,9 @@ def step_vehicles(v: Vehicles, params: HighwayParams) -> Vehicles:
         acceleration=acc,
         impact_x=zero,
         impact_y=zero,
-        lane=closest_lane(x, y, heading, params.road),
+        lane=closest_lane(x, y, heading, params.road)
+        if closest is None
+        else closest(x, y, heading),
         crashed=v.crashed | v.impact,
         impact=torch.zeros_like(v.impact),
         timer=timer,

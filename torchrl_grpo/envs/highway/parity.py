@@ -6,8 +6,8 @@ prints them, the tests assert them):
 a. :func:`same_world`: imported worlds give highway-env's observation, reward and flags;
 b. :func:`one_step`: from each world, each of the 5 actions: every vehicle after the step;
 c. :func:`whole_episodes`: from imported worlds, the same actions to the end;
-d. :func:`fresh_resets` (in :mod:`.parity_stats`'s tests): episode statistics of fresh
-   worlds against highway-env's, recorded once by ``scripts/highway_reference.py``.
+d. :func:`~.parity_resets.fresh_resets` (with :mod:`.parity_stats`): episode statistics of
+   fresh worlds against highway-env's, recorded once by ``scripts/highway_reference.py``.
 
 Worlds are recorded from highway-env runs by :func:`record_worlds` and moved into the
 tensor simulator through the bridge (:meth:`TensorHighwayEnv.state_from_highway`);
@@ -16,8 +16,8 @@ comparisons are made in float64.
 Example:
     >>> from torchrl_grpo.modules import ConstantActionPolicy
     >>> states, kinds = record_worlds("highway-fast-v0", [ConstantActionPolicy(3)], 5, seed=0)
-    >>> states.batch_size, sorted(kinds)
-    (torch.Size([5]), ['changing', 'crashed', 'near_miss'])
+    >>> states.batch_size, kinds["changing"] > 0, kinds["curved"]
+    (torch.Size([5]), True, 0)
 """
 
 from __future__ import annotations
@@ -30,15 +30,23 @@ import torch
 from gymnasium.spaces import Box
 from tensordict import TensorDict, TensorDictBase
 
-from torchrl_grpo.envs.highway.parity_stats import chi2_counts, ks_2samp, proportions_z
-from torchrl_grpo.envs.highway.tensor_env import TensorHighwayEnv
+from torchrl_grpo.envs.highway.parity_resets import fresh_resets
 from torchrl_grpo.envs.highway.wrapper import HighwayEnv
 from torchrl_grpo.sim.state import world_from_tensordict
 
-__all__ = ["StepMiss", "one_step", "record_worlds", "same_world", "whole_episodes"]
+__all__ = [
+    "StepMiss",
+    "fresh_resets",
+    "one_step",
+    "record_worlds",
+    "same_world",
+    "whole_episodes",
+]
 
 Policy = Callable[[TensorDictBase], TensorDictBase]
 FIELDS = ("x", "y", "heading", "speed", "lane", "target_lane", "crashed")
+#: What :func:`record_worlds` counts of its worlds.
+KINDS = ("changing", "near_miss", "crashed", "curved", "forbidden", "hand_over")
 
 
 def record_worlds(
@@ -58,11 +66,13 @@ def record_worlds(
     Returns:
         ``(states [count], counts)``: how many worlds have a lane change in progress
         (``changing``), the ego within ``near`` metres of another vehicle without a
-        crash (``near_miss``), and a crashed ego (``crashed``).
+        crash (``near_miss``), a crashed ego (``crashed``), a vehicle on a curved lane
+        (``curved``), on a forbidden lane (``forbidden``: merge-v0's ramp) or handing
+        over to another road (``hand_over``).
     """
     env = HighwayEnv(scenario, config)
     states: list[TensorDictBase] = []
-    kinds = {"changing": 0, "near_miss": 0, "crashed": 0}
+    kinds = dict.fromkeys(KINDS, 0)
     episode = 0
     while len(states) < count:
         policy = policies[episode % len(policies)]
@@ -83,7 +93,13 @@ def _count_kinds(env: HighwayEnv, kinds: dict[str, int], near: float) -> None:
     core = env.gym_env.unwrapped
     vehicles = core.road.vehicles
     ego = core.vehicle
+    network = core.road.network
     kinds["changing"] += any(v.lane_index != v.target_lane_index for v in vehicles)
+    lanes = [network.get_lane(v.lane_index) for v in vehicles]
+    # Curved lanes, the ramp's forbidden lanes and hand-overs between roads (merge-v0).
+    kinds["curved"] += any(type(lane).__name__ != "StraightLane" for lane in lanes)
+    kinds["forbidden"] += any(lane.forbidden for lane in lanes)
+    kinds["hand_over"] += any(v.lane_index[:2] != v.target_lane_index[:2] for v in vehicles)
     if ego.crashed:
         kinds["crashed"] += 1
     elif min(float(np.linalg.norm(v.position - ego.position)) for v in vehicles[1:]) < near:
@@ -291,98 +307,3 @@ def whole_episodes(
                 horizon[i] = t
         actions[torch.tensor(rows)[bad], t + 1 :] = -1  # stop comparing a world that diverged
     return horizon
-
-
-def _initial_statistics(state: TensorDictBase) -> dict[str, torch.Tensor]:
-    """Gaps between consecutive vehicles (creation order), others' speeds, every lane."""
-    x = state.get(("vehicles", "x")).double()
-    return {
-        "gaps": (x[:, 1:] - x[:, :-1]).flatten(),
-        "speeds": state.get(("vehicles", "speed"))[:, 1:].double().flatten(),
-        "lanes": state.get(("vehicles", "lane")).flatten(),
-    }
-
-
-def fresh_resets(
-    scenario: str,
-    reference: dict,
-    policies: dict[str, Policy],
-    episodes: int = 1000,
-    *,
-    config: dict | None = None,
-    seed: int = 0,
-    decimals: int = 4,
-) -> list[dict]:
-    """Rung d: fresh tensor worlds against highway-env's recorded statistics (no bridge).
-
-    ``episodes`` worlds are drawn by the tensor simulator's own reset; each policy
-    drives one episode in each. Returns and initial gaps and speeds are compared with
-    two-sample Kolmogorov-Smirnov tests (returns rounded to ``decimals``: the always-
-    SLOWER episodes tie), crash rates with a two-proportion z-test and lanes with a
-    chi-square test.
-
-    Args:
-        scenario: the scenario the reference was recorded on.
-        reference: ``tests/data/highway_reference/<scenario>.json``'s content.
-        policies: the reference's policies by name (``idle``, ``slower``, ``random``, ``rule``).
-        episodes: tensor episodes per policy.
-        config: the config the reference was recorded with.
-        seed: seeds the tensor worlds.
-        decimals: rounding of returns before their test.
-
-    Returns:
-        One row per comparison: ``{"what", "tensor", "highway", "statistic", "p"}``.
-    """
-    rows: list[dict] = []
-
-    def row(what: str, mine: float, theirs: float, test: tuple[float, float]) -> None:
-        rows.append(
-            {"what": what, "tensor": mine, "highway": theirs, "statistic": test[0], "p": test[1]}
-        )
-
-    env = None
-    for name, policy in policies.items():
-        env = TensorHighwayEnv(scenario, config, num_envs=episodes, seed=seed, dtype=torch.float64)
-        td = env.reset()
-        if not rows:
-            mine = _initial_statistics(td.get("state"))
-            theirs = {
-                k: torch.tensor([v for world in reference["initial"] for v in world[k]])
-                for k in mine
-            }
-            for k in ("gaps", "speeds"):
-                row(
-                    f"initial {k}",
-                    float(mine[k].mean()),
-                    float(theirs[k].mean()),
-                    ks_2samp(mine[k], theirs[k]),
-                )
-            lanes = env.params.road.lanes_count
-            lane_means = (float(t["lanes"].double().mean()) for t in (mine, theirs))
-            test = chi2_counts(mine["lanes"], theirs["lanes"], lanes)
-            row("initial lanes", *lane_means, test)
-        total = torch.zeros(episodes, dtype=torch.float64)
-        alive = torch.ones(episodes, dtype=torch.bool)
-        crashed = torch.zeros(episodes, dtype=torch.bool)
-        while bool(alive.any()):
-            td = env.step(policy(td.exclude("state")))
-            nxt = td.get("next")
-            total += nxt.get("reward").squeeze(-1).double() * alive
-            crashed |= nxt.get("crashed").squeeze(-1) & alive
-            alive &= ~nxt.get("done").squeeze(-1)
-            td = nxt
-        ref = reference["policies"][name]
-        returns = torch.round(total, decimals=decimals)
-        ref_returns = torch.round(
-            torch.tensor(ref["returns"], dtype=torch.float64), decimals=decimals
-        )
-        row(
-            f"{name}: return",
-            float(total.mean()),
-            float(ref_returns.mean()),
-            ks_2samp(returns, ref_returns),
-        )
-        ref_crashed = torch.tensor(ref["crashed"])
-        rates = (float(flags.double().mean()) for flags in (crashed, ref_crashed))
-        row(f"{name}: crash rate", *rates, proportions_z(crashed, ref_crashed))
-    return rows

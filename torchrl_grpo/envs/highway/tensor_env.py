@@ -26,19 +26,17 @@ from torchrl_grpo.envs.core.gym_state import RNG_WORDS
 from torchrl_grpo.envs.core.snapshot_env import STATE_KEY
 from torchrl_grpo.envs.core.state_codec import stable_hash
 from torchrl_grpo.envs.highway.bridge import HighwayBridge, export_states, import_states
+from torchrl_grpo.envs.highway.tensor_models import output_tensordict, tensor_model
 from torchrl_grpo.envs.highway.tensor_params import check_tensor_config, tensor_params
 from torchrl_grpo.envs.highway.tensor_state import (
     check_state_structure,
     check_state_values,
-    fresh_highway_words,
     reseeded,
     tensor_state_spec,
     where_rows,
 )
-from torchrl_grpo.sim.reset import reset_world
-from torchrl_grpo.sim.reward import REWARD_COMPONENTS
 from torchrl_grpo.sim.rng import seed_keys
-from torchrl_grpo.sim.simulate import compiled_stages, observe_world, step
+from torchrl_grpo.sim.simulate import compiled_stages
 from torchrl_grpo.sim.state import (
     FLOAT_FIELDS,
     empty_world,
@@ -50,10 +48,12 @@ __all__ = ["TensorHighwayEnv"]
 
 
 class TensorHighwayEnv(EnvBase):
-    """highway-v0 / highway-fast-v0 as ``num_envs`` worlds stepped at once, on CPU or GPU.
+    """highway-v0, highway-fast-v0 or merge-v0 as ``num_envs`` worlds stepped at once.
 
     Args:
-        scenario: ``"highway-v0"`` or ``"highway-fast-v0"``.
+        scenario: ``"highway-v0"``, ``"highway-fast-v0"`` or ``"merge-v0"`` (whose row
+            ``i`` replays ``HighwayEnv("merge-v0")``'s episodes after ``reset(seed=seed
+            + i)``; its step is eager: :meth:`compile` leaves it so).
         config: overrides of the scenario's config, within what
             :func:`~torchrl_grpo.envs.check_tensor_config` covers (anything else is a
             ``ValueError`` naming it).
@@ -115,6 +115,7 @@ class TensorHighwayEnv(EnvBase):
         if device.type == "cuda" and not torch.cuda.is_available():
             raise ValueError("device='cuda' was asked for, but torch finds no CUDA device")
         self.params = tensor_params(scenario, config)
+        self._model = tensor_model(scenario)
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
         self.scenario = scenario
         self.overrides = dict(config or {})
@@ -136,9 +137,11 @@ class TensorHighwayEnv(EnvBase):
         self._make_specs()
         # Valid worlds from the start (get_state before a reset restores), and the first
         # reset draws the same ones again: the seed seeds the first episodes.
-        counter = self._world.rng_counter
+        counter, words = self._world.rng_counter, self._highway_rng
         self._reset()
         self._world = self._world._replace(rng_counter=counter)
+        if self._model.draws_from_words:
+            self._highway_rng = words
 
     def compile(
         self, *, warmup: int | None = None, dense: bool | None = None, **kwargs: Any
@@ -169,21 +172,23 @@ class TensorHighwayEnv(EnvBase):
             True
         """
         kwargs.setdefault("dynamic", False)
+        if not self._model.compiles:
+            return self.eager()
         if dense is None:
             dense = self.device.type == "cuda"
         if dense:
-            dense_step = functools.partial(step, params=self.params, dense=True)
+            dense_step = functools.partial(self._model.step, params=self.params, dense=True)
             self._step_fn = torch.compile(dense_step, **kwargs)
         else:
             stages = compiled_stages(**kwargs)
-            self._step_fn = functools.partial(step, params=self.params, stages=stages)
+            self._step_fn = functools.partial(self._model.step, params=self.params, stages=stages)
         return self
 
     def eager(self) -> TensorHighwayEnv:
         """Step eagerly again (after :meth:`compile`); ``self``."""
         # Static shapes (no compaction) where a host sync would cost most.
         self._step_fn = functools.partial(
-            step, params=self.params, dense=self.device.type == "cuda"
+            self._model.step, params=self.params, dense=self.device.type == "cuda"
         )
         return self
 
@@ -195,7 +200,7 @@ class TensorHighwayEnv(EnvBase):
         def real(*shape: int) -> Unbounded:
             return Unbounded((*b, *shape), dtype=d, device=dev)
 
-        parts = Composite({name: real(1) for name in REWARD_COMPONENTS}, shape=b, device=dev)
+        parts = Composite({n: real(1) for n in self._model.components}, shape=b, device=dev)
         spec = Composite(
             observation=real(obs.vehicles_count, len(obs.features)),
             crashed=flag.clone(),
@@ -272,7 +277,8 @@ class TensorHighwayEnv(EnvBase):
     def bridge(self) -> HighwayBridge:
         """The converter to and from HighwayEnv states (built on first use)."""
         if self._bridge is None:
-            self._bridge = HighwayBridge(self.scenario, self.overrides, self.params.num_vehicles)
+            bridge = self._model.bridge
+            self._bridge = bridge(self.scenario, self.overrides, self.params.num_vehicles)
         return self._bridge
 
     def state_from_highway(self, states: TensorDictBase) -> TensorDict:
@@ -331,14 +337,13 @@ class TensorHighwayEnv(EnvBase):
                 rows, state.get(("highway", "seed")), self._highway_seed
             )
         else:
-            world, words = fresh_highway_words(reset_world(self._world, rows, self.params), rows)
-            self._world = world
-            self._highway_rng = torch.where(rows.unsqueeze(-1), words, self._highway_rng)
-            self._highway_seed = torch.where(rows, -1, self._highway_seed)
-        out = self._output(observe_world(self._world, self.params))
+            self._world, self._highway_rng, self._highway_seed = self._model.fresh(
+                self._world, rows, self._highway_rng, self._highway_seed, self.params
+            )
+        out = self._output(self._model.observe(self._world, self.params))
         # As HighwayEnv: no action was taken yet in a fresh episode, so no reward parts.
         fresh = (self._world.steps == 0).unsqueeze(-1)
-        for name in REWARD_COMPONENTS:
+        for name in self._model.components:
             part = out.get(("reward_components", name))
             out.set(("reward_components", name), torch.where(fresh, torch.zeros_like(part), part))
         flag = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
@@ -373,28 +378,12 @@ class TensorHighwayEnv(EnvBase):
         return out
 
     def _output(self, outputs: dict) -> TensorDict:
-        d = self.dtype
-
-        def column(t: torch.Tensor) -> torch.Tensor:
-            return t.to(d).unsqueeze(-1)
-
-        return TensorDict(
-            {
-                "observation": outputs["observation"].to(d),
-                "crashed": outputs["crashed"].unsqueeze(-1),
-                "on_road": outputs["on_road"].unsqueeze(-1),
-                "speed": column(outputs["speed"]),
-                "ego_position": outputs["ego_position"].to(d),
-                "ego_heading": column(outputs["ego_heading"]),
-                "reward_components": {
-                    k: column(v) for k, v in outputs["reward_components"].items()
-                },
-            },
-            batch_size=self.batch_size,
-            device=self.device,
-        )
+        return output_tensordict(outputs, self.batch_size, self.dtype, self.device)
 
     def _set_seed(self, seed: int | None) -> None:
         rows = torch.arange(self.batch_size[0], device=self.device)
         keys = seed_keys(rows, 0 if seed is None else int(seed))
         self._world = self._world._replace(rng_key=keys, rng_counter=torch.zeros_like(keys))
+        if self._model.seed_words is not None:
+            words, seeds = self._model.seed_words(self.batch_size[0], 0 if seed is None else seed)
+            self._highway_rng, self._highway_seed = words.to(self.device), seeds.to(self.device)

@@ -32,28 +32,24 @@ from typing import Any
 import gymnasium as gym
 import highway_env  # noqa: F401 - registers the scenarios
 from highway_env.road.lane import AbstractLane
-from highway_env.vehicle.behavior import IDMVehicle
-from highway_env.vehicle.controller import ControlledVehicle
-from highway_env.vehicle.kinematics import Vehicle
 
-from torchrl_grpo.envs.highway import schema
+from torchrl_grpo.envs.highway.merge_config import MERGE_SUPPORTED, check_merge_values, merge_params
+from torchrl_grpo.envs.highway.model_constants import model_constants
+from torchrl_grpo.sim.merge_params import MergeParams
 from torchrl_grpo.sim.observation import FEATURES
 from torchrl_grpo.sim.params import (
-    ControlParams,
     HighwayParams,
-    IDMParams,
     ObservationParams,
     RewardParams,
     RoadParams,
     TimeParams,
     TrafficParams,
-    VehicleParams,
 )
 
 __all__ = ["TENSOR_SCENARIOS", "check_tensor_config", "tensor_params"]
 
 #: The scenarios the batched simulator covers.
-TENSOR_SCENARIOS = ("highway-v0", "highway-fast-v0")
+TENSOR_SCENARIOS = ("highway-v0", "highway-fast-v0", "merge-v0")
 
 # Config keys the simulator reads, and keys that only change rendering
 # (show_trajectories is not among them: it makes highway-env keep a per-vehicle history,
@@ -102,10 +98,10 @@ def check_tensor_config(scenario: str, config: dict | None = None) -> dict:
         >>> check_tensor_config("highway-fast-v0")["lanes_count"]
         3
         >>> try:
-        ...     check_tensor_config("merge-v0")
+        ...     check_tensor_config("roundabout-v0")
         ... except ValueError as err:
         ...     print(str(err)[:62])
-        the tensor simulator covers ('highway-v0', 'highway-fast-v0'),
+        the tensor simulator covers ('highway-v0', 'highway-fast-v0',
     """
     if scenario not in TENSOR_SCENARIOS:
         raise ValueError(
@@ -118,15 +114,18 @@ def check_tensor_config(scenario: str, config: dict | None = None) -> dict:
     full = copy.deepcopy(defaults)
     full.update(copy.deepcopy(dict(config or {})))
 
+    merge = scenario == "merge-v0"
+    supported = MERGE_SUPPORTED if merge else _SUPPORTED
+
     def refuse(key: str, why: str) -> None:
         raise ValueError(
             f"{scenario} config: {key}={_lookup(full, key)!r} is not supported by the "
-            f"tensor simulator ({why}). Supported keys: {', '.join(_SUPPORTED)}; observation "
+            f"tensor simulator ({why}). Supported keys: {', '.join(supported)}; observation "
             f"options {_OBSERVATION} with features among {FEATURES} and order 'sorted'; "
             f"action options {_ACTION}"
         )
 
-    for key in sorted(set(full) - set(_SUPPORTED) - set(_RENDERING)):
+    for key in sorted(set(full) - set(supported) - set(_RENDERING)):
         if key not in defaults:
             close = difflib.get_close_matches(key, list(defaults), n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
@@ -135,7 +134,7 @@ def check_tensor_config(scenario: str, config: dict | None = None) -> dict:
             refuse(key, f"only its default {defaults[key]!r} is simulated")
     _check_observation(full, refuse)
     _check_action(full, refuse)
-    _check_values(full, refuse)
+    (check_merge_values if merge else _check_values)(full, refuse)
     return full
 
 
@@ -224,15 +223,18 @@ def _check_values(full: dict, refuse) -> None:
         )
 
 
-def tensor_params(scenario: str = "highway-fast-v0", config: dict | None = None) -> HighwayParams:
+def tensor_params(
+    scenario: str = "highway-fast-v0", config: dict | None = None
+) -> HighwayParams | MergeParams:
     """The simulator's constants for a scenario and config (checked by :func:`check_tensor_config`).
 
     Args:
-        scenario: ``"highway-v0"`` or ``"highway-fast-v0"``.
+        scenario: one of :data:`TENSOR_SCENARIOS`.
         config: overrides of the scenario's default config.
 
     Returns:
-        The :class:`~torchrl_grpo.sim.HighwayParams`.
+        The :class:`~torchrl_grpo.sim.HighwayParams` (a
+        :class:`~torchrl_grpo.sim.merge_params.MergeParams` for ``"merge-v0"``).
 
     Raises:
         ValueError: see :func:`check_tensor_config`.
@@ -242,6 +244,8 @@ def tensor_params(scenario: str = "highway-fast-v0", config: dict | None = None)
         (20.0, 25.0, 30.0)
     """
     full = check_tensor_config(scenario, config)
+    if scenario == "merge-v0":
+        return merge_params(json.dumps(full, sort_keys=True, default=_jsonable))
     return _params(scenario, json.dumps(full, sort_keys=True, default=_jsonable))
 
 
@@ -258,8 +262,6 @@ def _params(scenario: str, config_json: str) -> HighwayParams:
         core = env.unwrapped
         road, ego = core.road, core.vehicle
         lane = road.network.get_lane(("0", "1", 0))
-        pristine = {name: v for (_, name), v in schema.PRISTINE_CLASS_PARAMETERS.items()}
-        idm_const = lambda name: float(pristine.get(name, getattr(IDMVehicle, name)))  # noqa: E731
         others = [v for v in road.vehicles if v is not ego]
         obs = core.observation_type
         config = core.config
@@ -271,32 +273,7 @@ def _params(scenario: str, config_json: str) -> HighwayParams:
                 speed_limit=float(lane.speed_limit),
                 margin_length=float(AbstractLane.VEHICLE_LENGTH),
             ),
-            vehicle=VehicleParams(
-                length=float(Vehicle.LENGTH),
-                width=float(Vehicle.WIDTH),
-                max_speed=float(Vehicle.MAX_SPEED),
-                min_speed=float(Vehicle.MIN_SPEED),
-            ),
-            idm=IDMParams(
-                acc_max=idm_const("ACC_MAX"),
-                comfort_acc_max=idm_const("COMFORT_ACC_MAX"),
-                comfort_acc_min=idm_const("COMFORT_ACC_MIN"),
-                distance_wanted=idm_const("DISTANCE_WANTED"),
-                time_wanted=idm_const("TIME_WANTED"),
-                delta_range=tuple(float(d) for d in IDMVehicle.DELTA_RANGE),
-                politeness=idm_const("POLITENESS"),
-                lane_change_min_acc_gain=idm_const("LANE_CHANGE_MIN_ACC_GAIN"),
-                lane_change_max_braking_imposed=idm_const("LANE_CHANGE_MAX_BRAKING_IMPOSED"),
-                lane_change_delay=idm_const("LANE_CHANGE_DELAY"),
-            ),
-            control=ControlParams(
-                kp_a=float(ControlledVehicle.KP_A),
-                kp_heading=float(ControlledVehicle.KP_HEADING),
-                kp_lateral=float(ControlledVehicle.KP_LATERAL),
-                tau_pursuit=float(ControlledVehicle.TAU_PURSUIT),
-                max_steering_angle=float(ControlledVehicle.MAX_STEERING_ANGLE),
-                target_speeds=tuple(float(s) for s in ego.target_speeds),
-            ),
+            **model_constants(ego),
             time=TimeParams(
                 simulation_frequency=float(config["simulation_frequency"]),
                 policy_frequency=float(config["policy_frequency"]),

@@ -1,0 +1,69 @@
+"""The vehicle, IDM and controller constants every tensor scenario reads from highway-env.
+
+IDM's constants come from their pristine values (intersection-v0 overwrites some of
+them process-wide, see :data:`~.schema.PRISTINE_CLASS_PARAMETERS`); the target speeds
+come from the scenario's own ego.
+
+Example:
+    >>> import gymnasium as gym
+    >>> env = gym.make("merge-v0")
+    >>> _ = env.reset(seed=0)
+    >>> model_constants(env.unwrapped.vehicle)["control"].target_speeds
+    (20.0, 25.0, 30.0)
+"""
+
+from __future__ import annotations
+
+from highway_env.vehicle.behavior import IDMVehicle
+from highway_env.vehicle.controller import ControlledVehicle
+from highway_env.vehicle.kinematics import Vehicle
+
+from torchrl_grpo.envs.highway import schema
+from torchrl_grpo.sim.params import ControlParams, IDMParams, VehicleParams
+
+__all__ = ["model_constants"]
+
+
+def model_constants(ego) -> dict:
+    """``{"vehicle", "idm", "control"}`` params, from the classes and the ego's target speeds.
+
+    Example:
+        >>> import gymnasium as gym
+        >>> env = gym.make("highway-fast-v0")
+        >>> _ = env.reset(seed=0)
+        >>> model_constants(env.unwrapped.vehicle)["idm"].lane_change_delay
+        1.0
+    """
+    pristine = {name: v for (_, name), v in schema.PRISTINE_CLASS_PARAMETERS.items()}
+
+    def idm(name: str) -> float:
+        return float(pristine.get(name, getattr(IDMVehicle, name)))
+
+    return {
+        "vehicle": VehicleParams(
+            length=float(Vehicle.LENGTH),
+            width=float(Vehicle.WIDTH),
+            max_speed=float(Vehicle.MAX_SPEED),
+            min_speed=float(Vehicle.MIN_SPEED),
+        ),
+        "idm": IDMParams(
+            acc_max=idm("ACC_MAX"),
+            comfort_acc_max=idm("COMFORT_ACC_MAX"),
+            comfort_acc_min=idm("COMFORT_ACC_MIN"),
+            distance_wanted=idm("DISTANCE_WANTED"),
+            time_wanted=idm("TIME_WANTED"),
+            delta_range=tuple(float(d) for d in IDMVehicle.DELTA_RANGE),
+            politeness=idm("POLITENESS"),
+            lane_change_min_acc_gain=idm("LANE_CHANGE_MIN_ACC_GAIN"),
+            lane_change_max_braking_imposed=idm("LANE_CHANGE_MAX_BRAKING_IMPOSED"),
+            lane_change_delay=idm("LANE_CHANGE_DELAY"),
+        ),
+        "control": ControlParams(
+            kp_a=float(ControlledVehicle.KP_A),
+            kp_heading=float(ControlledVehicle.KP_HEADING),
+            kp_lateral=float(ControlledVehicle.KP_LATERAL),
+            tau_pursuit=float(ControlledVehicle.TAU_PURSUIT),
+            max_steering_angle=float(ControlledVehicle.MAX_STEERING_ANGLE),
+            target_speeds=tuple(float(s) for s in ego.target_speeds),
+        ),
+    }
