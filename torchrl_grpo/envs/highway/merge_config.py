@@ -25,9 +25,9 @@ from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.objects import Obstacle
 
 from torchrl_grpo.envs.highway.lane_constants import road_graph
-from torchrl_grpo.envs.highway.model_constants import model_constants
+from torchrl_grpo.envs.highway.model_constants import model_constants, observation_params
 from torchrl_grpo.sim.merge_params import MergeParams, MergeReward, MergeRoad, MergeTraffic
-from torchrl_grpo.sim.params import ObservationParams, TimeParams
+from torchrl_grpo.sim.params import TimeParams
 
 __all__ = ["MERGE_SUPPORTED", "check_merge_values", "merge_params"]
 
@@ -105,8 +105,8 @@ def merge_params(config_json: str) -> MergeParams:
             raise ValueError("the tensor simulator assumes one speed limit on every lane")
         ids, roads = graph.lane_id, [graph.keys.index(k[:2] + (0,)) for k in graph.keys]
         counts = [sum(1 for k in graph.keys if k[:2] == key[:2]) for key in graph.keys]
-        config, obs = core.config, core.observation_type
-        obs.observe()  # fixes features_range, as the first observation after reset does
+        config = core.config
+        core.observation_type.observe()  # fixes features_range, as the first observation does
         return MergeParams(
             road=MergeRoad(
                 lanes=graph.geometry,
@@ -156,18 +156,7 @@ def merge_params(config_json: str) -> MergeParams:
                 merge_lane=flat[("b", "c", 2)],
                 terminal_x=_TERMINAL_X,
             ),
-            observation=ObservationParams(
-                vehicles_count=int(obs.vehicles_count),
-                features=tuple(obs.features),
-                normalize=bool(obs.normalize),
-                absolute=bool(obs.absolute),
-                clip=bool(obs.clip),
-                see_behind=bool(obs.see_behind),
-                perception_distance=float(core.PERCEPTION_DISTANCE),
-                features_range=tuple(
-                    (k, (float(r[0]), float(r[1]))) for k, r in (obs.features_range or {}).items()
-                ),
-            ),
+            observation=observation_params(core),
         )
     finally:
         env.close()

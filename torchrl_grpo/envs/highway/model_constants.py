@@ -19,9 +19,34 @@ from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
 from torchrl_grpo.envs.highway import schema
-from torchrl_grpo.sim.params import ControlParams, IDMParams, VehicleParams
+from torchrl_grpo.sim.params import ControlParams, IDMParams, ObservationParams, VehicleParams
 
-__all__ = ["model_constants"]
+__all__ = ["model_constants", "observation_params"]
+
+
+def observation_params(core) -> ObservationParams:
+    """The Kinematics observation's settings of the reset env ``core`` (unwrapped).
+
+    Example:
+        >>> import gymnasium as gym
+        >>> env = gym.make("highway-fast-v0")
+        >>> _ = env.reset(seed=0)
+        >>> observation_params(env.unwrapped).vehicles_count
+        5
+    """
+    obs = core.observation_type
+    return ObservationParams(
+        vehicles_count=int(obs.vehicles_count),
+        features=tuple(obs.features),
+        normalize=bool(obs.normalize),
+        absolute=bool(obs.absolute),
+        clip=bool(obs.clip),
+        see_behind=bool(obs.see_behind),
+        perception_distance=float(core.PERCEPTION_DISTANCE),
+        features_range=tuple(
+            (k, (float(r[0]), float(r[1]))) for k, r in (obs.features_range or {}).items()
+        ),
+    )
 
 
 def model_constants(ego) -> dict:

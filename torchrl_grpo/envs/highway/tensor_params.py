@@ -34,12 +34,11 @@ import highway_env  # noqa: F401 - registers the scenarios
 from highway_env.road.lane import AbstractLane
 
 from torchrl_grpo.envs.highway.merge_config import MERGE_SUPPORTED, check_merge_values, merge_params
-from torchrl_grpo.envs.highway.model_constants import model_constants
+from torchrl_grpo.envs.highway.model_constants import model_constants, observation_params
 from torchrl_grpo.sim.merge_params import MergeParams
 from torchrl_grpo.sim.observation import FEATURES
 from torchrl_grpo.sim.params import (
     HighwayParams,
-    ObservationParams,
     RewardParams,
     RoadParams,
     TimeParams,
@@ -263,7 +262,6 @@ def _params(scenario: str, config_json: str) -> HighwayParams:
         road, ego = core.road, core.vehicle
         lane = road.network.get_lane(("0", "1", 0))
         others = [v for v in road.vehicles if v is not ego]
-        obs = core.observation_type
         config = core.config
         return HighwayParams(
             road=RoadParams(
@@ -297,18 +295,7 @@ def _params(scenario: str, config_json: str) -> HighwayParams:
                 offroad_terminal=bool(config["offroad_terminal"]),
                 duration=float(config["duration"]),
             ),
-            observation=ObservationParams(
-                vehicles_count=int(obs.vehicles_count),
-                features=tuple(obs.features),
-                normalize=bool(obs.normalize),
-                absolute=bool(obs.absolute),
-                clip=bool(obs.clip),
-                see_behind=bool(obs.see_behind),
-                perception_distance=float(core.PERCEPTION_DISTANCE),
-                features_range=tuple(
-                    (k, (float(r[0]), float(r[1]))) for k, r in (obs.features_range or {}).items()
-                ),
-            ),
+            observation=observation_params(core),
         )
     finally:
         env.close()
