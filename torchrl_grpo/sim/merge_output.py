@@ -37,7 +37,7 @@ import torch
 
 from torchrl_grpo.sim import lanes as L
 from torchrl_grpo.sim.merge_params import MergeParams
-from torchrl_grpo.sim.observation import _features, _normalize
+from torchrl_grpo.sim.observation import kinematics_table
 
 __all__ = ["MERGE_REWARD_COMPONENTS", "merge_reward", "observe_merge"]
 
@@ -53,7 +53,6 @@ MERGE_REWARD_COMPONENTS = (
 
 def _observation(v, params: MergeParams) -> torch.Tensor:
     obs = params.observation
-    batch, n = v.x.shape
     lane = v.lane[:, :1]
     s = L.local_coordinates(v.x, v.y, lane, params.road.lanes)[0]
     along = s - s[:, :1]
@@ -67,23 +66,7 @@ def _observation(v, params: MergeParams) -> torch.Tensor:
     key = torch.where(visible, along.abs(), torch.full_like(along, float("inf")))
     order = torch.argsort(key, dim=-1, stable=True)[:, : obs.vehicles_count - 1]
     shown = visible.gather(1, order)
-    feats = _features(v)
-    ego = {k: t[:, :1] for k, t in feats.items()}
-    columns = []
-    for name in obs.features:
-        others = feats[name].gather(1, order)
-        if not obs.absolute and name in ("x", "y", "vx", "vy"):
-            others = others - ego[name]
-        columns.append(torch.cat([ego[name], others], dim=1))
-    table = torch.stack(columns, dim=-1)
-    if obs.normalize:
-        table = _normalize(table, params)
-    rows = torch.cat([torch.ones_like(shown[:, :1]), shown], dim=1)
-    table = torch.where(rows.unsqueeze(-1), table, torch.zeros_like(table))
-    if table.shape[1] < obs.vehicles_count:
-        pad = table.new_zeros(batch, obs.vehicles_count - table.shape[1], table.shape[2])
-        table = torch.cat([table, pad], dim=1)
-    return table
+    return kinematics_table(v, params, order, shown)
 
 
 def merge_reward(

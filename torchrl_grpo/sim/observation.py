@@ -60,7 +60,6 @@ def observe(v: Vehicles, params: HighwayParams) -> torch.Tensor:
         >>> # see the module's example
     """
     obs = params.observation
-    batch, n = v.x.shape
     dx = v.x - v.x[:, :1]
     dy = v.y - v.y[:, :1]
     visible = v.present & (torch.sqrt(dx * dx + dy * dy) < obs.perception_distance)
@@ -70,7 +69,17 @@ def observe(v: Vehicles, params: HighwayParams) -> torch.Tensor:
     key = torch.where(visible, dx.abs(), torch.full_like(dx, float("inf")))
     order = torch.argsort(key, dim=-1, stable=True)[:, : obs.vehicles_count - 1]
     shown = visible.gather(1, order)
+    return kinematics_table(v, params, order, shown)
 
+
+def kinematics_table(v: Vehicles, params, order: torch.Tensor, shown: torch.Tensor) -> torch.Tensor:
+    """The Kinematics table ``[B, vehicles_count, F]``: the ego, then the rows ``order`` picks.
+
+    Shared by every scenario's observation, which differ only in which vehicles are
+    visible and how they are sorted: ``order`` ``[B, <= vehicles_count - 1]`` indexes the
+    shown vehicles, ``shown`` says which of those rows hold one (the others are zeros).
+    """
+    obs = params.observation
     feats = _features(v)
     ego = {k: t[:, :1] for k, t in feats.items()}
     columns = []
@@ -85,7 +94,7 @@ def observe(v: Vehicles, params: HighwayParams) -> torch.Tensor:
     rows = torch.cat([torch.ones_like(shown[:, :1]), shown], dim=1)
     table = torch.where(rows.unsqueeze(-1), table, torch.zeros_like(table))
     if table.shape[1] < obs.vehicles_count:
-        pad = table.new_zeros(batch, obs.vehicles_count - table.shape[1], table.shape[2])
+        pad = table.new_zeros(v.x.shape[0], obs.vehicles_count - table.shape[1], table.shape[2])
         table = torch.cat([table, pad], dim=1)
     return table
 
