@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 import torch
 from train_setup import TINY, compose_config
@@ -72,9 +74,44 @@ def test_experiment_best_composes_nine_teachers_of_the_documented_recipe(tmp_pat
     cfg = compose_config(["experiment=best"])
     check_config(cfg)  # teacher_runs stand for algo.teachers
     runs = teacher_configs(cfg, tmp_path)
-    assert len(runs) == 9 and str(cfg.algo.name) == "distill"
+    assert len(runs) == 9 and str(cfg.algo.name) == "distill" and cfg.algo.teacher_processes == 2
     assert [int(t.experiment.total_frames) for _, t in runs] == [4_000_000] * 6 + [2_000_000] * 3
     assert {str(t.algo.bootstrap) for _, t in runs} == {"survival"}
     assert [t.model.get("ensemble", 1) for _, t in runs] == [1] * 6 + [3, 3, 1]
     with pytest.raises(ValueError, match=r"algo.teacher_runs\[0\]"):
         teacher_configs(compose_config([*STUDENT, "algo.teacher_runs=['algo.nope=1']"]), tmp_path)
+
+
+def test_teachers_in_two_processes_train_the_same_weights_as_one_after_another(tmp_path):
+    # Each forked teacher runs with cores // 2 torch threads; the sequential control runs
+    # with as many, so the two differ only in where the teachers train.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(max(1, len(os.sched_getaffinity(0)) // 2))
+    try:
+        train_with_teachers(compose_config(_student(20, 40)), tmp_path / "serial")
+    finally:
+        torch.set_num_threads(threads)
+    cfg = compose_config(_student(20, 40, extra=("algo.teacher_processes=2",)))
+    result = train_with_teachers(cfg, tmp_path / "forked")
+    assert not result.interrupted and (tmp_path / "forked" / DONE).exists()
+    for i in range(2):
+        serial = load_checkpoint(tmp_path / "serial" / "teachers" / str(i) / "last.pt")
+        forked = load_checkpoint(tmp_path / "forked" / "teachers" / str(i) / "last.pt")
+        assert forked["frames"] == serial["frames"] >= 20
+        assert serial["policy"].keys() == forked["policy"].keys()
+        for key, weights in serial["policy"].items():
+            assert torch.equal(forked["policy"][key], weights), key
+
+
+def test_an_interrupted_teacher_process_stops_the_pipeline_before_the_student(tmp_path):
+    cfg = compose_config(_student(60, 20, 20, extra=("algo.teacher_processes=2",)))
+    result = train_with_teachers(cfg, tmp_path, hooks=[_StopTeacher()])
+    assert result.interrupted and result.run_dir == tmp_path / "teachers" / "0"
+    assert (tmp_path / "teachers" / "0" / "last.pt").exists()
+    assert not (tmp_path / "teachers" / "0" / DONE).exists()
+    assert not (tmp_path / "last.pt").exists()  # no student
+
+
+def test_fewer_than_one_teacher_process_is_refused():
+    with pytest.raises(ValueError, match="algo.teacher_processes must be at least 1"):
+        check_config(compose_config(_student(20, extra=("algo.teacher_processes=0",))))

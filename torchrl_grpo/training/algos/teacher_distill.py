@@ -49,7 +49,8 @@ class DistillConfig(AlgoConfig):
 
     ``teachers`` are checkpoints of runs on the same scenario and env config;
     ``teacher_runs`` are runs to train first, each its overrides in one string
-    (:mod:`~torchrl_grpo.training.teacher_runs`, ``experiment=best``);
+    (:mod:`~torchrl_grpo.training.teacher_runs`, ``experiment=best``), trained
+    ``teacher_processes`` at a time;
     ``replay_frames`` is how many labelled states are kept (the oldest go first);
     ``max_minibatches`` of ``minibatch_size`` states are drawn from them per batch
     (``null``: ``epochs`` passes over all of them, a cost that grows with what is kept);
@@ -67,6 +68,7 @@ class DistillConfig(AlgoConfig):
     name: DistillName = MISSING
     teachers: list[str] = field(default_factory=list)
     teacher_runs: list[str] = field(default_factory=list)
+    teacher_processes: int = 1
     replay_frames: int = 1_000_000
     entropy_coeff: float = 0.0
     epochs: int = 1
@@ -108,7 +110,7 @@ class TeacherDistill(TrunkEpisodes):
 
     @classmethod
     def check_config(cls, cfg: DictConfig) -> None:
-        """Also refuses no teachers at all and a replay smaller than a minibatch."""
+        """Also refuses no teachers, teacher_processes < 1 and a replay under a minibatch."""
         super().check_config(cfg)
         algo = cfg.algo
         if not algo.teachers and not algo.get("teacher_runs"):
@@ -116,6 +118,10 @@ class TeacherDistill(TrunkEpisodes):
                 "algo=distill needs algo.teachers: the checkpoints whose policies it "
                 "distils, e.g. algo.teachers=[runs/a/last.pt,runs/b/last.pt] (or "
                 "algo.teacher_runs, runs to train first: experiment=best)"
+            )
+        if algo.teacher_processes < 1:
+            raise ValueError(
+                f"algo.teacher_processes must be at least 1 (got {algo.teacher_processes})"
             )
         if algo.replay_frames < algo.minibatch_size:
             raise ValueError(
