@@ -43,7 +43,7 @@ def test_no_test_module_imports_conftest_by_name():
 def test_training_and_objectives_collect_in_one_call():
     # The order that failed: objectives' conftest imported last, then training's tests.
     proc = subprocess.run(
-        [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider"]
+        [sys.executable, "-m", "pytest", "--collect-only", "-q", "-n0", "-p", "no:cacheprovider"]
         + [str(TESTS / "training"), str(TESTS / "objectives")],
         cwd=TESTS.parent,
         capture_output=True,
