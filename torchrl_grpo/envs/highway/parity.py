@@ -46,7 +46,7 @@ __all__ = [
 Policy = Callable[[TensorDictBase], TensorDictBase]
 FIELDS = ("x", "y", "heading", "speed", "lane", "target_lane", "crashed")
 #: What :func:`record_worlds` counts of its worlds.
-KINDS = ("changing", "near_miss", "crashed", "curved", "forbidden", "hand_over")
+KINDS = ("changing", "near_miss", "crashed", "curved", "ring", "sine", "forbidden", "hand_over")
 
 
 def record_worlds(
@@ -67,8 +67,10 @@ def record_worlds(
         ``(states [count], counts)``: how many worlds have a lane change in progress
         (``changing``), the ego within ``near`` metres of another vehicle without a
         crash (``near_miss``), a crashed ego (``crashed``), a vehicle on a curved lane
-        (``curved``), on a forbidden lane (``forbidden``: merge-v0's ramp) or handing
-        over to another road (``hand_over``).
+        (``curved``), on a circular lane (``ring``: roundabout-v0's) or a sine lane
+        (``sine``: merge-v0's ramp, roundabout-v0's entries and exits), on a forbidden
+        lane (``forbidden``: merge-v0's ramp) or handing over to another road
+        (``hand_over``).
     """
     env = HighwayEnv(scenario, config)
     states: list[TensorDictBase] = []
@@ -98,6 +100,8 @@ def _count_kinds(env: HighwayEnv, kinds: dict[str, int], near: float) -> None:
     lanes = [network.get_lane(v.lane_index) for v in vehicles]
     # Curved lanes, the ramp's forbidden lanes and hand-overs between roads (merge-v0).
     kinds["curved"] += any(type(lane).__name__ != "StraightLane" for lane in lanes)
+    kinds["ring"] += any(type(lane).__name__ == "CircularLane" for lane in lanes)
+    kinds["sine"] += any(type(lane).__name__ == "SineLane" for lane in lanes)
     kinds["forbidden"] += any(lane.forbidden for lane in lanes)
     kinds["hand_over"] += any(v.lane_index[:2] != v.target_lane_index[:2] for v in vehicles)
     if ego.crashed:
