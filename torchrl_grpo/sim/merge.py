@@ -220,7 +220,7 @@ def _aborts(o: _Others, old, follow, decided, changing, acting, ego_target) -> t
     final = torch.where(acting, decided, old)
     if not bool((scan & blocks.any(-1)).any()):
         return final
-    seen = torch.cat([ego_target.unsqueeze(1), old], 1)  # [B, N - 1]: targets before this substep
+    seen = torch.cat([ego_target.unsqueeze(1), old], 1)  # the vehicles' targets before this substep
     for k in range(final.shape[1]):
         heading_there = seen == follow[:, k : k + 1]
         aborted = scan[:, k] & (blocks[:, k, : seen.shape[1]] & heading_there).any(-1)
