@@ -121,10 +121,8 @@ class World(NamedTuple):
         steps: ``[B]`` int64 substeps since reset (highway-env's ``env.steps``).
         rng_key: ``[B]`` int64 key of the world's random stream (see :mod:`.rng`).
         rng_counter: ``[B]`` int64 counter of that stream.
-        route: ``[B, N, R]`` int64 planned routes (roundabout-v0; ``None`` elsewhere):
-            each leg a code of :mod:`.routes` (a flat lane, or a road with no lane
-            chosen yet), -1 past the route's end.
-        route_head: ``[B, N]`` int64, each route's first leg not yet dropped.
+        route: ``[B, N, R]`` int64 route legs (codes of :mod:`.routes`; roundabout-v0 only).
+        route_head: ``[B, N]`` int64, each route's first leg not yet dropped (or ``None``).
 
     Example:
         >>> world = empty_world(4, 21)
