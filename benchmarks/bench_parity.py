@@ -1,7 +1,7 @@
 """The parity ladder at full size: TensorHighwayEnv against highway-env itself (docs/sim.md).
 
 Usage: ``python benchmarks/bench_parity.py [--scenario highway-fast-v0 | highway-v0 |
-merge-v0] [--worlds 2000] [--episodes 500] [--fresh 1000]``
+merge-v0 | roundabout-v0] [--worlds 2000] [--episodes 500] [--fresh 1000]``
 
 Float64 on CPU, worlds moved through the bridge. Rungs (issue #17):
 
@@ -103,8 +103,9 @@ def main() -> None:
         "random": make_scripted_policy("random", seed=1),
         "rule": rule,
     }
-    # merge-v0's fresh worlds replay highway-env's own generator: seeds disjoint from the
-    # reference's (0 .. episodes - 1), or both sides would draw the very same episodes.
+    # merge-v0's and roundabout-v0's fresh worlds replay highway-env's own generator:
+    # seeds disjoint from the reference's (0 .. episodes - 1), or both sides would draw
+    # the very same episodes.
     seed = FRESH_SEED if env._model.draws_from_words else 0
     table = fresh_resets(scenario, reference, policies, episodes=args.fresh, seed=seed)
     n = len(table)

@@ -349,7 +349,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--compile", action="store_true")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--scenario", default="highway-fast-v0", help="or highway-v0, merge-v0")
+    parser.add_argument(
+        "--scenario", default="highway-fast-v0", help="or highway-v0, merge-v0, roundabout-v0"
+    )
     parser.add_argument("--checks-only", action="store_true", help="only the checks' costs")
     parser.add_argument("--highjax-python", help="a python with highjax: run it as a peer")
     parser.add_argument("--no-highway", action="store_true", help="leave highway-env out")

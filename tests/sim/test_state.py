@@ -3,7 +3,7 @@
 import torch
 from sim_helpers import fresh_world
 
-from torchrl_grpo.sim import check_world, world_from_tensordict, world_to_tensordict
+from torchrl_grpo.sim import check_world, empty_world, world_from_tensordict, world_to_tensordict
 
 
 def test_a_fresh_world_fits(fast_params):
@@ -49,4 +49,15 @@ def test_tensordict_round_trip_is_exact(fast_params):
     world = fresh_world(fast_params, 4)
     back = world_from_tensordict(world_to_tensordict(world).clone())
     assert all(torch.equal(a, b) for a, b in zip(world.vehicles, back.vehicles, strict=True))
-    assert all(torch.equal(a, b) for a, b in zip(world[1:], back[1:], strict=True))
+    assert all(torch.equal(a, b) for a, b in zip(world[1:6], back[1:6], strict=True))
+    assert back.route is None and back.route_head is None  # the highway has no routes
+
+
+def test_routes_round_trip_through_the_tensordict():
+    world = empty_world(2, 3, route_length=4)
+    world.route[1, 2] = torch.tensor([5, 40, -1, -1])
+    world.route_head[1, 2] = 1
+    td = world_to_tensordict(world)
+    assert td["route"].batch_size == torch.Size([2, 3])
+    back = world_from_tensordict(td.clone())
+    assert torch.equal(back.route, world.route) and torch.equal(back.route_head, world.route_head)

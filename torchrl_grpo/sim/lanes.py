@@ -38,6 +38,7 @@ __all__ = [
     "distance_with_heading",
     "heading_at",
     "is_reachable",
+    "lane_distance",
     "local_coordinates",
     "on_lane",
     "position",
@@ -290,6 +291,21 @@ def after_end(s: torch.Tensor, lane: torch.Tensor, geo: LaneGeometry) -> torch.T
         [False, True]
     """
     return s > _gather(geo, lane, s, "length")["length"] - VEHICLE_LENGTH / 2
+
+
+def lane_distance(
+    x: torch.Tensor, y: torch.Tensor, lane: torch.Tensor, geo: LaneGeometry
+) -> torch.Tensor:
+    """``lane.distance(position)``: ``|r| + max(s - L, 0) + max(-s, 0)``.
+
+    Example:
+        >>> geo = LaneGeometry.of([straight((0.0, 0.0), (10.0, 0.0))])
+        >>> lane_distance(torch.tensor(12.0), torch.tensor(-1.0), torch.tensor(0), geo).item()
+        3.0
+    """
+    s, r = local_coordinates(x, y, lane, geo)
+    length = _gather(geo, lane, s, "length")["length"]
+    return (r.abs() + torch.clamp(s - length, min=0)) + torch.clamp(0 - s, min=0)
 
 
 def distance_with_heading(

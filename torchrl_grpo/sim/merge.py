@@ -68,6 +68,22 @@ def _follow_road(x, y, target, params: MergeParams) -> torch.Tensor:
     )
 
 
+def _static_follow(params: MergeParams):
+    """``follow_road`` where the hand-over at each lane's end is fixed (no routes).
+
+    A follow function takes ``(rows, x, y, target, mask)``: the vehicle table's columns
+    ``rows`` (a slice), their positions and target lanes ``[B, K]``, and where
+    ``follow_road`` runs; it returns the targets (kept outside ``mask``). The roundabout
+    passes one that follows each vehicle's route.
+    """
+
+    def follow(rows: slice, x, y, target, mask) -> torch.Tensor:
+        del rows
+        return torch.where(mask, _follow_road(x, y, target, params), target)
+
+    return follow
+
+
 def _steer(x, y, speed, heading, target, params: MergeParams) -> torch.Tensor:
     """``steering_control(target)`` on any lane of the graph."""
     geo = params.road.lanes
@@ -141,8 +157,19 @@ class _Others:
         )
         return free - interaction(me, ahead, self.params)
 
-    def mobil(self, candidate: torch.Tensor, acc_now: torch.Tensor, free: torch.Tensor):
-        """``IDMVehicle.mobil(candidate)`` of every vehicle (route-less: the plain test)."""
+    def mobil(self, candidate, acc_now, free, target) -> torch.Tensor:
+        """``IDMVehicle.mobil(candidate)`` of every vehicle (route-less: the plain test).
+
+        ``target`` (the targets decided so far) is what a route's test reads.
+        """
+        del target
+        unsafe, mine = self.mobil_parts(candidate, free)
+        # Politeness is 0 in highway-env; merge_config refuses other values.
+        jerk = mine - acc_now
+        return ~unsafe & ~(jerk < self.params.idm.lane_change_min_acc_gain)
+
+    def mobil_parts(self, candidate, free) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(unsafe for the new follower, my IDM behind the new front)`` of a candidate lane."""
         v, params, idm = self.v, self.params, self.params.idm
         new_front, new_rear = self.neighbours(candidate)
         delta = v.delta[:, 1 : params.obstacle_row]
@@ -160,9 +187,7 @@ class _Others:
             follower, self.car(self.rows, s_me), params
         )
         unsafe = pred < -idm.lane_change_max_braking_imposed
-        # Politeness is 0 in highway-env; merge_config refuses other values.
-        jerk = self.behind(new_front, free) - acc_now
-        return ~unsafe & ~(jerk < idm.lane_change_min_acc_gain)
+        return unsafe, self.behind(new_front, free)
 
 
 def _aborts(o: _Others, old, follow, decided, changing, acting, ego_target) -> torch.Tensor:
@@ -195,24 +220,32 @@ def _aborts(o: _Others, old, follow, decided, changing, acting, ego_target) -> t
     final = torch.where(acting, decided, old)
     if not bool((scan & blocks.any(-1)).any()):
         return final
-    seen = torch.cat([ego_target.unsqueeze(1), old], 1)  # [B, N - 1]: targets before this substep
+    seen = torch.cat([ego_target.unsqueeze(1), old], 1)  # the vehicles' targets before this substep
     for k in range(final.shape[1]):
         heading_there = seen == follow[:, k : k + 1]
-        aborted = scan[:, k] & (blocks[:, k, :-1] & heading_there).any(-1)
+        aborted = scan[:, k] & (blocks[:, k, : seen.shape[1]] & heading_there).any(-1)
         final[:, k] = torch.where(aborted, o.lane[:, k], final[:, k])
         seen[:, k + 1] = final[:, k]
     return final
 
 
-def _others_act(v: Vehicles, cols: dict, params: MergeParams) -> None:
-    """Every IDM vehicle's ``act()``, writing targets, timers and commands into ``cols``."""
+def _others_act(
+    v: Vehicles, cols: dict, params: MergeParams, follow_road=None, others=_Others
+) -> None:
+    """Every IDM vehicle's ``act()``, writing targets, timers and commands into ``cols``.
+
+    ``follow_road`` (see :func:`_static_follow`) and ``others`` (the class that decides)
+    are the merge's by default; the roundabout passes its routed ones.
+    """
     geo, road, idm = params.road.lanes, params.road, params.idm
-    o = _Others(v, params)
+    follow_road = follow_road or _static_follow(params)
+    o = others(v, params)
     k = slice(1, params.obstacle_row)
     x, y, speed, heading = v.x[:, k], v.y[:, k], v.speed[:, k], v.heading[:, k]
     acting = ~v.crashed[:, k]
     old = cols["target_lane"][:, k].clone()
-    follow = _follow_road(x, y, old, params)
+    # Crashed vehicles skip act(): their targets (and routes) stay as they are.
+    follow = follow_road(k, x, y, old, acting)
     changing = o.lane != follow
     free = free_road(o.car(o.rows, o.s_me), v.delta[:, k], params)
     acc = o.behind(o.neighbours(o.lane, (o.s_cur, o.r_cur))[0], free)
@@ -229,7 +262,7 @@ def _others_act(v: Vehicles, cols: dict, params: MergeParams) -> None:
             s_c, r_c = L.local_coordinates(x, y, candidate, geo)
             ok = due & exists & moving & L.is_reachable(s_c, r_c, candidate, geo)
             if bool(ok.any()):
-                ok = ok & o.mobil(candidate, acc, free)
+                ok = ok & o.mobil(candidate, acc, free, decided)
                 decided = torch.where(ok, candidate, decided)
     target = _aborts(o, old, follow, decided, changing, acting, cols["target_lane"][:, 0])
     steer = _steer(x, y, speed, heading, target, params)
@@ -246,11 +279,17 @@ def _others_act(v: Vehicles, cols: dict, params: MergeParams) -> None:
         cols[name][:, k] = torch.where(acting, value, cols[name][:, k])
 
 
-def _ego_act(v: Vehicles, index, action, first, cols: dict, params: MergeParams):
+def _ego_act(v: Vehicles, index, action, first, cols: dict, params: MergeParams, follow_road=None):
     """The MDP ego's ``act(action)`` (first frame) and ``act()``: target lane, speed, commands."""
     geo, speeds = params.road.lanes, params.control.target_speeds
     x, y, speed = v.x[:, 0], v.y[:, 0], v.speed[:, 0]
-    target = _follow_road(x, y, v.target_lane[:, 0], params)
+    follow_road = follow_road or _static_follow(params)
+
+    def follow(target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        one = (t.unsqueeze(1) for t in (x, y, target, mask))
+        return follow_road(slice(0, 1), *one).squeeze(1)
+
+    target = follow(v.target_lane[:, 0], torch.ones_like(first))
     left, right = _const(params.road.left, x)[target], _const(params.road.right, x)[target]
     candidate = torch.where(action == LANE_LEFT, left, right)
     s, r = L.local_coordinates(x, y, candidate, geo)
@@ -261,7 +300,7 @@ def _ego_act(v: Vehicles, index, action, first, cols: dict, params: MergeParams)
     index = torch.where(step != 0, moved, index)
     table = torch.tensor(speeds, dtype=speed.dtype, device=speed.device)
     target_speed = torch.where(step != 0, table[moved], v.target_speed[:, 0])
-    target = torch.where(first, _follow_road(x, y, target, params), target)
+    target = follow(target, first)
     cols["target_lane"][:, 0] = target
     cols["target_speed"][:, 0] = target_speed
     cols["steering"][:, 0] = _steer(x, y, speed, v.heading[:, 0], target, params)

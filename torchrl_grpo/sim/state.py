@@ -121,6 +121,8 @@ class World(NamedTuple):
         steps: ``[B]`` int64 substeps since reset (highway-env's ``env.steps``).
         rng_key: ``[B]`` int64 key of the world's random stream (see :mod:`.rng`).
         rng_counter: ``[B]`` int64 counter of that stream.
+        route: ``[B, N, R]`` int64 route legs (codes of :mod:`.routes`; roundabout-v0 only).
+        route_head: ``[B, N]`` int64, each route's first leg not yet dropped (or ``None``).
 
     Example:
         >>> world = empty_world(4, 21)
@@ -134,6 +136,8 @@ class World(NamedTuple):
     steps: torch.Tensor
     rng_key: torch.Tensor
     rng_counter: torch.Tensor
+    route: torch.Tensor | None = None
+    route_head: torch.Tensor | None = None
 
 
 def take(table: torch.Tensor, at: torch.Tensor) -> torch.Tensor:
@@ -154,6 +158,7 @@ def empty_world(
     num_vehicles: int,
     dtype: torch.dtype = torch.float32,
     device: torch.device | str = "cpu",
+    route_length: int = 0,
 ) -> World:
     """A world of zeros with every row present: a template for specs and tests.
 
@@ -162,6 +167,7 @@ def empty_world(
         num_vehicles: N, the ego included.
         dtype: the float dtype of the vehicle table.
         device: where the tensors live.
+        route_length: R, the legs a route holds (0: no routes, as on the highway).
 
     Returns:
         A :class:`World`.
@@ -176,6 +182,10 @@ def empty_world(
     flags = {k: torch.zeros(shape, dtype=torch.bool, device=device) for k in BOOL_FIELDS}
     flags["present"] = torch.ones(shape, dtype=torch.bool, device=device)
     words = torch.zeros(batch, dtype=torch.int64, device=device)
+    route = head = None
+    if route_length:
+        route = torch.full((*shape, route_length), -1, dtype=torch.int64, device=device)
+        head = torch.zeros(shape, dtype=torch.int64, device=device)
     return World(
         vehicles=Vehicles(**floats, **ints, **flags),
         speed_index=words.clone(),
@@ -183,6 +193,8 @@ def empty_world(
         steps=words.clone(),
         rng_key=words.clone(),
         rng_counter=words.clone(),
+        route=route,
+        route_head=head,
     )
 
 
@@ -201,7 +213,7 @@ def world_to_tensordict(world: World) -> TensorDict:
     """
     v = world.vehicles
     batch = v.x.shape[:1]
-    return TensorDict(
+    td = TensorDict(
         {
             "vehicles": TensorDict(v._asdict(), batch_size=v.x.shape[:2]),
             "speed_index": world.speed_index,
@@ -211,6 +223,10 @@ def world_to_tensordict(world: World) -> TensorDict:
         },
         batch_size=batch,
     )
+    if world.route is not None:
+        route = TensorDict(legs=world.route, head=world.route_head, batch_size=v.x.shape[:2])
+        td.set("route", route)
+    return td
 
 
 def world_from_tensordict(state: TensorDictBase) -> World:
@@ -227,6 +243,7 @@ def world_from_tensordict(state: TensorDictBase) -> World:
         [0]
     """
     table = state.get("vehicles")
+    route = state.get("route", None)
     return World(
         vehicles=Vehicles(**{k: table.get(k) for k in Vehicles._fields}),
         speed_index=state.get("speed_index"),
@@ -234,6 +251,8 @@ def world_from_tensordict(state: TensorDictBase) -> World:
         steps=state.get("steps"),
         rng_key=state.get(("rng", "key")),
         rng_counter=state.get(("rng", "counter")),
+        route=None if route is None else route.get("legs"),
+        route_head=None if route is None else route.get("head"),
     )
 
 
@@ -320,6 +339,11 @@ def check_world(
     beyond("time", clock, world.time, "negative, " + why)
     bad("steps", world.steps < 0)
     bad("rng.counter", world.rng_counter < 0)
+    codes = getattr(params.road, "route_codes", 0)
+    if codes and world.route is not None:
+        bad("route.legs", (world.route < -1) | (world.route >= codes))
+        length = world.route.shape[-1]
+        bad("route.head", (world.route_head < 0) | (world.route_head > length))
     return problems
 
 
@@ -332,4 +356,6 @@ _WHY = {
     "speed_index": "outside the target speeds",
     "steps": "negative",
     "counter": "negative",
+    "legs": "outside the road's lanes and roads",
+    "head": "outside the route",
 }

@@ -165,7 +165,10 @@ def import_states(bridge: HighwayBridge, states: TensorDictBase) -> tuple[World,
     table = zip(*(w.vehicles for w in worlds), strict=True)
     world = World(
         Vehicles(*(torch.cat(column) for column in table)),
-        *(torch.cat(column) for column in list(zip(*worlds, strict=True))[1:]),
+        *(
+            None if column[0] is None else torch.cat(column)
+            for column in list(zip(*worlds, strict=True))[1:]
+        ),
     )
     words = TensorDict(
         rng=torch.cat([r[1] for r in rows]),

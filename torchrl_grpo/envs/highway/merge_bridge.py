@@ -119,6 +119,9 @@ class MergeBridge(HighwayBridge):
                 f"the observation's features_range is {ranges}, the simulator's {fixed}"
             )
 
+    def _write_more(self, core, world: World, row: int) -> None:
+        """What a scenario's world holds beyond the vehicle table (the roundabout's routes)."""
+
     def read(self, state: TensorDictBase) -> tuple[World, torch.Tensor, torch.Tensor]:
         """One merge-v0 HighwayEnv state as a float64 world ``[1]``, its generator words and seed.
 
@@ -140,7 +143,7 @@ class MergeBridge(HighwayBridge):
             floats["heading"][k], floats["speed"][k] = v.heading, v.speed
             ints["lane"][k] = flat[tuple(v.lane_index[:2]) + (int(v.lane_index[2]),)]
             flags["crashed"][k], flags["check_collisions"][k] = v.crashed, v.check_collisions
-            if k == n - 1:  # the obstacle: no target, no commands, no impact
+            if k >= len(core.road.vehicles):  # the obstacle: no target, commands, impact
                 ints["target_lane"][k] = ints["lane"][k]
                 continue
             floats["target_speed"][k] = v.target_speed
@@ -178,7 +181,7 @@ class MergeBridge(HighwayBridge):
             v.lane_index = self.keys[int(value["lane"])]
             v.lane = network.get_lane(v.lane_index)
             v.crashed = bool(value["crashed"])
-            if k == len(entities) - 1:
+            if k >= len(core.road.vehicles):
                 continue  # the obstacle keeps its template position, heading and speed
             v.position = np.array([value["x"], value["y"]], dtype=np.float64)
             v.heading, v.speed = value["heading"], value["speed"]
@@ -192,6 +195,7 @@ class MergeBridge(HighwayBridge):
             v.impact = np.array([value["impact_x"], value["impact_y"]]) if value["impact"] else None
             v.target_lane_index = self.keys[int(value["target_lane"])]
             v.check_collisions = bool(value["check_collisions"])
+        self._write_more(core, world, row)
         core.vehicle.speed_index = int(world.speed_index[row])
         core.time = float(world.time[row])
         core.steps = int(world.steps[row])

@@ -46,7 +46,7 @@ __all__ = [
 Policy = Callable[[TensorDictBase], TensorDictBase]
 FIELDS = ("x", "y", "heading", "speed", "lane", "target_lane", "crashed")
 #: What :func:`record_worlds` counts of its worlds.
-KINDS = ("changing", "near_miss", "crashed", "curved", "forbidden", "hand_over")
+KINDS = ("changing", "near_miss", "crashed", "curved", "ring", "sine", "forbidden", "hand_over")
 
 
 def record_worlds(
@@ -67,8 +67,10 @@ def record_worlds(
         ``(states [count], counts)``: how many worlds have a lane change in progress
         (``changing``), the ego within ``near`` metres of another vehicle without a
         crash (``near_miss``), a crashed ego (``crashed``), a vehicle on a curved lane
-        (``curved``), on a forbidden lane (``forbidden``: merge-v0's ramp) or handing
-        over to another road (``hand_over``).
+        (``curved``), on a circular lane (``ring``: roundabout-v0's) or a sine lane
+        (``sine``: merge-v0's ramp, roundabout-v0's entries and exits), on a forbidden
+        lane (``forbidden``: merge-v0's ramp) or handing over to another road
+        (``hand_over``).
     """
     env = HighwayEnv(scenario, config)
     states: list[TensorDictBase] = []
@@ -98,6 +100,8 @@ def _count_kinds(env: HighwayEnv, kinds: dict[str, int], near: float) -> None:
     lanes = [network.get_lane(v.lane_index) for v in vehicles]
     # Curved lanes, the ramp's forbidden lanes and hand-overs between roads (merge-v0).
     kinds["curved"] += any(type(lane).__name__ != "StraightLane" for lane in lanes)
+    kinds["ring"] += any(type(lane).__name__ == "CircularLane" for lane in lanes)
+    kinds["sine"] += any(type(lane).__name__ == "SineLane" for lane in lanes)
     kinds["forbidden"] += any(lane.forbidden for lane in lanes)
     kinds["hand_over"] += any(v.lane_index[:2] != v.target_lane_index[:2] for v in vehicles)
     if ego.crashed:
@@ -174,7 +178,9 @@ class StepReport:
 
     pairs: int = 0
     agree: int = 0
-    max_error: dict[str, float] = field(default_factory=lambda: dict.fromkeys(FIELDS, 0.0))
+    max_error: dict[str, float] = field(
+        default_factory=lambda: dict.fromkeys((*FIELDS, "route"), 0.0)
+    )
     misses: list[StepMiss] = field(default_factory=list)
 
     @property
@@ -183,12 +189,23 @@ class StepReport:
         return self.agree / max(self.pairs, 1)
 
 
+def _remaining(route: torch.Tensor, head: torch.Tensor) -> torch.Tensor:
+    """``[B, N, R]`` each route's legs from its head on, -1 padded (a read route's head is 0)."""
+    length = route.shape[-1]
+    at = head.unsqueeze(-1) + torch.arange(length)
+    legs = route.gather(-1, at.clamp(max=length - 1))
+    return torch.where(at < length, legs, -1)
+
+
 def _differences(a, b) -> dict[str, torch.Tensor]:
-    """Per field, ``[B, N]`` |a - b| (floats) or a != b (lanes, flags) between two worlds."""
+    """Per field, ``[B, N]`` |a - b| (floats) or a != b (lanes, flags, routes) of two worlds."""
     out = {}
     for name in FIELDS:
         x, y = getattr(a.vehicles, name), getattr(b.vehicles, name)
         out[name] = (x.double() - y.double()).abs() if x.is_floating_point() else (x != y).double()
+    if a.route is not None:
+        legs = _remaining(a.route, a.route_head) != _remaining(b.route, b.route_head)
+        out["route"] = legs.any(-1).double()
     return out
 
 
@@ -205,6 +222,8 @@ def _explain(before, after_hw, after_t, world: int, vehicle: int, name: str) -> 
         return "a collision test flipped at the tolerance of the separating-axis test"
     if name == "lane":
         return "the closest-lane argmin flipped between two lanes"
+    if name == "route":
+        return "a route's leg was dropped on one side only (after_end at the lane's end)"
     return "float rounding (transcendental functions of torch and libm differ by an ulp)"
 
 
@@ -239,7 +258,7 @@ def one_step(
         report.pairs += n
         report.agree += int((~bad).sum())
         for i in bad.nonzero().flatten().tolist():
-            name = next(k for k in FIELDS if (diff[k][i] > tolerance).any())
+            name = next(k for k in diff if (diff[k][i] > tolerance).any())
             vehicle = int((diff[name][i] > tolerance).nonzero()[0])
             err = float(diff[name][i, vehicle])
             why = _explain(before, ref, mine, i, vehicle, name)
@@ -296,7 +315,8 @@ def whole_episodes(
             tensor_env.state_from_highway(torch.stack([trajectories[i][t] for i in rows]))
         )
         mine_rows = type(mine)(
-            type(mine.vehicles)(*(f[rows] for f in mine.vehicles)), *(f[rows] for f in mine[1:])
+            type(mine.vehicles)(*(f[rows] for f in mine.vehicles)),
+            *(None if f is None else f[rows] for f in mine[1:]),
         )
         diff = _differences(mine_rows, ref)
         bad = torch.zeros(len(rows), dtype=torch.bool)

@@ -48,12 +48,12 @@ __all__ = ["TensorHighwayEnv"]
 
 
 class TensorHighwayEnv(EnvBase):
-    """highway-v0, highway-fast-v0 or merge-v0 as ``num_envs`` worlds stepped at once.
+    """highway-v0, highway-fast-v0, merge-v0 or roundabout-v0 as ``num_envs`` worlds at once.
 
     Args:
-        scenario: ``"highway-v0"``, ``"highway-fast-v0"`` or ``"merge-v0"`` (whose row
-            ``i`` replays ``HighwayEnv("merge-v0")``'s episodes after ``reset(seed=seed
-            + i)``; its step is eager: :meth:`compile` leaves it so).
+        scenario: ``"highway-v0"``, ``"highway-fast-v0"``, ``"merge-v0"`` or
+            ``"roundabout-v0"`` (the last two: row ``i`` replays ``HighwayEnv(scenario)``'s
+            episodes after ``reset(seed=seed + i)``; their step is eager).
         config: overrides of the scenario's config, within what
             :func:`~torchrl_grpo.envs.check_tensor_config` covers (anything else is a
             ``ValueError`` naming it).
@@ -128,7 +128,9 @@ class TensorHighwayEnv(EnvBase):
         self._bridge: HighwayBridge | None = None
         self.fingerprint = stable_hash("TensorHighwayEnv", scenario, repr(self.params), str(dtype))
         self.eager()
-        self._world = empty_world(num_envs, self.params.num_vehicles, dtype, device)
+        self._world = empty_world(
+            num_envs, self.params.num_vehicles, dtype, device, self._route_length
+        )
         #: Worlds stepped so far, masked rows included (the simulator's throughput).
         self.world_steps = 0
         self._highway_rng = torch.zeros(num_envs, RNG_WORDS, dtype=torch.int64, device=device)
@@ -223,11 +225,16 @@ class TensorHighwayEnv(EnvBase):
         self.done_spec = Composite(
             done=flag.clone(), terminated=flag.clone(), truncated=flag.clone(), shape=b, device=dev
         )
-        state = tensor_state_spec(b, self.params.num_vehicles, d, dev)
+        state = tensor_state_spec(b, self.params.num_vehicles, d, dev, self._route_length)
         self.state_spec = Composite({STATE_KEY: state}, shape=b, device=dev)
         if self.return_state:
             spec[STATE_KEY] = state.clone()
         self.observation_spec = spec
+
+    @property
+    def _route_length(self) -> int:
+        """The legs a vehicle's route holds (roundabout-v0), 0 where there are no routes."""
+        return getattr(self.params, "route_length", 0)
 
     # ------------------------------------------------------------------ state
     def get_state(self) -> TensorDict:

@@ -6,9 +6,9 @@ simulator; a :class:`TensorModel` holds the scenario's pure functions and its br
 * highway-v0 / highway-fast-v0 draw fresh worlds from the simulator's own per-world
   streams (:mod:`torchrl_grpo.sim.rng`) and give highway-env generator words drawn
   from them;
-* merge-v0 draws fresh worlds from highway-env's generator itself, carried in the
+* merge-v0 and roundabout-v0 draw fresh worlds from highway-env's generator itself, carried in the
   state's ``highway.rng`` words, on the host (:func:`~.merge_bridge.merge_draws`): row
-  ``i`` of an env seeded with ``s`` replays ``HighwayEnv("merge-v0")``'s episodes
+  ``i`` of an env seeded with ``s`` replays ``HighwayEnv(scenario)``'s episodes
   after ``reset(seed=s + i)``.
 
 Example:
@@ -28,12 +28,16 @@ from tensordict import TensorDict
 from torchrl_grpo.envs.core.gym_state import seeded_rng_words
 from torchrl_grpo.envs.highway.bridge import HighwayBridge
 from torchrl_grpo.envs.highway.merge_bridge import MergeBridge, merge_draws
+from torchrl_grpo.envs.highway.roundabout_bridge import RoundaboutBridge, roundabout_draws
 from torchrl_grpo.envs.highway.tensor_state import fresh_highway_words
 from torchrl_grpo.sim.merge import merge_step
 from torchrl_grpo.sim.merge_output import MERGE_REWARD_COMPONENTS, observe_merge
 from torchrl_grpo.sim.merge_reset import reset_merge
 from torchrl_grpo.sim.reset import reset_world
 from torchrl_grpo.sim.reward import REWARD_COMPONENTS
+from torchrl_grpo.sim.roundabout import roundabout_step
+from torchrl_grpo.sim.roundabout_output import ROUNDABOUT_REWARD_COMPONENTS, observe_roundabout
+from torchrl_grpo.sim.roundabout_reset import reset_roundabout
 from torchrl_grpo.sim.simulate import observe_world, step
 from torchrl_grpo.sim.state import World
 
@@ -81,6 +85,16 @@ def _merge_fresh(world: World, rows, words, seeds, params):
     return reset_merge(world, rows, draws, params), words, seeds
 
 
+def _roundabout_fresh(world: World, rows, words, seeds, params):
+    draws, words = roundabout_draws(words, rows, params)
+    return reset_roundabout(world, rows, draws, params), words, seeds
+
+
+def _roundabout_step(world, action, params, dense=False, stages=None):
+    del dense, stages
+    return roundabout_step(world, action, params)
+
+
 def _merge_seed_words(count: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     seeds = torch.arange(count, dtype=torch.int64) + seed
     return torch.stack([seeded_rng_words(int(s)) for s in seeds]), seeds
@@ -99,6 +113,17 @@ def tensor_model(scenario: str) -> TensorModel:
         >>> tensor_model("highway-fast-v0").compiles
         True
     """
+    if scenario == "roundabout-v0":
+        return TensorModel(
+            components=ROUNDABOUT_REWARD_COMPONENTS,
+            step=_roundabout_step,
+            observe=observe_roundabout,
+            fresh=_roundabout_fresh,
+            seed_words=_merge_seed_words,
+            bridge=RoundaboutBridge,
+            draws_from_words=True,
+            compiles=False,
+        )
     if scenario == "merge-v0":
         return TensorModel(
             components=MERGE_REWARD_COMPONENTS,

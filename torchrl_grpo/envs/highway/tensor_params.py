@@ -35,6 +35,11 @@ from highway_env.road.lane import AbstractLane
 
 from torchrl_grpo.envs.highway.merge_config import MERGE_SUPPORTED, check_merge_values, merge_params
 from torchrl_grpo.envs.highway.model_constants import model_constants, observation_params
+from torchrl_grpo.envs.highway.roundabout_config import (
+    ROUNDABOUT_SUPPORTED,
+    check_roundabout_values,
+    roundabout_params,
+)
 from torchrl_grpo.sim.merge_params import MergeParams
 from torchrl_grpo.sim.observation import FEATURES
 from torchrl_grpo.sim.params import (
@@ -44,11 +49,12 @@ from torchrl_grpo.sim.params import (
     TimeParams,
     TrafficParams,
 )
+from torchrl_grpo.sim.roundabout_params import RoundaboutParams
 
 __all__ = ["TENSOR_SCENARIOS", "check_tensor_config", "tensor_params"]
 
 #: The scenarios the batched simulator covers.
-TENSOR_SCENARIOS = ("highway-v0", "highway-fast-v0", "merge-v0")
+TENSOR_SCENARIOS = ("highway-v0", "highway-fast-v0", "merge-v0", "roundabout-v0")
 
 # Config keys the simulator reads, and keys that only change rendering
 # (show_trajectories is not among them: it makes highway-env keep a per-vehicle history,
@@ -97,7 +103,7 @@ def check_tensor_config(scenario: str, config: dict | None = None) -> dict:
         >>> check_tensor_config("highway-fast-v0")["lanes_count"]
         3
         >>> try:
-        ...     check_tensor_config("roundabout-v0")
+        ...     check_tensor_config("intersection-v0")
         ... except ValueError as err:
         ...     print(str(err)[:62])
         the tensor simulator covers ('highway-v0', 'highway-fast-v0',
@@ -113,8 +119,10 @@ def check_tensor_config(scenario: str, config: dict | None = None) -> dict:
     full = copy.deepcopy(defaults)
     full.update(copy.deepcopy(dict(config or {})))
 
-    merge = scenario == "merge-v0"
-    supported = MERGE_SUPPORTED if merge else _SUPPORTED
+    supported, check_values = {
+        "merge-v0": (MERGE_SUPPORTED, check_merge_values),
+        "roundabout-v0": (ROUNDABOUT_SUPPORTED, check_roundabout_values),
+    }.get(scenario, (_SUPPORTED, _check_values))
 
     def refuse(key: str, why: str) -> None:
         raise ValueError(
@@ -131,9 +139,9 @@ def check_tensor_config(scenario: str, config: dict | None = None) -> dict:
             raise ValueError(f"unknown config key {key!r} for {scenario}{hint}")
         if full[key] != defaults[key]:
             refuse(key, f"only its default {defaults[key]!r} is simulated")
-    _check_observation(full, refuse)
+    _check_observation(full, refuse, ranged=scenario == "roundabout-v0")
     _check_action(full, refuse)
-    (check_merge_values if merge else _check_values)(full, refuse)
+    check_values(full, refuse)
     return full
 
 
@@ -144,11 +152,21 @@ def _lookup(config: dict, key: str) -> Any:
     return value
 
 
-def _check_observation(full: dict, refuse) -> None:
+def _check_observation(full: dict, refuse, ranged: bool = False) -> None:
     obs = full["observation"]
     if not isinstance(obs, dict) or obs.get("type") != "Kinematics":
         refuse("observation.type", "only the Kinematics observation is simulated")
+    if ranged:  # roundabout-v0 gives the ranges; a missing one would be fixed at a reset
+        ranges = obs.get("features_range")
+        ok = isinstance(ranges, dict) and all(
+            len(r) == 2 and math.isfinite(float(r[0])) and float(r[1]) > float(r[0])
+            for r in ranges.values()
+        )
+        if not ok:
+            refuse("observation.features_range", "a dict of [low, high] ranges, low < high")
     for key in obs:
+        if ranged and key == "features_range":
+            continue
         if key not in _OBSERVATION and not (key == "order" and obs[key] == "sorted"):
             why = (
                 "'shuffled' draws from numpy's generator every step"
@@ -224,7 +242,7 @@ def _check_values(full: dict, refuse) -> None:
 
 def tensor_params(
     scenario: str = "highway-fast-v0", config: dict | None = None
-) -> HighwayParams | MergeParams:
+) -> HighwayParams | MergeParams | RoundaboutParams:
     """The simulator's constants for a scenario and config (checked by :func:`check_tensor_config`).
 
     Args:
@@ -233,7 +251,8 @@ def tensor_params(
 
     Returns:
         The :class:`~torchrl_grpo.sim.HighwayParams` (a
-        :class:`~torchrl_grpo.sim.merge_params.MergeParams` for ``"merge-v0"``).
+        :class:`~torchrl_grpo.sim.merge_params.MergeParams` for ``"merge-v0"``, a
+        :class:`~torchrl_grpo.sim.roundabout_params.RoundaboutParams` for ``"roundabout-v0"``).
 
     Raises:
         ValueError: see :func:`check_tensor_config`.
@@ -245,6 +264,8 @@ def tensor_params(
     full = check_tensor_config(scenario, config)
     if scenario == "merge-v0":
         return merge_params(json.dumps(full, sort_keys=True, default=_jsonable))
+    if scenario == "roundabout-v0":
+        return roundabout_params(json.dumps(full, sort_keys=True, default=_jsonable))
     return _params(scenario, json.dumps(full, sort_keys=True, default=_jsonable))
 
 

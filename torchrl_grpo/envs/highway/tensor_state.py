@@ -49,9 +49,16 @@ _MASK32 = (1 << 32) - 1
 
 
 def tensor_state_spec(
-    batch: torch.Size, num_vehicles: int, dtype: torch.dtype, device: torch.device
+    batch: torch.Size,
+    num_vehicles: int,
+    dtype: torch.dtype,
+    device: torch.device,
+    route_length: int = 0,
 ) -> Composite:
     """The spec of a tensor state ``[B]`` of worlds of ``num_vehicles`` vehicles.
+
+    With ``route_length`` R > 0 (roundabout-v0) it holds each vehicle's route too:
+    ``route.legs`` ``[B, N, R]`` and ``route.head`` ``[B, N]``.
 
     Example:
         >>> spec = tensor_state_spec(torch.Size([4]), 21, torch.float32, torch.device("cpu"))
@@ -70,7 +77,7 @@ def tensor_state_spec(
     highway = Composite(
         rng=u((*b, RNG_WORDS), torch.int64), seed=words.clone(), shape=b, device=device
     )
-    return Composite(
+    spec = Composite(
         vehicles=Composite(table, shape=(*b, n), device=device),
         speed_index=words.clone(),
         time=u(b, torch.float64),
@@ -81,6 +88,10 @@ def tensor_state_spec(
         shape=b,
         device=device,
     )
+    if route_length:
+        legs, head = u((*b, n, route_length), torch.int64), u((*b, n), torch.int64)
+        spec["route"] = Composite(legs=legs, head=head, shape=(*b, n), device=device)
+    return spec
 
 
 def check_state_structure(state: TensorDictBase, spec: Composite, fingerprint: int) -> None:
@@ -175,8 +186,12 @@ def where_rows(rows: torch.Tensor, new: World, old: World) -> World:
     table = Vehicles(
         *(torch.where(column, a, b) for a, b in zip(new.vehicles, old.vehicles, strict=True))
     )
-    rest = (torch.where(rows, a, b) for a, b in zip(new[1:], old[1:], strict=True))
-    return World(table, *rest)
+    rest = (torch.where(rows, a, b) for a, b in zip(new[1:6], old[1:6], strict=True))
+    if new.route is None:
+        return World(table, *rest)
+    route = torch.where(rows.view(-1, 1, 1), new.route, old.route)
+    head = torch.where(column, new.route_head, old.route_head)
+    return World(table, *rest, route=route, route_head=head)
 
 
 def fresh_highway_words(world: World, rows: torch.Tensor) -> tuple[World, torch.Tensor]:
