@@ -1,15 +1,22 @@
 """Shared by every test: conf/ holds the experimental algorithm's files (algo=grpo_lab).
 
-Under pytest-xdist (``-n``, the default in pyproject.toml) each worker takes its share of
-the cores for torch's threads, so two workers on 2 cores do not run four threads.
+Under pytest-xdist (``-n auto``, the default in pyproject.toml) each worker takes its
+share of the cores for its threads, and so does every process a test starts (env
+workers, scripts): it is set in the environment before torch loads. Two workers on 2
+cores with two spinning OpenMP threads each ran some tests 10 times slower.
 """
 
 import os
 
-import torch
-
-import torchrl_grpo.experimental  # noqa: F401  (registers algo=grpo_lab, model=lab)
-
 if "PYTEST_XDIST_WORKER_COUNT" in os.environ:
     _cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    torch.set_num_threads(max(1, (_cores or 1) // int(os.environ["PYTEST_XDIST_WORKER_COUNT"])))
+    _threads = max(1, (_cores or 1) // int(os.environ["PYTEST_XDIST_WORKER_COUNT"]))
+    os.environ.setdefault("OMP_NUM_THREADS", str(_threads))
+    os.environ.setdefault("MKL_NUM_THREADS", str(_threads))
+
+import torch  # noqa: E402
+
+import torchrl_grpo.experimental  # noqa: E402, F401  (registers algo=grpo_lab, model=lab)
+
+if "PYTEST_XDIST_WORKER_COUNT" in os.environ:
+    torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
