@@ -220,6 +220,13 @@ def _train_in_processes(
     try:
         pending: dict[Future, Path] = {}
         for slot, (folder, teacher) in enumerate(stages):
+            log.info(
+                "teacher %s: %s (%d at a time, %d threads each)",
+                folder.name,
+                folder,
+                processes,
+                threads,
+            )
             job = pool.submit(_teacher_process, teacher, folder, hooks, slot, threads)
             pending[job] = folder
         while pending:
