@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import functools
 import json
-import math
 
 import gymnasium as gym
 from highway_env.envs.merge_env import MergeEnv  # noqa: F401 - the examples use it
@@ -25,7 +24,11 @@ from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.objects import Obstacle
 
 from torchrl_grpo.envs.highway.lane_constants import road_graph
-from torchrl_grpo.envs.highway.model_constants import model_constants, observation_params
+from torchrl_grpo.envs.highway.model_constants import (
+    check_numbers_and_timing,
+    model_constants,
+    observation_params,
+)
 from torchrl_grpo.sim.merge_params import MergeParams, MergeReward, MergeRoad, MergeTraffic
 from torchrl_grpo.sim.params import TimeParams
 
@@ -54,22 +57,11 @@ def check_merge_values(full: dict, refuse) -> None:
         ...     raise ValueError(key)
         >>> check_merge_values(MergeEnv.default_config(), refuse)
     """
-    for key in (
+    numbers = (
         "collision_reward", "right_lane_reward", "high_speed_reward", "merging_speed_reward",
         "lane_change_reward", "simulation_frequency", "policy_frequency",
-    ):  # fmt: skip
-        value = full[key]
-        if (
-            isinstance(value, bool)
-            or not isinstance(value, int | float)
-            or not math.isfinite(value)
-        ):
-            refuse(key, "expected a finite number")
-    for key in ("simulation_frequency", "policy_frequency"):
-        if full[key] <= 0:
-            refuse(key, "expected a positive number")
-    if full["simulation_frequency"] // full["policy_frequency"] < 1:
-        refuse("simulation_frequency", "at least one substep per policy step")
+    )  # fmt: skip
+    check_numbers_and_timing(full, numbers, refuse)
     rng = full["reward_speed_range"]
     if len(rng) != 2 or not float(rng[1]) > float(rng[0]):
         refuse("reward_speed_range", "two speeds, low < high")

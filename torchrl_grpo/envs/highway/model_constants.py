@@ -14,6 +14,9 @@ Example:
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable, Sequence
+
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.controller import ControlledVehicle
 from highway_env.vehicle.kinematics import Vehicle
@@ -21,7 +24,7 @@ from highway_env.vehicle.kinematics import Vehicle
 from torchrl_grpo.envs.highway import schema
 from torchrl_grpo.sim.params import ControlParams, IDMParams, ObservationParams, VehicleParams
 
-__all__ = ["model_constants", "observation_params"]
+__all__ = ["check_numbers_and_timing", "model_constants", "observation_params"]
 
 
 def observation_params(core) -> ObservationParams:
@@ -92,3 +95,34 @@ def model_constants(ego) -> dict:
             target_speeds=tuple(float(s) for s in ego.target_speeds),
         ),
     }
+
+
+def check_numbers_and_timing(
+    full: dict, numbers: Sequence[str], refuse: Callable[[str, str], None]
+) -> None:
+    """Refuse ``numbers`` that are not finite, a non-positive timing, or no substep a step.
+
+    ``numbers`` must include the timing keys ``simulation_frequency`` and
+    ``policy_frequency`` (and ``duration`` where the scenario has one), which must also be
+    positive; ``refuse(key, why)`` raises.
+
+    Example:
+        >>> def refuse(key, why):
+        ...     raise ValueError(f"{key}: {why}")
+        >>> full = {"simulation_frequency": 15, "policy_frequency": 0}
+        >>> try:
+        ...     check_numbers_and_timing(full, list(full), refuse)
+        ... except ValueError as err:
+        ...     print(err)
+        policy_frequency: expected a positive number
+    """
+    for key in numbers:
+        value = full[key]
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if not number or not math.isfinite(value):
+            refuse(key, "expected a finite number")
+    for key in ("simulation_frequency", "policy_frequency", "duration"):
+        if key in numbers and full[key] <= 0:
+            refuse(key, "expected a positive number")
+    if full["simulation_frequency"] // full["policy_frequency"] < 1:
+        refuse("simulation_frequency", "at least one substep per policy step")

@@ -16,14 +16,17 @@ from __future__ import annotations
 
 import functools
 import json
-import math
 
 import gymnasium as gym
 from highway_env.envs.roundabout_env import RoundaboutEnv  # noqa: F401 - the examples use it
 from highway_env.vehicle.controller import MDPVehicle
 
 from torchrl_grpo.envs.highway.lane_constants import road_graph
-from torchrl_grpo.envs.highway.model_constants import model_constants, observation_params
+from torchrl_grpo.envs.highway.model_constants import (
+    check_numbers_and_timing,
+    model_constants,
+    observation_params,
+)
 from torchrl_grpo.sim.params import TimeParams
 from torchrl_grpo.sim.roundabout_params import (
     RoundaboutParams,
@@ -60,22 +63,11 @@ def check_roundabout_values(full: dict, refuse) -> None:
         ...     raise ValueError(key)
         >>> check_roundabout_values(RoundaboutEnv.default_config(), refuse)
     """
-    for key in (
+    numbers = (
         "collision_reward", "high_speed_reward", "lane_change_reward", "right_lane_reward",
         "simulation_frequency", "policy_frequency", "duration",
-    ):  # fmt: skip
-        value = full[key]
-        if (
-            isinstance(value, bool)
-            or not isinstance(value, int | float)
-            or not math.isfinite(value)
-        ):
-            refuse(key, "expected a finite number")
-    for key in ("simulation_frequency", "policy_frequency", "duration"):
-        if full[key] <= 0:
-            refuse(key, "expected a positive number")
-    if full["simulation_frequency"] // full["policy_frequency"] < 1:
-        refuse("simulation_frequency", "at least one substep per policy step")
+    )  # fmt: skip
+    check_numbers_and_timing(full, numbers, refuse)
     if not isinstance(full["normalize_reward"], bool):
         refuse("normalize_reward", "expected a bool")
     if full["normalize_reward"] and full["collision_reward"] == full["high_speed_reward"]:
