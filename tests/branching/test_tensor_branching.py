@@ -76,3 +76,17 @@ def test_per_branch_reseeding_keeps_the_worlds():
     reseeded = branch_rollout(env, schedule(), roots, 4, 6, rng="per_branch", seed=3)
     # Steps draw nothing: the same actions give the same branches.
     assert torch.equal(shared["next", "observation"], reseeded["next", "observation"])
+
+
+def test_states_are_kept_only_when_asked_as_on_highway_env(highway_roots):
+    # The training env writes its state into every step (return_state=True); branch data
+    # holds states only with return_states=True, as the worker-slot engines return them.
+    highway = branch_rollout(HighwayEnv("highway-fast-v0"), schedule(), highway_roots, 4, 3)
+    env = TensorHighwayEnv("highway-fast-v0", num_envs=12, return_state=True)
+    roots = make_roots(env.state_from_highway(highway_roots["state"]))
+    plain = branch_rollout(env, schedule(), roots, 4, 3)
+    assert "state" not in plain.keys() and "state" not in plain["next"].keys()
+    assert set(plain.keys(True, True)) == set(highway.keys(True, True))
+    kept = branch_rollout(env, schedule(), roots, 4, 3, return_states=True)
+    assert torch.equal(kept["next", "observation"], plain["next", "observation"])
+    assert "state" in kept.keys() and "state" in kept["next"].keys()

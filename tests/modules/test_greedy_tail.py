@@ -256,3 +256,48 @@ def test_the_sampled_and_greedy_outputs_share_one_forward_and_keep_their_values(
     learner_rows, tail_rows = [1, 2, 3, 6], [4, 7]
     assert torch.equal(out["action"][learner_rows], logits[learner_rows].argmax(-1))
     assert (out["action"][tail_rows] == SLOWER).all()  # past the learner's steps
+
+
+class _NoKeys(torch.nn.Module):
+    """The tail without ``out_keys``: GreedyTail cannot tell what it writes, so it runs it."""
+
+    def __init__(self, tail: torch.nn.Module) -> None:
+        super().__init__()
+        self.tail = tail
+
+    def forward(self, td: TensorDict) -> TensorDict:
+        return self.tail(td)
+
+
+@pytest.mark.parametrize("t", [[1, 2, 3, 1, 2, 3], [0, 1, 2, 3, 0, 2]])
+def test_a_tail_with_nothing_to_act_on_is_not_run_and_changes_nothing(t):
+    # The recipe's branches end within the learner's steps: every greedy row is the
+    # learner's. The output must be what running the tail gives, key by key, bitwise.
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Flatten(-2), torch.nn.Linear(20, N_ACTIONS))
+    actor = make_discrete_actor(net, Categorical(N_ACTIONS))
+    tail = ConstantActionPolicy("SLOWER")
+    td = _rows(6, t)
+    td["observation"] = torch.randn(6, 5, 4)
+    td["branch"] = torch.arange(6)
+    # The keys a rollout step carries over from the step before (step_mdp keep_other).
+    td["logits"], td["action_log_prob"] = torch.randn(6, N_ACTIONS), torch.randn(6)
+    calls = []
+    tail.register_forward_hook(lambda *args: calls.append(1))
+    policy = GreedyTail(actor, 1, first_action="enumerate", tail_policy=tail, learner_steps=3)
+    reference = GreedyTail(
+        actor, 1, first_action="enumerate", tail_policy=_NoKeys(tail), learner_steps=3
+    )
+    torch.manual_seed(1)
+    out = policy(td.clone())
+    assert calls == []
+    torch.manual_seed(1)
+    expected = reference(td.clone())
+    assert calls == [1]  # the reference ran the tail, whose actions were all overwritten
+    assert set(out.keys(True)) == set(expected.keys(True))
+    for key in expected.keys(True, True):
+        assert out.get(key).dtype == expected.get(key).dtype, key
+        assert torch.equal(out.get(key), expected.get(key)), key
+    # A row past the learner's steps: the tail runs and acts there.
+    td["step_count"][0] = 14
+    assert policy(td.clone())["action"][0] == SLOWER and calls == [1, 1]

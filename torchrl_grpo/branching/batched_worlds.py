@@ -139,6 +139,11 @@ def _wave(env, policy, states, rows, horizon, labels, keep, mask, lengths, ended
         if keep == "all":
             stepped.set(STATE, before)
             stepped.set(("next", STATE), env.get_state())
+        else:
+            # An env built with return_state=True writes its state into every step: not
+            # asked for here, it would only be stacked and masked with the data (and the
+            # worker-slot engines do not return it either).
+            stepped = stepped.exclude(("next", STATE))
         steps.append(stepped)
         mask[rows, t] = live[:k]
         done = stepped.get(("next", "done")).reshape(width)

@@ -166,10 +166,17 @@ class GreedyTail(TensorDictModuleBase):
         if bool(explored.all()):
             return tensordict.update(sampled).set(EXPLORED, explored)
         with set_exploration_type(ExplorationType.DETERMINISTIC):
-            greedy = greedy_policy(tensordict.clone(False))
             own = ~explored & (t < self.explore_steps + self.learner_steps)
-            if bool(own.any()):
-                self._learner_acts(greedy, self.policy(tensordict.clone(False)), own)
+            tail_keys = getattr(self.tail_policy, "out_keys", None)
+            if tail_keys is not None and bool((own | explored).all()):
+                # The learner acts on every greedy row (a branch's horizon ends within its
+                # learner_steps, as in the recipe): all the tail would write is
+                # overwritten, so it is not run.
+                greedy = self._learner_only(tensordict, tail_keys)
+            else:
+                greedy = greedy_policy(tensordict.clone(False))
+                if bool(own.any()):
+                    self._learner_acts(greedy, self.policy(tensordict.clone(False)), own)
         sampled_keys, greedy_keys = set(sampled.keys(True)), set(greedy.keys(True))
         for key in self.policy.out_keys:
             if key not in sampled_keys:
@@ -184,6 +191,22 @@ class GreedyTail(TensorDictModuleBase):
             rows = explored.reshape(explored.shape + (1,) * (a.ndim - explored.ndim))
             tensordict.set(key, torch.where(rows, a, b))
         return tensordict.set(EXPLORED, explored)
+
+    def _learner_only(self, tensordict: TensorDictBase, tail_keys: list) -> TensorDictBase:
+        """What :meth:`_act`'s greedy output is when the learner acts on every greedy row.
+
+        The learner's greedy output under the keys the tail would have written or the
+        input holds, cast as :meth:`_learner_acts` casts them; nothing else.
+        """
+        own = self.policy(tensordict.clone(False))
+        greedy = tensordict.clone(False)
+        present = set(tensordict.keys(True))
+        for key in self.policy.out_keys:
+            if key in present:
+                greedy.set(key, own.get(key).to(tensordict.get(key).dtype))
+            elif key in tail_keys:
+                greedy.set(key, own.get(key))
+        return greedy
 
     def _learner_acts(
         self, greedy: TensorDictBase, own: TensorDictBase, rows: torch.Tensor
