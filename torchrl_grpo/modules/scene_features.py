@@ -120,8 +120,6 @@ class FeatureMLP(nn.Module):
     ) -> None:
         super().__init__()
         self.features = self.features_class(layout, target_speeds)
-        # Features with parameters of their own (a subclass's) are trained: keep their graph.
-        self._features_learn = any(True for _ in self.features.parameters())
         self.mlp = MLP(
             in_features=self.features_class.n_features,
             out_features=out_features,
@@ -131,14 +129,7 @@ class FeatureMLP(nn.Module):
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         """Maps ``[*batch, V, F]`` to ``[*batch, out_features]``."""
-        if observation.requires_grad or self._features_learn:
-            return self.mlp(self.features(observation))
-        # Nothing of the features can get a gradient: their hundred small ops run
-        # without autograd's records, about half their time in the learner's minibatches
-        # (benchmarks/profile_training.py). The same ops: the same numbers.
-        with torch.no_grad():
-            features = self.features(observation)
-        return self.mlp(features)
+        return self.mlp(self.features(observation))
 
 
 class SceneMLP(FeatureMLP):
