@@ -64,6 +64,7 @@ from bench_tensor_env import tensor_stepper
 import torchrl_grpo.branching.dispatch as dispatch
 from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.training import Hook, Trainer, compose_config
+from torchrl_grpo.training.collect import world_steps
 
 #: What the timers read: wall seconds, or with ``--clock cpu`` this thread's CPU seconds
 #: (with one torch thread, everything the run computes; a share of a busy core then
@@ -168,6 +169,7 @@ class Recorder(Hook):
         self.sim_rates: list[float] = []
         self.rows: list[dict[str, float]] = []
         self._last: tuple[float, int] = (0.0, 0)
+        self._worlds = 0
 
     def due(self, trainer: Any, batch: Any) -> bool:  # noqa: D102
         return True
@@ -179,7 +181,8 @@ class Recorder(Hook):
             wall, frames = now - self._last[0], trainer.frames - self._last[1]
             row = {k: phases.get(k, 0.0) for k in PHASES[:-1]}
             row["other"] = wall - sum(row.values())
-            row.update(wall=wall, frames=frames)
+            worlds = world_steps(trainer.collector) or 0
+            row.update(wall=wall, frames=frames, worlds=worlds - self._worlds)
             self.rows.append(row)
         if len(self.rows) >= self.iterations:
             trainer.stop_requested = True
@@ -190,6 +193,7 @@ class Recorder(Hook):
         if trainer.iteration > self.warmup and self.sim_block is not None:
             self.sim_rates.append(self.sim_block())
             self.timer.pop()
+        self._worlds = world_steps(trainer.collector) or 0
         self._last = (clock(), trainer.frames)
         return {}
 
@@ -290,6 +294,15 @@ def main() -> None:
         f"\nend to end: {fps:,.0f} frames/s; simulator alone: {sim:,.0f} steps/s (median of "
         f"{len(sims)} blocks, {min(sims):,.0f} to {max(sims):,.0f}); ratio {fps / sim:.2f}"
     )
+    worlds, sim_s = sum(r["worlds"] for r in rows), sum(r["sim"] for r in rows)
+    if worlds:
+        # Rows stepped and not counted as frames: branches past their end, trunk padding.
+        print(
+            f"the simulator stepped {worlds / len(rows):,.0f} rows per iteration for "
+            f"{frames / len(rows):,.0f} frames ({frames / worlds:.2f}); with nothing but the "
+            f"simulator the run would make {frames / sim_s:,.0f} frames/s, ratio "
+            f"{frames / sim_s / sim:.2f}"
+        )
     if args.torch_profile:
         table = profiler.key_averages().table(sort_by="self_cpu_time_total", row_limit=30)
         print(table)
