@@ -132,3 +132,52 @@ def test_search_horizon_refusals_name_the_problem(overrides, match, tmp_path):
     with pytest.raises(ValueError, match=match):
         evaluate_checkpoint(cfg, tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+def _saved_run(overrides: list[str], path) -> tuple:
+    """A fresh network saved as a run's checkpoint (its weights need no training)."""
+    from torchrl_grpo.training.checkpoint import save_checkpoint
+    from torchrl_grpo.training.config import to_container
+
+    cfg = compose_config(["experiment=smoke", "model=mlp", *overrides])
+    torch.manual_seed(3)
+    policy = make_policy(cfg.model, make_env(cfg.env, seed=0))
+    state = {"config": to_container(cfg), "policy": policy.state_dict(), "frames": 7}
+    return save_checkpoint(state, path), cfg, policy
+
+
+def test_another_runs_checkpoint_is_a_paired_baseline(tmp_path):
+    path, run_cfg, policy = _saved_run([], tmp_path / "ppo_run" / "last.pt")
+    cfg = compose_config(
+        [f"checkpoint={path}", "episodes=2", "seed=40", f"baselines=[slower,'{path}']"]
+        + ["video=false"],
+        config_name="evaluate",
+    )
+    report = evaluate_checkpoint(cfg, tmp_path / "out")
+    trained, slower, other = report.results
+    assert slower.name == "always-SLOWER"
+    assert other.name == "grpo_branch (7 frames, ppo_run)"
+    # The reference: the same network driven greedily by hand on the same seeds.
+    env = make_env(run_cfg.env)
+    steps = int(run_cfg.env.max_episode_steps)
+    reference, _ = evaluate(env, policy, episodes=2, seed=40, max_steps=steps)
+    assert other.returns == trained.returns == reference.returns
+    assert other.seeds == [40, 41]
+    table = (tmp_path / "out" / "results.md").read_text()
+    assert " vs grpo_branch (7 frames, ppo_run): return +0.00 ± 0.00 (paired, 2 episodes)" in table
+
+
+@pytest.mark.parametrize(
+    ("entry", "match"),
+    [("slowr", "neither a scripted policy"), ("{merge}", "trained on merge-v0"), ("x.pt", "x.pt")],
+)
+def test_a_wrong_baselines_entry_fails_before_any_episode(entry, match, tmp_path):
+    merge, _, _ = _saved_run(["env=merge"], tmp_path / "merge" / "last.pt")
+    entry = entry.format(merge=merge)
+    cfg = compose_config(
+        ["env=highway_fast", "episodes=1", f"baselines=[slower,'{entry}']", "video=false"],
+        config_name="evaluate",
+    )
+    with pytest.raises((ValueError, FileNotFoundError), match=match):
+        evaluate_checkpoint(cfg, tmp_path / "out")
+    assert not (tmp_path / "out").exists()

@@ -14,11 +14,12 @@ from torchrl_grpo.training.checkpoint import load_checkpoint
 from torchrl_grpo.training.compose import compose_config
 from torchrl_grpo.training.config import Config, register_configs
 from torchrl_grpo.training.env_builder import make_env
-from torchrl_grpo.training.evaluation import evaluate, search_policy
+from torchrl_grpo.training.evaluation import evaluate
 from torchrl_grpo.training.hooks import Hook
 from torchrl_grpo.training.model_builder import make_policy
 from torchrl_grpo.training.pretrained import load_run_policy
 from torchrl_grpo.training.run_plots import plot_learning_curve
+from torchrl_grpo.training.search_eval import search_policy
 from torchrl_grpo.training.trainer import Trainer, TrainResult
 
 __all__ = [

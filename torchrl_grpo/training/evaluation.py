@@ -13,6 +13,7 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -21,20 +22,19 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 
-from torchrl_grpo.branching.lookahead import LookaheadPolicy
-from torchrl_grpo.envs.highway.tensor_env import TensorHighwayEnv
 from torchrl_grpo.modules.actors import DeterministicActor
 from torchrl_grpo.modules.kinematics_table import KinematicsLayout
-from torchrl_grpo.modules.scripted.policy_registry import make_scripted_policy
+from torchrl_grpo.modules.scripted.policy_registry import SCRIPTED_POLICIES, make_scripted_policy
 from torchrl_grpo.training.baseline_cache import cache_key, read_cached
 from torchrl_grpo.training.checkpoint import load_checkpoint
 from torchrl_grpo.training.config import typed_config
-from torchrl_grpo.training.env_builder import env_overrides, make_env, make_layout, tensor_covers
+from torchrl_grpo.training.env_builder import make_env, make_layout, tensor_covers
 from torchrl_grpo.training.eval_episodes import eval_workers, run_episodes
 from torchrl_grpo.training.model_builder import make_policy
+from torchrl_grpo.training.pretrained import load_run_policy
 from torchrl_grpo.training.results import EvalResult, format_table, paired_verdicts
 from torchrl_grpo.training.run_plots import plot_comparison, plot_run_curve, save_gif
-from torchrl_grpo.training.search_eval import evaluate_search, is_stochastic
+from torchrl_grpo.training.search_eval import evaluate_search, is_stochastic, search_policy
 
 __all__ = [
     "BASELINE_LABELS",
@@ -46,7 +46,6 @@ __all__ = [
     "format_table",
     "plot_comparison",
     "save_gif",
-    "search_policy",
 ]
 
 log = logging.getLogger(__name__)
@@ -78,47 +77,6 @@ def baseline_policy(
     if n_actions != 5 or (name == "rule" and layout is None):
         return None
     return make_scripted_policy(name, layout)
-
-
-def search_policy(
-    env_cfg: DictConfig, policy: TensorDictModuleBase, horizon: int
-) -> LookaheadPolicy:
-    """The lookahead planner over a trained policy's greedy actions: test-time search.
-
-    From every state, each action is tried and followed by ``horizon - 1`` steps of
-    ``policy``'s greedy actions; the action whose branch earns the most is played
-    (:class:`~torchrl_grpo.branching.LookaheadPolicy`, the ``lookahead`` baseline's
-    planner with the trained policy in place of the rule policy). Where the tensor
-    simulator covers the scenario, the branches are rows of one of its rollouts, from
-    the driven highway-env state imported through the bridge: five times faster than
-    highway-env's own snapshots at H = 8, with the same returns
-    (``benchmarks/bench_lookahead.py --checkpoint``); elsewhere they run on highway-env
-    snapshots. The env it drives must be built with ``return_state=True``.
-
-    Args:
-        env_cfg: the ``env`` config group the policy was trained on.
-        policy: the trained actor.
-        horizon: steps per branch (>= 1).
-
-    Example:
-        >>> from omegaconf import OmegaConf
-        >>> from torchrl_grpo.modules import make_scripted_policy
-        >>> cfg = OmegaConf.create({"scenario": "highway-fast-v0", "config": {}})
-        >>> planner = search_policy(cfg, make_scripted_policy("slower"), horizon=2)
-        >>> res, _ = evaluate(make_env(cfg, return_state=True), planner, episodes=1, seed=0,
-        ...                   max_steps=3)
-        >>> type(planner.env).__name__, res.lengths, planner.frames <= 3 * 5 * 2
-        ('TensorHighwayEnv', [3], True)
-    """
-    if isinstance(policy, TensorDictModuleBase) and is_stochastic(policy):
-        policy = DeterministicActor(policy)
-    highway = make_env(env_cfg)
-    if not tensor_covers(env_cfg):
-        return LookaheadPolicy(highway, policy, horizon=horizon)
-    # One row per action of the one state planned at a time.
-    rows = int(highway.action_spec.n)
-    sim = TensorHighwayEnv(str(env_cfg.scenario), env_overrides(env_cfg), num_envs=rows, seed=0)
-    return LookaheadPolicy(sim, policy, horizon=horizon, import_state=sim.state_from_highway)
 
 
 def evaluate(
@@ -249,6 +207,24 @@ def _curve(
     )
 
 
+def _baseline(name: str, env_cfg: DictConfig, env: EnvBase) -> tuple[str, Any]:
+    # A baseline is a scripted policy by name or another run's checkpoint (a path to a
+    # .pt file: its policy, greedy, on the same episodes; paired like the scripted ones).
+    if name.endswith(".pt"):
+        saved = load_checkpoint(name)
+        policy = load_run_policy(name, env_cfg, env, role=f"baselines entry {name}")
+        run = Path(name).resolve().parent.name
+        return f"{saved['config']['algo']['name']} ({saved['frames']} frames, {run})", policy
+    if name not in SCRIPTED_POLICIES:
+        raise ValueError(
+            f"baselines entry {name!r} is neither a scripted policy "
+            f"({', '.join(SCRIPTED_POLICIES)}) nor a checkpoint path ending in .pt"
+        )
+    layout = make_layout(env)
+    policy = baseline_policy(name, layout, int(env.action_spec.n), seed=0)
+    return BASELINE_LABELS.get(name, name), policy
+
+
 def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
     """``scripts/evaluate.py``: the trained policy of ``cfg.checkpoint`` and the baselines.
 
@@ -264,7 +240,10 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
         out_dir: where the table, JSON, plots and video go.
 
     Raises:
-        ValueError: a negative ``search_horizon``, or one without a checkpoint.
+        ValueError: a negative ``search_horizon``, or one without a checkpoint; a
+            ``baselines`` entry that is neither a scripted policy's name nor the path
+            of a checkpoint (``.pt``) of a run on the same env (another run's policy,
+            evaluated greedily on the same episodes and paired like the scripted ones).
 
     Example:
         >>> import tempfile
@@ -296,10 +275,13 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
         history = list(ckpt.get("eval_history") or [])
         if seed is None:
             seed = int(run_cfg.experiment.final_eval_seed)
-    # Only once the checkpoint loaded: a wrong path leaves no empty folder behind.
-    out_dir.mkdir(parents=True, exist_ok=True)
     seed = 10_000 if seed is None else int(seed)
     env = make_env(env_cfg, seed=seed)
+    # Every baseline is resolved before any episode runs: a misspelt name, a wrong path
+    # or a run of another env fails at once and costs nothing.
+    baselines = [_baseline(str(name), env_cfg, env) for name in cfg.baselines]
+    # Only once the checkpoints loaded: a wrong path leaves no empty folder behind.
+    out_dir.mkdir(parents=True, exist_ok=True)
     max_steps = int(env_cfg.get("max_episode_steps", 1000))
     results: list[EvalResult] = []
     files: dict[str, Path] = {}
@@ -349,21 +331,12 @@ def evaluate_checkpoint(cfg: DictConfig, out_dir: str | Path) -> EvalReport:
                     name=label,
                 )
             results.append(res)
-    layout = make_layout(env)
-    n_actions = int(env.action_spec.n)
-    for name in cfg.baselines:
-        policy = baseline_policy(name, layout, n_actions, seed=0)
+    for label, policy in baselines:
         if policy is None:
-            log.warning("baseline %r does not apply to %s: skipped", name, env_cfg.scenario)
+            log.warning("baseline %r does not apply to %s: skipped", label, env_cfg.scenario)
             continue
         res, _ = evaluate(
-            env,
-            policy,
-            episodes=episodes,
-            seed=seed,
-            max_steps=max_steps,
-            **par,
-            name=BASELINE_LABELS.get(name, name),
+            env, policy, episodes=episodes, seed=seed, max_steps=max_steps, **par, name=label
         )
         results.append(res)
     table = format_table(results)

@@ -1,0 +1,162 @@
+"""Trained runs of one scenario against its baselines, paired on held-out highway-env episodes.
+
+Trains nothing: give the folders of finished runs (``scripts/train.py env=<env> ...``),
+GRPO's and PPO's, one per seed, in seed order. Every policy drives the same ``--episodes``
+highway-env episodes from ``--seed`` on (seeds that no run evaluated or selected on:
+training evaluates on 10000.. and 20000..). Printed, in one run:
+
+* one row per policy: return (mean ± standard error), crash rate, and the same episodes
+  replayed on the tensor simulator (:func:`~torchrl_grpo.training.transfer.evaluate_on_tensor`,
+  the worlds imported from highway-env) with the transfer gap, highway-env minus tensor;
+* for each seed, GRPO paired against always-SLOWER, the rule policy and PPO of that seed
+  ("beats": a mean return higher by more than two standard errors of the per-episode
+  difference, and a crash rate no higher);
+* each run's training minutes and frames.
+
+Each policy's episodes are kept in ``--out`` (one JSON file per policy and seed set), so
+an interrupted run picks up where it stopped.
+
+    python benchmarks/bench_scenarios.py --grpo runs/merge_grpo_s0 runs/merge_grpo_s1 \\
+        runs/merge_grpo_s2 --ppo runs/merge_ppo_s0 runs/merge_ppo_s1 runs/merge_ppo_s2 \\
+        --episodes 1000 --seed 40000
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from pathlib import Path
+
+from torchrl_grpo.training import evaluate, load_checkpoint, load_run_policy, make_env
+from torchrl_grpo.training.config import typed_config
+from torchrl_grpo.training.env_builder import make_layout
+from torchrl_grpo.training.eval_episodes import eval_workers
+from torchrl_grpo.training.evaluation import baseline_policy
+from torchrl_grpo.training.results import EvalResult, compare_paired
+from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
+
+log = logging.getLogger("bench_scenarios")
+
+
+def _cached(out: Path, name: str, seed: int, episodes: int, run) -> EvalResult:
+    # One file per policy and seed set: a rerun after an interruption skips what is done.
+    path = out / f"{name.replace(' ', '_')}_{seed}_{episodes}.json"
+    if path.exists():
+        return EvalResult(**json.loads(path.read_text()))
+    result = run()
+    result.name = name
+    stored = {k: v for k, v in result.to_dict().items() if k != "summary"}
+    path.write_text(json.dumps(stored))
+    return result
+
+
+def _row(res: EvalResult, tensor: EvalResult | None) -> str:
+    s = res.summary()
+    cells = [
+        res.name,
+        f"{s['return']:.2f} ± {s['return_sem']:.2f}",
+        f"{100 * s['crash_rate']:.1f}%",
+    ]
+    if tensor is None:
+        cells += ["-", "-"]
+    else:
+        t, gap = tensor.summary(), paired_gap(res, tensor)
+        cells += [
+            f"{t['return']:.2f} / {100 * t['crash_rate']:.1f}%",
+            f"{gap['return_gap']:+.3f} ± {gap['return_gap_sem']:.3f}, "
+            f"{100 * gap['crash_gap']:+.1f}%",
+        ]
+    return "| " + " | ".join(cells) + " |"
+
+
+def _training(run: Path) -> str:
+    rows = [json.loads(line) for line in (run / "eval_history.jsonl").read_text().splitlines()]
+    final = rows[-1]
+    return f"{run.name}: {final['frames']:,} frames in {final['wall_seconds'] / 60:.1f} min"
+
+
+def main() -> None:
+    """Evaluates the runs and the baselines, prints the tables."""
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--grpo", type=Path, nargs="+", required=True, help="GRPO run folders")
+    p.add_argument("--ppo", type=Path, nargs="+", required=True, help="PPO run folders")
+    p.add_argument("--episodes", type=int, default=1000)
+    p.add_argument("--seed", type=int, default=40000, help="seed of the first episode")
+    p.add_argument("--workers", type=int, default=None, help="forked processes (default: cores)")
+    p.add_argument("--out", type=Path, default=Path("outputs/bench_scenarios"))
+    args = p.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if len(args.grpo) != len(args.ppo):
+        raise SystemExit("give one PPO run per GRPO run (the same seeds, in the same order)")
+    env_cfg = typed_config(load_checkpoint(args.grpo[0] / "last.pt")["config"]).env
+    out = args.out / str(env_cfg.scenario)
+    out.mkdir(parents=True, exist_ok=True)
+    env = make_env(env_cfg)
+    steps = int(env_cfg.max_episode_steps)
+    kw = {"episodes": args.episodes, "seed": args.seed, "max_steps": steps, "progress": True}
+    kw["workers"] = eval_workers(args.workers)
+
+    def run_policy(name: str, policy) -> EvalResult:
+        return _cached(out, name, args.seed, args.episodes, lambda: evaluate(env, policy, **kw)[0])
+
+    def run_tensor(name: str, policy) -> EvalResult:
+        return _cached(
+            out,
+            f"{name} tensor",
+            args.seed,
+            args.episodes,
+            lambda: evaluate_on_tensor(env_cfg, policy, episodes=args.episodes, seed=args.seed),
+        )
+
+    layout, n_actions = make_layout(env), int(env.action_spec.n)
+    rows: list[tuple[EvalResult, EvalResult | None]] = []
+    scripted = {}
+    for name, label in (("slower", "always-SLOWER"), ("rule", "rule policy")):
+        policy = baseline_policy(name, layout, n_actions)
+        scripted[name] = run_policy(label, policy)
+        rows.append((scripted[name], None))
+    trained: dict[str, list[EvalResult]] = {"grpo": [], "ppo": []}
+    for algo, runs in (("grpo", args.grpo), ("ppo", args.ppo)):
+        for run in runs:
+            seed = int(typed_config(load_checkpoint(run / "last.pt")["config"]).seed)
+            policy = load_run_policy(str(run / "last.pt"), env_cfg, env)
+            name = f"{algo} seed {seed}"
+            res = run_policy(name, policy)
+            trained[algo].append(res)
+            rows.append((res, run_tensor(name, policy)))
+    lines = [
+        f"{env_cfg.scenario}: {args.episodes} highway-env episodes, seeds "
+        f"{args.seed}..{args.seed + args.episodes - 1}",
+        "",
+        "| policy | return | crash rate | tensor simulator, same episodes | transfer gap "
+        "(return, crash rate) |",
+        "|---|---|---|---|---|",
+        *(_row(res, tensor) for res, tensor in rows),
+        "",
+    ]
+    beats = {"slower": 0, "rule": 0, "ppo": 0}
+    for grpo, ppo in zip(trained["grpo"], trained["ppo"], strict=True):
+        for key, other in (
+            ("slower", scripted["slower"]),
+            ("rule", scripted["rule"]),
+            ("ppo", ppo),
+        ):
+            verdict = compare_paired(grpo, other)
+            beats[key] += verdict.endswith(f"beats {other.name}")
+            lines.append(f"- {verdict}")
+    n = len(trained["grpo"])
+    lines += [
+        "",
+        f"GRPO beats always-SLOWER in {beats['slower']} of {n} seeds, the rule policy in "
+        f"{beats['rule']} of {n}, PPO of the same seed in {beats['ppo']} of {n}.",
+        "",
+        *(f"- {_training(run)}" for run in [*args.grpo, *args.ppo]),
+    ]
+    text = "\n".join(lines)
+    (out / f"table_{args.seed}_{args.episodes}.md").write_text(text + "\n")
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
