@@ -57,6 +57,22 @@ def test_every_group_option_composes(group, option):
         assert OmegaConf.get_type(cfg.algo) is schema
 
 
+@pytest.mark.parametrize(
+    ("overrides", "aversion"),
+    [
+        ([], 3.0),  # highway-fast-v0: the recipe's crash aversion
+        (["env=merge"], 0.0),  # conf/model/scenario/merge_grpo_branch.yaml
+        (["env=roundabout"], 3.0),  # no file: the recipe's
+        (["env=merge", "model.crash_aversion=2"], 2.0),  # the command line still wins
+        (["env=merge", "model=mlp"], 0.0),  # for every network kind
+    ],
+)
+def test_a_scenario_sets_its_own_defaults_under_the_command_line(overrides, aversion):
+    cfg = compose_config(overrides)
+    assert cfg.model.crash_head is True
+    assert cfg.model.crash_aversion == aversion
+
+
 @pytest.mark.parametrize("algo", ["grpo_branch", "grpo_episode", "ppo", "distill"])
 def test_rollout_follows_the_algorithm(algo):
     cfg = compose_config([f"algo={algo}"])
