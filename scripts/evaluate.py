@@ -2,6 +2,7 @@
 
     python scripts/evaluate.py checkpoint=outputs/<day>/<run>/last.pt
     python scripts/evaluate.py checkpoint=.../last.pt episodes=50 baselines=[slower,rule]
+    python scripts/evaluate.py checkpoint=.../last.pt baselines=[slower,runs/ppo/last.pt]  # paired
     python scripts/evaluate.py env=merge                     # baselines only
 
 Deterministic policy (greedy), episode i from seed ``seed + i``; see docs/training.md.

@@ -13,7 +13,6 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -207,7 +206,9 @@ def _curve(
     )
 
 
-def _baseline(name: str, env_cfg: DictConfig, env: EnvBase) -> tuple[str, Any]:
+def _baseline(
+    name: str, env_cfg: DictConfig, env: EnvBase
+) -> tuple[str, TensorDictModuleBase | None]:
     # A baseline is a scripted policy by name or another run's checkpoint (a path to a
     # .pt file: its policy, greedy, on the same episodes; paired like the scripted ones).
     if name.endswith(".pt"):
