@@ -7,7 +7,8 @@ training evaluates on 10000.. and 20000..). Printed, in one run:
 
 * one row per policy: return (mean ± standard error), crash rate, and the same episodes
   replayed on the tensor simulator (:func:`~torchrl_grpo.training.transfer.evaluate_on_tensor`,
-  the worlds imported from highway-env) with the transfer gap, highway-env minus tensor;
+  the worlds imported from highway-env; in float32 as training runs, or
+  ``--tensor-dtype float64``) with the transfer gap, highway-env minus tensor;
 * for each seed, GRPO paired against always-SLOWER, the rule policy and PPO of that seed
   ("beats": a mean return higher by more than two standard errors of the per-episode
   difference, and a crash rate no higher);
@@ -27,6 +28,8 @@ import argparse
 import json
 import logging
 from pathlib import Path
+
+import torch
 
 from torchrl_grpo.training import evaluate, load_checkpoint, load_run_policy, make_env
 from torchrl_grpo.training.config import typed_config
@@ -85,6 +88,12 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=40000, help="seed of the first episode")
     p.add_argument("--workers", type=int, default=None, help="forked processes (default: cores)")
     p.add_argument("--out", type=Path, default=Path("outputs/bench_scenarios"))
+    p.add_argument(
+        "--tensor-dtype",
+        choices=["float32", "float64"],
+        default="float32",
+        help="the tensor simulator's dtype for the replay (float64: no float32 rounding)",
+    )
     args = p.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if len(args.grpo) != len(args.ppo):
@@ -100,13 +109,18 @@ def main() -> None:
     def run_policy(name: str, policy) -> EvalResult:
         return _cached(out, name, args.seed, args.episodes, lambda: evaluate(env, policy, **kw)[0])
 
+    dtype = getattr(torch, args.tensor_dtype)
+    suffix = " tensor" if dtype == torch.float32 else f" tensor {args.tensor_dtype}"
+
     def run_tensor(name: str, policy) -> EvalResult:
         return _cached(
             out,
-            f"{name} tensor",
+            name + suffix,
             args.seed,
             args.episodes,
-            lambda: evaluate_on_tensor(env_cfg, policy, episodes=args.episodes, seed=args.seed),
+            lambda: evaluate_on_tensor(
+                env_cfg, policy, episodes=args.episodes, seed=args.seed, dtype=dtype
+            ),
         )
 
     layout, n_actions = make_layout(env), int(env.action_spec.n)

@@ -136,6 +136,16 @@ def test_the_transfer_gap_is_zero_for_a_scripted_policy_and_pairs_the_episodes()
     assert abs(paired_gap(highway, slower)["return_gap"]) > 0.1
     with pytest.raises(ValueError, match="same episodes"):
         paired_gap(highway, evaluate_on_tensor(cfg, rule, episodes=4, seed=301))
+    # In float64 the replay is highway-env's up to HighwayEnv's float32 rewards (1e-6,
+    # where the float32 simulator needs 1e-4).
+    exact = evaluate_on_tensor(cfg, rule, episodes=4, seed=300, dtype=torch.float64)
+    assert exact.lengths == highway.lengths and exact.crashed == highway.crashed
+    torch.testing.assert_close(
+        torch.tensor(exact.returns, dtype=torch.float64),
+        torch.tensor(highway.returns, dtype=torch.float64),
+        rtol=0,
+        atol=1e-6,
+    )
 
 
 def test_the_transfer_gap_needs_a_config_the_simulator_covers():

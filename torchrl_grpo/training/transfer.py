@@ -38,6 +38,7 @@ def evaluate_on_tensor(
     seed: int,
     name: str = "policy (tensor simulator)",
     return_state: bool = False,
+    dtype: torch.dtype = torch.float32,
 ) -> EvalResult:
     """The episodes of :func:`~torchrl_grpo.training.evaluate`, on the tensor simulator.
 
@@ -50,6 +51,8 @@ def evaluate_on_tensor(
         name: the label of the result.
         return_state: write each step's simulator state into the policy's input (for a
             policy that plans from it, :class:`~torchrl_grpo.branching.LookaheadPolicy`).
+        dtype: the simulator's float dtype; training's float32 by default, float64 to
+            tell the simulator's agreement with highway-env from float32 rounding.
 
     Raises:
         ValueError: a scenario or config the tensor simulator does not cover.
@@ -67,7 +70,7 @@ def evaluate_on_tensor(
         0.0
     """
     data, before = tensor_episodes(
-        env_cfg, policy, episodes=episodes, seed=seed, return_state=return_state
+        env_cfg, policy, episodes=episodes, seed=seed, return_state=return_state, dtype=dtype
     )
     reward = torch.where(before, data.get(("next", "reward")).reshape(episodes, -1), 0.0)
     crashed = (data.get(("next", "crashed")).reshape(episodes, -1) & before).any(1)
@@ -91,6 +94,7 @@ def tensor_episodes(
     episodes: int,
     seed: int,
     return_state: bool = False,
+    dtype: torch.dtype = torch.float32,
 ) -> tuple[TensorDictBase, torch.Tensor]:
     """The greedy rollout behind :func:`evaluate_on_tensor`, step by step.
 
@@ -116,6 +120,7 @@ def tensor_episodes(
         num_envs=episodes,
         seed=seed,
         return_state=return_state,
+        dtype=dtype,
     )
     td = highway_starts(env, range(seed, seed + episodes))
     if isinstance(policy, TensorDictModuleBase) and hasattr(policy, "get_dist"):
