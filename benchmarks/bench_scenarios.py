@@ -32,25 +32,23 @@ from pathlib import Path
 import torch
 
 from torchrl_grpo.training import evaluate, load_checkpoint, load_run_policy, make_env
+from torchrl_grpo.training.baseline_cache import read_cached, write_cached
 from torchrl_grpo.training.config import typed_config
 from torchrl_grpo.training.env_builder import make_layout
 from torchrl_grpo.training.eval_episodes import eval_workers
-from torchrl_grpo.training.evaluation import baseline_policy
+from torchrl_grpo.training.evaluation import BASELINE_LABELS, baseline_policy
 from torchrl_grpo.training.results import EvalResult, compare_paired
 from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
-
-log = logging.getLogger("bench_scenarios")
 
 
 def _cached(out: Path, name: str, seed: int, episodes: int, run) -> EvalResult:
     # One file per policy and seed set: a rerun after an interruption skips what is done.
     path = out / f"{name.replace(' ', '_')}_{seed}_{episodes}.json"
-    if path.exists():
-        return EvalResult(**json.loads(path.read_text()))
-    result = run()
-    result.name = name
-    stored = {k: v for k, v in result.to_dict().items() if k != "summary"}
-    path.write_text(json.dumps(stored))
+    result = read_cached(path)
+    if result is None:
+        result = run()
+        result.name = name
+        write_cached(path, result)
     return result
 
 
@@ -126,9 +124,9 @@ def main() -> None:
     layout, n_actions = make_layout(env), int(env.action_spec.n)
     rows: list[tuple[EvalResult, EvalResult | None]] = []
     scripted = {}
-    for name, label in (("slower", "always-SLOWER"), ("rule", "rule policy")):
+    for name in ("slower", "rule"):
         policy = baseline_policy(name, layout, n_actions)
-        scripted[name] = run_policy(label, policy)
+        scripted[name] = run_policy(BASELINE_LABELS[name], policy)
         rows.append((scripted[name], None))
     trained: dict[str, list[EvalResult]] = {"grpo": [], "ppo": []}
     for algo, runs in (("grpo", args.grpo), ("ppo", args.ppo)):

@@ -114,6 +114,17 @@ def test_resume_on_the_tensor_simulator_continues_exactly(tmp_path, live):
     assert any(not torch.equal(a[k], c[k]) for k in a)
 
 
+def _assert_same_episodes(tensor, highway, atol: float) -> None:
+    """The same lengths and crashes, and returns within ``atol``."""
+    assert tensor.lengths == highway.lengths and tensor.crashed == highway.crashed
+    torch.testing.assert_close(
+        torch.tensor(tensor.returns, dtype=torch.float64),
+        torch.tensor(highway.returns, dtype=torch.float64),
+        rtol=0,
+        atol=atol,
+    )
+
+
 def test_the_transfer_gap_is_zero_for_a_scripted_policy_and_pairs_the_episodes():
     cfg = OmegaConf.create({"scenario": "highway-fast-v0", "config": {}, "max_episode_steps": 15})
     env = make_env(cfg)
@@ -122,13 +133,7 @@ def test_the_transfer_gap_is_zero_for_a_scripted_policy_and_pairs_the_episodes()
     highway, _ = evaluate(env, rule, episodes=4, seed=300, max_steps=15)
     # The simulator follows highway-env step by step: the same episodes, to float32.
     assert tensor.seeds == highway.seeds == list(range(300, 304))
-    assert tensor.lengths == highway.lengths and tensor.crashed == highway.crashed
-    torch.testing.assert_close(
-        torch.tensor(tensor.returns, dtype=torch.float64),
-        torch.tensor(highway.returns, dtype=torch.float64),
-        rtol=0,
-        atol=1e-4,
-    )
+    _assert_same_episodes(tensor, highway, atol=1e-4)
     gap = paired_gap(highway, tensor)
     assert abs(gap["return_gap"]) < 1e-4 and gap["crash_gap"] == 0.0
     # The control: another policy on the tensor side gives a gap.
@@ -139,13 +144,7 @@ def test_the_transfer_gap_is_zero_for_a_scripted_policy_and_pairs_the_episodes()
     # In float64 the replay is highway-env's up to HighwayEnv's float32 rewards (1e-6,
     # where the float32 simulator needs 1e-4).
     exact = evaluate_on_tensor(cfg, rule, episodes=4, seed=300, dtype=torch.float64)
-    assert exact.lengths == highway.lengths and exact.crashed == highway.crashed
-    torch.testing.assert_close(
-        torch.tensor(exact.returns, dtype=torch.float64),
-        torch.tensor(highway.returns, dtype=torch.float64),
-        rtol=0,
-        atol=1e-6,
-    )
+    _assert_same_episodes(exact, highway, atol=1e-6)
 
 
 def test_the_transfer_gap_needs_a_config_the_simulator_covers():
