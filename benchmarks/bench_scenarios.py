@@ -12,14 +12,20 @@ training evaluates on 10000.. and 20000..). Printed, in one run:
 * for each seed, GRPO paired against always-SLOWER, the rule policy and PPO of that seed
   ("beats": a mean return higher by more than two standard errors of the per-episode
   difference, and a crash rate no higher);
-* each run's training minutes and frames.
+* each run's training minutes and frames;
+* with ``--search-horizon H``, the test-time search over always-SLOWER and over each GRPO
+  run (every action tried, then ``H - 1`` greedy steps of that policy, on the tensor
+  simulator from the highway-env state:
+  :func:`~torchrl_grpo.training.search_eval.evaluate_search`), on the same highway-env
+  episodes, each paired against the policy it searches over: what the scenario allows a
+  policy that looks ahead, and how far the learner trails it.
 
 Each policy's episodes are kept in ``--out`` (one JSON file per policy and seed set), so
 an interrupted run picks up where it stopped.
 
     python benchmarks/bench_scenarios.py --grpo runs/merge_grpo_s0 runs/merge_grpo_s1 \\
         runs/merge_grpo_s2 --ppo runs/merge_ppo_s0 runs/merge_ppo_s1 runs/merge_ppo_s2 \\
-        --episodes 1000 --seed 40000
+        --episodes 1000 --seed 40000 [--search-horizon 8]
 """
 
 from __future__ import annotations
@@ -38,6 +44,7 @@ from torchrl_grpo.training.env_builder import make_layout
 from torchrl_grpo.training.eval_episodes import eval_workers
 from torchrl_grpo.training.evaluation import BASELINE_LABELS, baseline_policy
 from torchrl_grpo.training.results import EvalResult, compare_paired
+from torchrl_grpo.training.search_eval import evaluate_search
 from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
 
 
@@ -92,6 +99,12 @@ def main() -> None:
         default="float32",
         help="the tensor simulator's dtype for the replay (float64: no float32 rounding)",
     )
+    p.add_argument(
+        "--search-horizon",
+        type=int,
+        default=0,
+        help="> 0: also the test-time search over always-SLOWER and each GRPO run, this many steps",
+    )
     args = p.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if len(args.grpo) != len(args.ppo):
@@ -121,7 +134,24 @@ def main() -> None:
             ),
         )
 
+    def run_search(name: str, policy) -> EvalResult:
+        label = f"search {args.search_horizon} over {name}"
+        return _cached(
+            out,
+            label,
+            args.seed,
+            args.episodes,
+            lambda: evaluate_search(
+                env_cfg,
+                policy,
+                args.search_horizon,
+                name=label,
+                **kw,  # highway-env episodes
+            ),
+        )
+
     layout, n_actions = make_layout(env), int(env.action_spec.n)
+    searched: list[tuple[EvalResult, EvalResult]] = []
     rows: list[tuple[EvalResult, EvalResult | None]] = []
     scripted = {}
     for name in ("slower", "rule"):
@@ -137,6 +167,12 @@ def main() -> None:
             res = run_policy(name, policy)
             trained[algo].append(res)
             rows.append((res, run_tensor(name, policy)))
+            if algo == "grpo" and args.search_horizon > 0:
+                searched.append((res, run_search(name, policy)))
+    if args.search_horizon > 0:
+        slower = baseline_policy("slower", layout, n_actions)
+        searched.insert(0, (scripted["slower"], run_search(BASELINE_LABELS["slower"], slower)))
+        rows += [(search, None) for _, search in searched]
     lines = [
         f"{env_cfg.scenario}: {args.episodes} highway-env episodes, seeds "
         f"{args.seed}..{args.seed + args.episodes - 1}",
@@ -157,6 +193,8 @@ def main() -> None:
             verdict = compare_paired(grpo, other)
             beats[key] += verdict.endswith(f"beats {other.name}")
             lines.append(f"- {verdict}")
+    for greedy, search in searched:
+        lines.append(f"- {compare_paired(search, greedy)}")
     n = len(trained["grpo"])
     lines += [
         "",
