@@ -34,17 +34,20 @@ N`` then drives that fit greedily over ``N`` tensor-simulator episodes from high
 starts of seeds 40000.., beside the policy the search is over on the same episodes: what
 a network distilled from the search drives like.
 ``--from-run`` fits the run's own network from its trained weights instead of a fresh MLP
-(one round of expert iteration on the planner's labels).
+(one round of expert iteration on the planner's labels); with ``--keep-below R`` only the
+states where the run's own action loses more than ``R`` to the best are relabelled, the
+others keep the run's distribution as their target.
 """
 
 from __future__ import annotations
 
 import argparse
 import warnings
+from pathlib import Path
 
 import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict
 from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -62,6 +65,7 @@ from torchrl_grpo.training.results import compare_paired
 from torchrl_grpo.training.transfer import evaluate_on_tensor
 
 warnings.filterwarnings("ignore")
+CONF_ENV = Path(__file__).resolve().parents[2] / "conf" / "env"
 
 
 @torch.no_grad()
@@ -75,7 +79,7 @@ def labelled_states(
         base = DeterministicActor(load_run_policy(tail, cfg, highway))
         scenario = str(cfg.scenario)
     else:
-        highway = make_env(OmegaConf.create({"scenario": scenario, "config": {}}))
+        highway = make_env(_env_config(scenario))
         base = baseline_policy(tail, make_layout(highway), int(highway.action_spec.n))
     n_actions = int(highway.action_spec.n)
     planner = LookaheadPolicy(
@@ -99,6 +103,15 @@ def labelled_states(
             # A finished world is reset by the step: its later states are not this episode's.
             live &= ~out["next", "done"].reshape(-1)
     return scenario, torch.cat(observations), torch.cat(states), torch.cat(scores).float()
+
+
+def _env_config(scenario: str) -> DictConfig:
+    # The env group of conf/env/ that names the scenario: its episode cap ends the drives.
+    for path in sorted(CONF_ENV.glob("*.yaml")):
+        cfg = OmegaConf.load(path)
+        if cfg.get("scenario") == scenario:
+            return OmegaConf.create({k: v for k, v in cfg.items() if k != "defaults"})
+    raise SystemExit(f"no conf/env/*.yaml has scenario {scenario}")
 
 
 def _one_hot(codes: torch.Tensor) -> torch.Tensor:
@@ -142,14 +155,25 @@ def fit(
     test: torch.Tensor,
     epochs: int,
     net: nn.Module | None = None,
+    keep_below: float | None = None,
 ) -> tuple[dict[str, float], nn.Module]:
     """Fits the best set from ``x[train]``; accuracy and regret on ``train`` and ``test``.
 
     ``net``: the network to fit (default: a fresh MLP, standardisation included).
+    ``keep_below``: where the network's own greedy action loses less than this to the
+    best one, its target is its own distribution as it was before the fit (only the
+    states where it loses more are corrected).
     Returns the figures and the fitted network.
     """
     best = (scores >= scores.amax(-1, keepdim=True) - 1e-6).float()
     target = best / best.sum(-1, keepdim=True)
+    if keep_below is not None:
+        with torch.no_grad():
+            own = net(x)
+        regret = scores.amax(-1) - scores.gather(1, own.argmax(-1, keepdim=True)).squeeze(-1)
+        keep = regret < keep_below
+        target = torch.where(keep[:, None], own.softmax(-1), target)
+        print(f"(corrected: {1 - float(keep[train].float().mean()):.1%} of the fitted states)")
     mean, std = x[train].mean(0), x[train].std(0) + 1e-6
     torch.manual_seed(0)
     net = net or nn.Sequential(
@@ -223,7 +247,7 @@ def drive(scenario: str, tail: str, net: nn.Module, episodes: int) -> None:
         cfg = OmegaConf.create(load_checkpoint(tail)["config"])["env"]
         base_policy = DeterministicActor(load_run_policy(tail, cfg, make_env(cfg)))
     else:
-        cfg = OmegaConf.create({"scenario": scenario, "config": {}})
+        cfg = _env_config(scenario)
         highway = make_env(cfg)
         base_policy = baseline_policy(tail, make_layout(highway), int(highway.action_spec.n))
     kw = {"episodes": episodes, "seed": 40_000}
@@ -251,6 +275,12 @@ def main() -> None:
         "--from-run", action="store_true", help="fit the --tail run's own network, from its weights"
     )
     parser.add_argument("--drive", type=int, default=0, help="episodes the fit drives")
+    parser.add_argument(
+        "--keep-below",
+        type=float,
+        default=None,
+        help="with --from-run: correct only the states where the run's action loses this much",
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     scenario, observation, state, scores = labelled_states(
@@ -278,7 +308,8 @@ def main() -> None:
             cfg = OmegaConf.create(load_checkpoint(args.tail)["config"])["env"]
             actor = load_run_policy(args.tail, cfg, make_env(cfg))
             start = _RunLogits(actor, observation.shape[1:])
-        r, net = fit(x, scores, fitted, test, args.epochs, start)
+        keep = args.keep_below if start is not None else None
+        r, net = fit(x, scores, fitted, test, args.epochs, start, keep)
         print(
             f"| {name} | {len(fitted)} | {r['fitted accuracy']:.3f} | "
             f"{r['held-out accuracy']:.3f} | {r['held-out regret']:.3f} | "
