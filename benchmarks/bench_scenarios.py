@@ -20,8 +20,8 @@ training evaluates on 10000.. and 20000..). Printed, in one run:
   episodes, each paired against the policy it searches over: what the scenario allows a
   policy that looks ahead, and how far the learner trails it.
 
-Each policy's episodes are kept in ``--out`` (one JSON file per policy and seed set), so
-an interrupted run picks up where it stopped.
+Each policy's episodes are kept in ``--out`` (one JSON file per policy, run folder and
+seed set), so an interrupted run picks up where it stopped.
 
     python benchmarks/bench_scenarios.py --grpo runs/merge_grpo_s0 runs/merge_grpo_s1 \\
         runs/merge_grpo_s2 --ppo runs/merge_ppo_s0 runs/merge_ppo_s1 runs/merge_ppo_s2 \\
@@ -48,9 +48,12 @@ from torchrl_grpo.training.search_eval import evaluate_search
 from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
 
 
-def _cached(out: Path, name: str, seed: int, episodes: int, run) -> EvalResult:
+def _cached(out: Path, name: str, source: str, seed: int, episodes: int, run) -> EvalResult:
     # One file per policy and seed set: a rerun after an interruption skips what is done.
-    path = out / f"{name.replace(' ', '_')}_{seed}_{episodes}.json"
+    # A trained policy's file names its run folder too (``source``): two runs of the same
+    # algorithm and seed (another config) must not share results.
+    key = f"{name} {source}" if source else name
+    path = out / f"{key.replace(' ', '_')}_{seed}_{episodes}.json"
     result = read_cached(path)
     if result is None:
         result = run()
@@ -117,16 +120,19 @@ def main() -> None:
     kw = {"episodes": args.episodes, "seed": args.seed, "max_steps": steps, "progress": True}
     kw["workers"] = eval_workers(args.workers)
 
-    def run_policy(name: str, policy) -> EvalResult:
-        return _cached(out, name, args.seed, args.episodes, lambda: evaluate(env, policy, **kw)[0])
+    def run_policy(name: str, source: str, policy) -> EvalResult:
+        return _cached(
+            out, name, source, args.seed, args.episodes, lambda: evaluate(env, policy, **kw)[0]
+        )
 
     dtype = getattr(torch, args.tensor_dtype)
     suffix = " tensor" if dtype == torch.float32 else f" tensor {args.tensor_dtype}"
 
-    def run_tensor(name: str, policy) -> EvalResult:
+    def run_tensor(name: str, source: str, policy) -> EvalResult:
         return _cached(
             out,
             name + suffix,
+            source,
             args.seed,
             args.episodes,
             lambda: evaluate_on_tensor(
@@ -134,11 +140,12 @@ def main() -> None:
             ),
         )
 
-    def run_search(name: str, policy) -> EvalResult:
+    def run_search(name: str, source: str, policy) -> EvalResult:
         label = f"search {args.search_horizon} over {name}"
         return _cached(
             out,
             label,
+            source,
             args.seed,
             args.episodes,
             lambda: evaluate_search(
@@ -156,7 +163,7 @@ def main() -> None:
     scripted = {}
     for name in ("slower", "rule"):
         policy = baseline_policy(name, layout, n_actions)
-        scripted[name] = run_policy(BASELINE_LABELS[name], policy)
+        scripted[name] = run_policy(BASELINE_LABELS[name], "", policy)
         rows.append((scripted[name], None))
     trained: dict[str, list[EvalResult]] = {"grpo": [], "ppo": []}
     for algo, runs in (("grpo", args.grpo), ("ppo", args.ppo)):
@@ -164,14 +171,15 @@ def main() -> None:
             seed = int(typed_config(load_checkpoint(run / "last.pt")["config"]).seed)
             policy = load_run_policy(str(run / "last.pt"), env_cfg, env)
             name = f"{algo} seed {seed}"
-            res = run_policy(name, policy)
+            res = run_policy(name, run.name, policy)
             trained[algo].append(res)
-            rows.append((res, run_tensor(name, policy)))
+            rows.append((res, run_tensor(name, run.name, policy)))
             if algo == "grpo" and args.search_horizon > 0:
-                searched.append((res, run_search(name, policy)))
+                searched.append((res, run_search(name, run.name, policy)))
     if args.search_horizon > 0:
         slower = baseline_policy("slower", layout, n_actions)
-        searched.insert(0, (scripted["slower"], run_search(BASELINE_LABELS["slower"], slower)))
+        over_slower = run_search(BASELINE_LABELS["slower"], "", slower)
+        searched.insert(0, (scripted["slower"], over_slower))
         rows += [(search, None) for _, search in searched]
     lines = [
         f"{env_cfg.scenario}: {args.episodes} highway-env episodes, seeds "
