@@ -68,20 +68,30 @@ warnings.filterwarnings("ignore")
 CONF_ENV = Path(__file__).resolve().parents[2] / "conf" / "env"
 
 
+def searched_policy(scenario: str, tail: str) -> tuple[DictConfig, int, nn.Module]:
+    """The env config, its number of actions and the greedy policy the search is over.
+
+    ``tail``: a scripted policy's name (on ``scenario``) or a run's checkpoint (on its own
+    scenario).
+    """
+    if tail.endswith(".pt"):
+        cfg = OmegaConf.create(load_checkpoint(tail)["config"])["env"]
+        highway = make_env(cfg)
+        base = DeterministicActor(load_run_policy(tail, cfg, highway))
+    else:
+        cfg = _env_config(scenario)
+        highway = make_env(cfg)
+        base = baseline_policy(tail, make_layout(highway), int(highway.action_spec.n))
+    return cfg, int(highway.action_spec.n), base
+
+
 @torch.no_grad()
 def labelled_states(
     scenario: str, tail: str, worlds: int, epsilon: float, horizon: int, seed: int
 ) -> tuple[str, torch.Tensor, TensorDict, torch.Tensor]:
     """The scenario, the planner's states (observations, full states), each action's score."""
-    if tail.endswith(".pt"):
-        cfg = OmegaConf.create(load_checkpoint(tail)["config"])["env"]
-        highway = make_env(cfg)
-        base = DeterministicActor(load_run_policy(tail, cfg, highway))
-        scenario = str(cfg.scenario)
-    else:
-        highway = make_env(_env_config(scenario))
-        base = baseline_policy(tail, make_layout(highway), int(highway.action_spec.n))
-    n_actions = int(highway.action_spec.n)
+    cfg, n_actions, base = searched_policy(scenario, tail)
+    scenario = str(cfg.scenario)
     planner = LookaheadPolicy(
         TensorHighwayEnv(scenario, num_envs=n_actions * worlds), base, horizon
     )
@@ -243,13 +253,7 @@ class _Greedy(nn.Module):
 
 def drive(scenario: str, tail: str, net: nn.Module, episodes: int) -> None:
     """The fit's greedy episodes beside the searched policy's own, on the tensor simulator."""
-    if tail.endswith(".pt"):
-        cfg = OmegaConf.create(load_checkpoint(tail)["config"])["env"]
-        base_policy = DeterministicActor(load_run_policy(tail, cfg, make_env(cfg)))
-    else:
-        cfg = _env_config(scenario)
-        highway = make_env(cfg)
-        base_policy = baseline_policy(tail, make_layout(highway), int(highway.action_spec.n))
+    cfg, _, base_policy = searched_policy(scenario, tail)
     kw = {"episodes": episodes, "seed": 40_000}
     base = evaluate_on_tensor(cfg, base_policy, name=f"{tail}, greedy", **kw)
     fitted = evaluate_on_tensor(cfg, _Greedy(net), name="the fit of its search, greedy", **kw)
