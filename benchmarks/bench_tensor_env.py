@@ -1,7 +1,7 @@
 """TensorHighwayEnv's throughput beside HighwayEnv and EnvPool, and its snapshot cost.
 
 Usage: ``python benchmarks/bench_tensor_env.py [--scenario highway-fast-v0] [--sizes 1 64
-1024 8192] [--threads N] [--compile] [--device cpu] [--checks-only] [--highjax-python
+1024 8192] [--threads N] [--compile] [--native] [--device cpu] [--checks-only] [--highjax-python
 PYTHON] [--no-highway]``
 
 merge-v0 against HighwayEnv("merge-v0") and EnvPool's merge-v0 (a C++ port with the
@@ -39,7 +39,8 @@ machine load):
 Goals (issue #17): at B = 1,024 on 2 CPU cores, TensorHighwayEnv >= 200 x HighwayEnv;
 EnvPool's rate is the aim (the ratio is reported). Also reported: ``get_state`` plus a
 restore of B = 1,024 worlds against one ``copy.deepcopy`` of a highway-env env, and the
-state's bytes per world. With ``--compile``, the same figures for ``compile=True``.
+state's bytes per world. With ``--compile``, the same figures for ``compile=True``; with
+``--native``, for the C++ step (``env.native()``).
 
 The checks' costs, each on against off in alternating blocks (``--checks-only`` prints
 only these): a restore of B = 1,024 worlds with ``check_states=True`` against ``False``
@@ -95,12 +96,12 @@ def interleaved(
 
 
 def tensor_stepper(
-    batch: int, compile: bool, device: str, scenario: str = "highway-fast-v0", **kwargs
+    batch: int, compile: bool, device: str, scenario: str = "highway-fast-v0", native=False
 ) -> Callable[[], None]:
     """One ``env.step`` of B worlds, with TorchRL's auto-reset of finished rows."""
-    env = TensorHighwayEnv(
-        scenario, num_envs=batch, seed=0, compile=compile, device=device, **kwargs
-    )
+    env = TensorHighwayEnv(scenario, num_envs=batch, seed=0, compile=compile, device=device)
+    if native:
+        env.native()
     td = env.reset()
     action = torch.full((batch,), IDLE, device=env.device)
 
@@ -321,6 +322,9 @@ def peer_rates(
     runs = {"tensor": (tensor_stepper(batch, False, args.device, args.scenario), calls, batch)}
     if args.compile:
         runs["compiled"] = (tensor_stepper(batch, True, args.device), calls, batch)
+    if args.native:
+        native = tensor_stepper(batch, False, args.device, args.scenario, native=True)
+        runs["native"] = (native, calls, batch)
     if args.shards > 1:
         runs["shards"] = (shard_stepper(batch, args.shards), calls, batch)
     if hw is not None:
@@ -348,6 +352,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=cores, help="default: the cores")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--compile", action="store_true")
+    parser.add_argument("--native", action="store_true", help="also the C++ step (env.native())")
     parser.add_argument("--device", default="cpu")
     parser.add_argument(
         "--scenario", default="highway-fast-v0", help="or highway-v0, merge-v0, roundabout-v0"
@@ -391,6 +396,9 @@ def main() -> None:
         if "compiled" in rates:
             claim(f"{where}: compiled / eager env-steps/s", rates["compiled"] / rates["tensor"])
             ours.append(("compiled", "compiled TensorHighwayEnv"))
+        if "native" in rates:
+            claim(f"{where}: C++ / tensor env-steps/s", rates["native"] / rates["tensor"])
+            ours.append(("native", "TensorHighwayEnv with the C++ step"))
         if "shards" in rates:
             ours.append(("shards", f"TensorHighwayEnv in {args.shards} shards"))
         for name, who in ours:

@@ -169,12 +169,15 @@ def substep(
     return world._replace(vehicles=v, speed_index=index, steps=world.steps + 1)
 
 
-def observe_world(world: World, params: HighwayParams) -> dict[str, torch.Tensor]:
+def observe_world(
+    world: World, params: HighwayParams, observation: torch.Tensor | None = None
+) -> dict[str, torch.Tensor]:
     """What an env step reports of the worlds (without advancing them).
 
     Args:
         world: B worlds.
         params: the constants.
+        observation: the Kinematics table if already computed (the C++ step's).
 
     Returns:
         ``observation``, ``reward``, ``terminated``, ``truncated``, ``crashed``,
@@ -187,7 +190,7 @@ def observe_world(world: World, params: HighwayParams) -> dict[str, torch.Tensor
     v = world.vehicles
     total, parts, terminated = reward(v, params)
     return {
-        "observation": observe(v, params),
+        "observation": observe(v, params) if observation is None else observation,
         "reward": total,
         "terminated": terminated,
         "truncated": truncated(world.time, params),

@@ -47,6 +47,7 @@ def fresh_resets(
     config: dict | None = None,
     seed: int = 0,
     decimals: int = 4,
+    native: bool = False,
 ) -> list[dict]:
     """Rung d: fresh tensor worlds against highway-env's recorded statistics (no bridge).
 
@@ -64,6 +65,7 @@ def fresh_resets(
         config: the config the reference was recorded with.
         seed: seeds the tensor worlds.
         decimals: rounding of returns before their test.
+        native: step the tensor worlds in C++ (``TensorHighwayEnv(native=True)``).
 
     Returns:
         One row per comparison: ``{"what", "tensor", "highway", "statistic", "p"}``.
@@ -77,7 +79,9 @@ def fresh_resets(
 
     env = None
     for name, policy in policies.items():
-        env = TensorHighwayEnv(scenario, config, num_envs=episodes, seed=seed, dtype=torch.float64)
+        env = TensorHighwayEnv(
+            scenario, config, num_envs=episodes, seed=seed, dtype=torch.float64, native=native
+        )
         td = env.reset()
         if not rows:
             mine = _initial_statistics(td.get("state"), env.params)

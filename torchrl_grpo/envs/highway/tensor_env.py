@@ -10,7 +10,6 @@ dimension, and ``reset(TensorDict(state=...), set_state=True)`` restores any row
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 from numbers import Integral
 from typing import Any
@@ -26,6 +25,7 @@ from torchrl_grpo.envs.core.gym_state import RNG_WORDS
 from torchrl_grpo.envs.core.snapshot_env import STATE_KEY
 from torchrl_grpo.envs.core.state_codec import stable_hash
 from torchrl_grpo.envs.highway.bridge import HighwayBridge, export_states, import_states
+from torchrl_grpo.envs.highway.step_modes import compiled_mode, eager_mode, native_mode
 from torchrl_grpo.envs.highway.tensor_models import output_tensordict, tensor_model
 from torchrl_grpo.envs.highway.tensor_params import check_tensor_config, tensor_params
 from torchrl_grpo.envs.highway.tensor_state import (
@@ -36,7 +36,6 @@ from torchrl_grpo.envs.highway.tensor_state import (
     where_rows,
 )
 from torchrl_grpo.sim.rng import seed_keys
-from torchrl_grpo.sim.simulate import compiled_stages
 from torchrl_grpo.sim.state import (
     FLOAT_FIELDS,
     empty_world,
@@ -73,6 +72,8 @@ class TensorHighwayEnv(EnvBase):
             (the env is left unchanged). One comparison per step, read back to the host
             (a sync on a GPU): turn off once the policy is known to write valid actions.
         categorical_action_encoding: integer actions (``False``: one-hot).
+        native: step highway-v0 and highway-fast-v0 in C++ on the CPU (:meth:`native`),
+            the fastest step there (docs/sim.md, "Speed").
 
     Example:
         >>> from torchrl.envs.utils import check_env_specs
@@ -106,6 +107,7 @@ class TensorHighwayEnv(EnvBase):
         check_states: bool = True,
         check_actions: bool = True,
         categorical_action_encoding: bool = True,
+        native: bool = False,
     ) -> None:
         if dtype not in (torch.float32, torch.float64):
             raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
@@ -127,7 +129,7 @@ class TensorHighwayEnv(EnvBase):
         self._categorical = categorical_action_encoding
         self._bridge: HighwayBridge | None = None
         self.fingerprint = stable_hash("TensorHighwayEnv", scenario, repr(self.params), str(dtype))
-        self.eager()
+        self.native() if native else self.eager()
         self._world = empty_world(
             num_envs, self.params.num_vehicles, dtype, device, self._route_length
         )
@@ -148,50 +150,45 @@ class TensorHighwayEnv(EnvBase):
     def compile(
         self, *, warmup: int | None = None, dense: bool | None = None, **kwargs: Any
     ) -> TensorHighwayEnv:
-        """Run the simulator's step through ``torch.compile``, with static shapes; ``self``.
+        """Run the step through ``torch.compile`` (static shapes); ``self``.
 
         What ``TensorHighwayEnv(..., compile=True)`` (or ``compile={...}``, TorchRL's
-        constructor keyword) calls. TorchRL's own ``EnvBase.compile`` compiled the whole
-        ``step_and_maybe_reset`` around the eager step's data-dependent compaction and
-        recompiled at every step. Here only pure step functions compile, on the first
-        step, once per batch size: on a CPU the stages that compute every vehicle
-        anyway (:class:`~torchrl_grpo.sim.simulate.Stages`: lane index and IDM,
-        steering, kinematics, observation), between the eager compacted stages; with
-        ``dense=True`` (the default on a GPU) the whole dense step (static shapes for
-        CUDA graphs; on a CPU 12 times the eager arithmetic, slower even compiled).
+        constructor keyword) calls; see :func:`.step_modes.compiled_mode`.
 
         Args:
             warmup: accepted for TorchRL's signature (the first call compiles).
             dense: compile the whole dense step (default: on a GPU only).
             **kwargs: forwarded to ``torch.compile`` (``dynamic`` defaults to ``False``).
 
-        Returns:
-            The env; :meth:`eager` undoes it.
-
         Example:
             >>> env = TensorHighwayEnv(num_envs=4, compile=True)  # compiles at its first step
             >>> env.eager() is env  # eager steps again
             True
         """
-        kwargs.setdefault("dynamic", False)
-        if not self._model.compiles:
-            return self.eager()
-        if dense is None:
-            dense = self.device.type == "cuda"
-        if dense:
-            dense_step = functools.partial(self._model.step, params=self.params, dense=True)
-            self._step_fn = torch.compile(dense_step, **kwargs)
-        else:
-            stages = compiled_stages(**kwargs)
-            self._step_fn = functools.partial(self._model.step, params=self.params, stages=stages)
+        self._mode = compiled_mode(self._model, self.params, self.device, dense, **kwargs)
+        return self
+
+    def native(self, threads: int | None = None) -> TensorHighwayEnv:
+        """Run the substeps in C++ (highway scenarios, CPU); ``self``.
+
+        A loop per world, split over ``threads`` (default ``torch.get_num_threads()``),
+        the fastest step on a CPU; see :mod:`torchrl_grpo.sim.native`.
+
+        Raises:
+            ValueError: another scenario, or a GPU (the env is left as it was).
+            NativeBuildError: no C++ compiler to build it.
+
+        Example:
+            >>> env = TensorHighwayEnv(num_envs=4).native()
+            >>> env.eager() is env  # the tensor step again
+            True
+        """
+        self._mode = native_mode(self.scenario, self.params, self.device, threads)
         return self
 
     def eager(self) -> TensorHighwayEnv:
-        """Step eagerly again (after :meth:`compile`); ``self``."""
-        # Static shapes (no compaction) where a host sync would cost most.
-        self._step_fn = functools.partial(
-            self._model.step, params=self.params, dense=self.device.type == "cuda"
-        )
+        """Step with the tensor path again (after :meth:`compile` or :meth:`native`); ``self``."""
+        self._mode = eager_mode(self._model, self.params, self.device)
         return self
 
     def _make_specs(self) -> None:
@@ -347,7 +344,7 @@ class TensorHighwayEnv(EnvBase):
             self._world, self._highway_rng, self._highway_seed = self._model.fresh(
                 self._world, rows, self._highway_rng, self._highway_seed, self.params
             )
-        out = self._output(self._model.observe(self._world, self.params))
+        out = self._output(self._mode.observe(self._world))
         # As HighwayEnv: no action was taken yet in a fresh episode, so no reward parts.
         fresh = (self._world.steps == 0).unsqueeze(-1)
         for name in self._model.components:
@@ -368,7 +365,7 @@ class TensorHighwayEnv(EnvBase):
             check_action(action, self._action_leaf, self._name, batch_dims=1, rows=rows)
         if not self._categorical:
             action = action.argmax(-1)
-        world, outputs = self._step_fn(self._world, action.to(torch.int64))
+        world, outputs = self._mode.step(self._world, action.to(torch.int64))
         self.world_steps += self.batch_size[0]
         if rows is not None:
             world = where_rows(rows.reshape(self.batch_size), world, self._world)

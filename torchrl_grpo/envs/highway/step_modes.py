@@ -1,0 +1,145 @@
+"""How TensorHighwayEnv advances its worlds: eagerly, through ``torch.compile``, or in C++.
+
+Each function returns a :class:`StepMode`: the env's step, ``(world, action) -> (world,
+outputs)``, and its observation of worlds that did not step (after a reset), both pure
+functions of tensors:
+
+- :func:`eager_mode`: the tensor path of :mod:`torchrl_grpo.sim`, op by op. On a CPU it
+  compacts the vehicles that take a decision; on a GPU it keeps static shapes (dense),
+  so that no step waits for the host.
+- :func:`compiled_mode`: the same through ``torch.compile``. TorchRL's own
+  ``EnvBase.compile`` compiled the whole ``step_and_maybe_reset`` around the eager
+  step's data-dependent compaction and recompiled at every step. Here only pure step
+  functions compile, on the first step, once per batch size: on a CPU the stages that
+  compute every vehicle anyway (:class:`~torchrl_grpo.sim.simulate.Stages`: lane index
+  and IDM, steering, kinematics, observation), between the eager compacted stages;
+  with ``dense=True`` (the default on a GPU) the whole dense step (static shapes for
+  CUDA graphs; on a CPU 12 times the eager arithmetic, slower even compiled).
+- :func:`native_mode`: highway-v0 and highway-fast-v0 on a CPU with the
+  substeps in C++ (:mod:`torchrl_grpo.sim.native`), worlds split over threads.
+
+Compiled and C++ steps compute the eager step's model expression by expression, but
+round a few functions differently (1 to 2 ulp): they replay their own bits after a
+restore, and agree with the eager step within rounding, not bit for bit.
+
+Example:
+    >>> from torchrl_grpo.envs import TensorHighwayEnv
+    >>> env = TensorHighwayEnv(num_envs=4).native()  # the C++ step
+    >>> env.rollout(3)["next", "observation"].shape
+    torch.Size([4, 3, 5, 5])
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import torch
+
+from torchrl_grpo.sim.native import load_library, native_observe, native_step
+from torchrl_grpo.sim.simulate import compiled_stages
+
+__all__ = ["StepMode", "compiled_mode", "eager_mode", "native_mode"]
+
+
+class StepMode(NamedTuple):
+    """How the env advances and observes its worlds.
+
+    Attributes:
+        step: ``(world, action) -> (world, outputs)``.
+        observe: ``(world) -> outputs``.
+    """
+
+    step: Callable
+    observe: Callable
+
+
+def eager_mode(model, params, device: torch.device) -> StepMode:
+    """The tensor step, dense (static shapes) on a GPU, compacted on a CPU.
+
+    Example:
+        >>> from torchrl_grpo.envs.highway.tensor_models import tensor_model
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> mode = eager_mode(tensor_model("highway-fast-v0"), tensor_params("highway-fast-v0"),
+        ...                   torch.device("cpu"))
+        >>> mode.step.keywords["dense"]
+        False
+    """
+    step = functools.partial(model.step, params=params, dense=device.type == "cuda")
+    return StepMode(step, functools.partial(model.observe, params=params))
+
+
+def compiled_mode(
+    model, params, device: torch.device, dense: bool | None = None, **kwargs: Any
+) -> StepMode:
+    """The step through ``torch.compile(..., **kwargs)`` (``dynamic`` defaults to ``False``).
+
+    Args:
+        model: the scenario's :class:`~torchrl_grpo.envs.highway.tensor_models.TensorModel`.
+        params: its constants.
+        device: where the worlds live.
+        dense: compile the whole dense step (default: on a GPU only).
+        **kwargs: forwarded to ``torch.compile``.
+
+    Returns:
+        The mode (the observation of fresh worlds stays eager); the eager one for
+        scenarios without compiled stages.
+
+    Example:
+        >>> from torchrl_grpo.envs.highway.tensor_models import tensor_model
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> mode = compiled_mode(tensor_model("highway-fast-v0"),
+        ...                      tensor_params("highway-fast-v0"), torch.device("cpu"))
+        >>> callable(mode.step)
+        True
+    """
+    kwargs.setdefault("dynamic", False)
+    eager = eager_mode(model, params, device)
+    if not model.compiles:
+        return eager
+    if dense if dense is not None else device.type == "cuda":
+        step = torch.compile(functools.partial(model.step, params=params, dense=True), **kwargs)
+    else:
+        step = functools.partial(model.step, params=params, stages=compiled_stages(**kwargs))
+    return eager._replace(step=step)
+
+
+def native_mode(
+    scenario: str, params, device: torch.device, threads: int | None = None
+) -> StepMode:
+    """The C++ step of a highway scenario on a CPU.
+
+    Args:
+        scenario: ``"highway-v0"`` or ``"highway-fast-v0"``.
+        params: its constants.
+        device: must be the CPU.
+        threads: threads over the worlds (default: ``torch.get_num_threads()`` at each
+            step).
+
+    Returns:
+        The mode.
+
+    Raises:
+        ValueError: another scenario, or a GPU.
+        NativeBuildError: no C++ compiler (:func:`torchrl_grpo.sim.native.load_library`).
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> mode = native_mode("highway-fast-v0", tensor_params("highway-fast-v0"),
+        ...                    torch.device("cpu"))
+        >>> callable(mode.observe)
+        True
+    """
+    if scenario not in ("highway-v0", "highway-fast-v0"):
+        raise ValueError(
+            f"the C++ step covers highway-v0 and highway-fast-v0, not {scenario!r} "
+            "(its step stays the tensor one: TensorHighwayEnv.eager())"
+        )
+    if device.type != "cpu":
+        raise ValueError(f"the C++ step runs on the CPU, not on {device}")
+    load_library()  # builds now, so that a missing compiler is reported here
+    return StepMode(
+        functools.partial(native_step, params=params, threads=threads),
+        functools.partial(native_observe, params=params, threads=threads),
+    )
