@@ -202,7 +202,8 @@ def sim_stepper(cfg: Any, calls: int = 8) -> Callable[[], float]:
     """The simulator's own steps/s over ``calls`` steps: ``cfg.env`` at its batch, always
     IDLE, worlds reset as their episodes end (``benchmarks/bench_tensor_env.py``)."""
     batch = int(cfg.env.num_envs)
-    step = tensor_stepper(batch, compile=False, device=str(cfg.device), scenario=cfg.env.scenario)
+    native = cfg.env.backend == "native"  # the simulator as the run steps it
+    step = tensor_stepper(batch, False, str(cfg.device), cfg.env.scenario, native=native)
 
     def rate() -> float:
         start = clock()

@@ -25,7 +25,7 @@ from torchrl_grpo.training import (
 )
 from torchrl_grpo.training import baselines as baselines_module
 from torchrl_grpo.training.config import check_config
-from torchrl_grpo.training.env_builder import make_layout
+from torchrl_grpo.training.env_builder import make_layout, make_rollout_env
 from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
 
 TENSOR = ["env.backend=tensor", "env.num_envs=32"]
@@ -216,3 +216,27 @@ def test_an_evaluation_on_the_tensor_simulator_leaves_the_training_rng_alone():
     torch.manual_seed(0)
     evaluate_on_tensor(cfg, ConstantActionPolicy("IDLE"), episodes=2, seed=5)
     assert torch.equal(torch.rand(3), expected)
+
+
+def test_the_native_backend_trains_on_the_cpp_step_and_resumes_exactly(tmp_path):
+    common = [*TINY, "env.backend=native", "env.num_envs=32", "experiment.checkpoint_every=1"]
+    cfg = compose_config([*common, "experiment.total_frames=500"])
+    assert make_rollout_env(cfg.env, cfg.rollout).step_mode == "native"
+    straight = Trainer(cfg, tmp_path / "a")
+    straight.train()
+    stopped = Trainer(compose_config([*common, "experiment.total_frames=200"]), tmp_path / "b")
+    stopped.train()
+    assert 0 < stopped.frames < straight.frames
+    cfg = compose_config([f"resume={tmp_path / 'b' / 'last.pt'}", "experiment.total_frames=500"])
+    assert cfg.env.backend == "native"
+    resumed = Trainer(cfg, run_dir=tmp_path / "c")
+    resumed.train()
+    assert resumed.frames == straight.frames
+    a, b = straight.policy.state_dict(), resumed.policy.state_dict()
+    assert all(torch.equal(a[key], b[key]) for key in a)
+
+
+def test_the_native_backend_refuses_scenarios_without_a_cpp_step():
+    cfg = OmegaConf.create({"scenario": "merge-v0", "config": {}, "backend": "native"})
+    with pytest.raises(ValueError, match="env.backend=native.*merge-v0"):
+        make_rollout_env(cfg, OmegaConf.create({"num_workers": 1, "backend": "single"}))

@@ -146,6 +146,7 @@ Backend = _choices(
 EnvBackendName = _choices(
     "EnvBackendName",
     EnvBackend,
-    "The simulator training runs on: tensor, highway, or auto (tensor where it covers the config).",
+    "The simulator training runs on: tensor, native (its C++ step), highway, or auto "
+    "(tensor where it covers the config).",
 )
 LoggerBackend = _choices("LoggerBackend", LoggerKind, "Where metrics go.")

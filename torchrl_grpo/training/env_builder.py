@@ -11,12 +11,14 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl.envs import EnvBase
 
 from torchrl_grpo.branching.branch_env import Backend, make_branch_env
+from torchrl_grpo.envs.highway.step_modes import NATIVE_SCENARIOS
 from torchrl_grpo.envs.highway.tensor_env import TensorHighwayEnv
 from torchrl_grpo.envs.highway.tensor_params import check_tensor_config
 from torchrl_grpo.envs.highway.wrapper import HighwayEnv
 from torchrl_grpo.modules.kinematics_table import KinematicsLayout
 
 __all__ = [
+    "steps_natively",
     "EnvBackend",
     "RolloutBackend",
     "check_device",
@@ -35,10 +37,11 @@ __all__ = [
 #: Ray actors, :class:`~torchrl_grpo.distributed.RayGroupCollector`).
 RolloutBackend = Literal[Backend, "ray"]
 #: The simulator training runs on (``env.backend``): ``tensor`` (the batched simulator,
-#: :class:`~torchrl_grpo.envs.TensorHighwayEnv`), ``highway`` (highway-env itself, on
-#: ``rollout.backend`` workers), or ``auto``: the tensor simulator where it covers the
-#: scenario and config, highway-env elsewhere.
-EnvBackend = Literal["auto", "tensor", "highway"]
+#: :class:`~torchrl_grpo.envs.TensorHighwayEnv`), ``native`` (the same with its step in
+#: C++, ``native=True``: highway-v0 and highway-fast-v0 on a CPU), ``highway``
+#: (highway-env itself, on ``rollout.backend`` workers), or ``auto``: the tensor
+#: simulator where it covers the scenario and config, highway-env elsewhere.
+EnvBackend = Literal["auto", "tensor", "native", "highway"]
 
 log = logging.getLogger(__name__)
 
@@ -60,16 +63,31 @@ def env_backend(env_cfg: DictConfig) -> Literal["tensor", "highway"]:
     chosen = str(env_cfg.get("backend", "highway"))
     if chosen == "highway":
         return "highway"
+    if chosen == "native" and env_cfg.scenario not in NATIVE_SCENARIOS:
+        raise ValueError(
+            f"env.backend=native steps {NATIVE_SCENARIOS} in C++, not {env_cfg.scenario!r}: "
+            "use env.backend=tensor or auto"
+        )
     try:
         check_tensor_config(env_cfg.scenario, env_overrides(env_cfg))
     except ValueError as err:
-        if chosen == "tensor":
+        if chosen in ("tensor", "native"):
             raise
         log.info("env.backend=auto: training on highway-env (%s)", err)
         return "highway"
     if chosen == "auto":
         log.info("env.backend=auto: training on the tensor simulator (%s)", env_cfg.scenario)
     return "tensor"
+
+
+def steps_natively(env_cfg: DictConfig) -> bool:
+    """Whether the tensor simulator steps in C++ (``env.backend=native``).
+
+    Example:
+        >>> steps_natively(OmegaConf.create({"backend": "native"}))
+        True
+    """
+    return str(env_cfg.get("backend", "auto")) == "native"
 
 
 def tensor_covers(env_cfg: DictConfig) -> bool:
@@ -185,6 +203,7 @@ def make_rollout_env(
             device=check_device(device),
             seed=seed,
             return_state=bool(env_kwargs.get("return_state", snapshots)),
+            native=steps_natively(env_cfg),
         )
     return make_branch_env(
         env_cfg.scenario,

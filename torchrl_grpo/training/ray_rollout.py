@@ -20,7 +20,12 @@ from torchrl.envs import EnvBase
 from torchrl_grpo.branching.branch_env import make_branch_env
 from torchrl_grpo.distributed.ray_collector import RayGroupCollector
 from torchrl_grpo.envs.highway.tensor_env import TensorHighwayEnv
-from torchrl_grpo.training.env_builder import check_device, env_backend, env_overrides
+from torchrl_grpo.training.env_builder import (
+    check_device,
+    env_backend,
+    env_overrides,
+    steps_natively,
+)
 
 __all__ = ["actor_env", "make_ray_collector"]
 
@@ -55,6 +60,7 @@ def actor_env(cfg: DictConfig) -> tuple[Callable[[], EnvBase], dict[str, Any]]:
             num_envs=num_envs,
             device=str(device),
             return_state=True,
+            native=steps_natively(cfg.env),
         )
         options: dict[str, Any] = {"memory": 1024**3}
         if device.type == "cuda":

@@ -40,17 +40,22 @@ import torch
 from torchrl_grpo.sim.native import load_library, native_observe, native_step
 from torchrl_grpo.sim.simulate import compiled_stages
 
-__all__ = ["StepMode", "compiled_mode", "eager_mode", "native_mode"]
+__all__ = ["NATIVE_SCENARIOS", "StepMode", "compiled_mode", "eager_mode", "native_mode"]
+
+#: The scenarios whose step has a C++ version.
+NATIVE_SCENARIOS = ("highway-v0", "highway-fast-v0")
 
 
 class StepMode(NamedTuple):
     """How the env advances and observes its worlds.
 
     Attributes:
+        name: ``"eager"``, ``"compiled"`` or ``"native"``.
         step: ``(world, action) -> (world, outputs)``.
         observe: ``(world) -> outputs``.
     """
 
+    name: str
     step: Callable
     observe: Callable
 
@@ -67,7 +72,7 @@ def eager_mode(model, params, device: torch.device) -> StepMode:
         False
     """
     step = functools.partial(model.step, params=params, dense=device.type == "cuda")
-    return StepMode(step, functools.partial(model.observe, params=params))
+    return StepMode("eager", step, functools.partial(model.observe, params=params))
 
 
 def compiled_mode(
@@ -102,7 +107,7 @@ def compiled_mode(
         step = torch.compile(functools.partial(model.step, params=params, dense=True), **kwargs)
     else:
         step = functools.partial(model.step, params=params, stages=compiled_stages(**kwargs))
-    return eager._replace(step=step)
+    return eager._replace(name="compiled", step=step)
 
 
 def native_mode(
@@ -131,15 +136,16 @@ def native_mode(
         >>> callable(mode.observe)
         True
     """
-    if scenario not in ("highway-v0", "highway-fast-v0"):
+    if scenario not in NATIVE_SCENARIOS:
         raise ValueError(
-            f"the C++ step covers highway-v0 and highway-fast-v0, not {scenario!r} "
+            f"the C++ step covers {NATIVE_SCENARIOS}, not {scenario!r} "
             "(its step stays the tensor one: TensorHighwayEnv.eager())"
         )
     if device.type != "cpu":
         raise ValueError(f"the C++ step runs on the CPU, not on {device}")
     load_library()  # builds now, so that a missing compiler is reported here
     return StepMode(
+        "native",
         functools.partial(native_step, params=params, threads=threads),
         functools.partial(native_observe, params=params, threads=threads),
     )

@@ -186,6 +186,11 @@ class TensorHighwayEnv(EnvBase):
         self._mode = native_mode(self.scenario, self.params, self.device, threads)
         return self
 
+    @property
+    def step_mode(self) -> str:
+        """How the worlds step: ``"eager"``, ``"compiled"`` or ``"native"`` (C++)."""
+        return self._mode.name
+
     def eager(self) -> TensorHighwayEnv:
         """Step with the tensor path again (after :meth:`compile` or :meth:`native`); ``self``."""
         self._mode = eager_mode(self._model, self.params, self.device)
