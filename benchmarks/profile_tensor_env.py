@@ -1,7 +1,11 @@
 """Where one TensorHighwayEnv step's time goes: ops per step and per substep, time per stage.
 
 Usage: ``taskset -c 0 python benchmarks/profile_tensor_env.py [--sizes 1024 8192]
-[--steps 20] [--threads 1]``
+[--steps 20] [--threads 1] [--native]``
+
+With ``--native`` the env steps in C++ (``TensorHighwayEnv(native=True)``) and the stages
+are the C++ call (the substeps and the observation), the reward and outputs that stay
+in torch, and the reset path.
 
 For each batch size B, highway-fast-v0 in float32, always-IDLE, stepped as training steps
 it (``env.step_and_maybe_reset``, finished rows reset), it prints:
@@ -33,6 +37,7 @@ import torch
 from torch.profiler import ProfilerActivity, profile, record_function
 from torch.utils._python_dispatch import TorchDispatchMode
 
+import torchrl_grpo.sim.native as native
 import torchrl_grpo.sim.simulate as simulate
 from torchrl_grpo.envs import TensorHighwayEnv
 
@@ -47,6 +52,12 @@ STAGES = (
     ("collision", simulate, "collide"),
     ("observation", simulate, "observe"),
     ("reward", simulate, "reward"),
+    ("reset path (env._reset)", TensorHighwayEnv, "_reset"),
+)
+# With --native: the C++ call's range holds the reward's (subtracted when printed).
+NATIVE_STAGES = (
+    ("C++: substeps and observation", native, "_run"),
+    ("reward and outputs (torch)", native, "observe_world"),
     ("reset path (env._reset)", TensorHighwayEnv, "_reset"),
 )
 STEP = "env.step_and_maybe_reset"
@@ -65,14 +76,14 @@ class OpCounter(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
 
-def wrap_stages() -> None:
+def wrap_stages(stages: tuple) -> None:
     """Put a ``record_function`` range around each stage's function (and each substep)."""
 
     in_reset = [False]
 
     def ranged(label: str, fn: Callable) -> Callable:
         # Inside the reset path, the stages it calls (observation, reward) count as reset.
-        resets = label == STAGES[-1][0]
+        resets = label == stages[-1][0]
 
         @functools.wraps(fn)
         def inner(*args, **kwargs):
@@ -87,7 +98,7 @@ def wrap_stages() -> None:
 
         return inner
 
-    for label, owner, name in STAGES:
+    for label, owner, name in stages:
         setattr(owner, name, ranged(label, getattr(owner, name)))
     simulate.substep = ranged(SUBSTEP, simulate.substep)
     if hasattr(simulate, "eager_stages"):
@@ -95,9 +106,11 @@ def wrap_stages() -> None:
         simulate.EAGER = simulate.eager_stages()
 
 
-def make(batch: int) -> tuple[TensorHighwayEnv, Callable[[], None], Callable[[], None]]:
+def make(
+    batch: int, native_step: bool
+) -> tuple[TensorHighwayEnv, Callable[[], None], Callable[[], None]]:
     """The env and two steppers: as training steps, and ``env.step`` with no resets."""
-    env = TensorHighwayEnv("highway-fast-v0", num_envs=batch, seed=0)
+    env = TensorHighwayEnv("highway-fast-v0", num_envs=batch, seed=0, native=native_step)
     td = env.reset()
     action = torch.full((batch,), IDLE)
 
@@ -116,9 +129,10 @@ def make(batch: int) -> tuple[TensorHighwayEnv, Callable[[], None], Callable[[],
     return env, train_step, step_only
 
 
-def profile_size(batch: int, steps: int) -> None:
+def profile_size(batch: int, steps: int, stages: tuple) -> None:
     """Print the op counts and the stage table of one batch size."""
-    env, train_step, step_only = make(batch)
+    native_step = stages is NATIVE_STAGES
+    env, train_step, step_only = make(batch, native_step)
     counter = OpCounter()
     with counter:
         for _ in range(steps):
@@ -129,8 +143,9 @@ def profile_size(batch: int, steps: int) -> None:
         for _ in range(steps):
             step_only()
     plain = sum(alone.ops.values()) / steps
+    pure = native.native_step if native_step else simulate.step
     with OpCounter() as sim_ops:
-        world, _ = simulate.step(env._world, torch.full((batch,), IDLE), env.params)
+        world, _ = pure(env._world, torch.full((batch,), IDLE), env.params)
     sim = sum(sim_ops.ops.values())
     print(f"\nB = {batch}: ATen ops per env step (as training steps it): {total:,.0f}")
     print(f"  the simulator's pure step: {sim:,} ({sim / frames:,.0f} per substep of {frames},")
@@ -149,8 +164,9 @@ def profile_size(batch: int, steps: int) -> None:
     print("\n  | stage | ms per env step | share of the step | per world (us) |")
     print("  |---|---|---|---|")
     inside = 0.0
-    for label, _, _ in STAGES:
-        t = times.get(label, 0.0)
+    nested = times.get(NATIVE_STAGES[1][0], 0.0) if native_step else 0.0
+    for label, _, _ in stages:
+        t = times.get(label, 0.0) - (nested if label == NATIVE_STAGES[0][0] else 0.0)
         inside += t
         print(f"  | {label} | {t / 1e3:.2f} | {t / whole:.0%} | {t / batch:.2f} |")
     rest = whole - inside
@@ -176,11 +192,13 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[1024, 8192])
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--native", action="store_true", help="the C++ step's stages")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    wrap_stages()
+    stages = NATIVE_STAGES if args.native else STAGES
+    wrap_stages(stages)
     for batch in args.sizes:
-        profile_size(batch, args.steps)
+        profile_size(batch, args.steps, stages)
 
 
 if __name__ == "__main__":

@@ -16,6 +16,7 @@
 #include "highway_collide.h"
 #include "highway_native.h"
 #include "highway_observe.h"
+#include "highway_reset.h"
 
 namespace highway {
 
@@ -264,6 +265,18 @@ void step_rows(const Params& p, const Table& t, int64_t lo, int64_t hi, int n, i
   }
 }
 
+template <class T>
+void reset_rows(const Params& p, const Table& t, int64_t batch, int n, const bool* rows,
+                const int64_t* key, int64_t* counter, double* time, int64_t* words,
+                int64_t* seeds) {
+  for (int64_t b = 0; b < batch; ++b) {
+    if (!rows[b]) continue;
+    World<T> w = rows_of<T>(t, b, n);
+    fresh_world(p, w, key[b], counter[b], words + b * 10);
+    time[b] = 0, t.steps[b] = 0, t.speed_index[b] = int64_t(p.ego_index), seeds[b] = -1;
+  }
+}
+
 }  // namespace highway
 
 using highway::Params;
@@ -287,5 +300,18 @@ extern "C" int highway_step(const Params* p, const Table* t, int64_t batch, int6
     pool.emplace_back(run, k * chunk, std::min(batch, (k + 1) * chunk));
   run(0, std::min(batch, chunk));
   for (auto& th : pool) th.join();
+  return 0;
+}
+
+// Fresh episodes in the rows of `rows` ([B] bool): the vehicle table, speed index, time,
+// steps, stream counters, highway-env generator words ([B, 10]) and seeds (-1).
+extern "C" int highway_reset(const Params* p, const Table* t, int64_t batch, int64_t n,
+                             const bool* rows, const int64_t* key, int64_t* counter,
+                             double* time, int64_t* words, int64_t* seeds, int is_double) {
+  if (n < 1) return 1;
+  if (is_double)
+    highway::reset_rows<double>(*p, *t, batch, int(n), rows, key, counter, time, words, seeds);
+  else
+    highway::reset_rows<float>(*p, *t, batch, int(n), rows, key, counter, time, words, seeds);
   return 0;
 }

@@ -19,6 +19,10 @@ struct Params {
   // The Kinematics observation: feature codes index FEATURES of observation.py.
   double obs_count, obs_features, normalize, absolute, clip, see_behind, perception;
   double feature[8], ranged[8], low[8], high[8];
+  // Fresh worlds (reset.py): the constants it derives in Python double, passed as such.
+  double initial_lane, ego_speed, ego_index, ego_target, ego_offset, ego_base;
+  double speed_lo, speed_span, spacing_base, spacing_per_speed, inv_density, decay;
+  double jitter_lo, jitter_span, delta_lo, delta_span;
 };
 
 // Column pointers of the [B, N] vehicle table and the [B] words (native.py's NativeTable).

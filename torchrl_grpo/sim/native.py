@@ -35,6 +35,7 @@ import ctypes
 import functools
 import hashlib
 import logging
+import math
 import os
 import shutil
 import subprocess
@@ -43,18 +44,22 @@ from pathlib import Path
 
 import torch
 
+from torchrl_grpo.sim.control import speed_to_index
 from torchrl_grpo.sim.observation import FEATURES
 from torchrl_grpo.sim.params import HighwayParams
 from torchrl_grpo.sim.simulate import observe_world
 from torchrl_grpo.sim.state import BOOL_FIELDS, FLOAT_FIELDS, INT_FIELDS, World
 
-__all__ = ["NativeBuildError", "load_library", "native_observe", "native_step"]
+__all__ = ["NativeBuildError", "load_library", "native_fresh", "native_observe", "native_step"]
 
 logger = logging.getLogger(__name__)
 
 SOURCE = Path(__file__).with_name("highway_native.cpp")
 #: Every file of the C++ step (the library is rebuilt when any changes).
-SOURCES = (SOURCE, *(SOURCE.with_name(f"highway_{n}.h") for n in ("native", "collide", "observe")))
+SOURCES = (
+    SOURCE,
+    *(SOURCE.with_name(f"highway_{n}.h") for n in ("native", "collide", "observe", "reset")),
+)
 FLAGS = ("-O2", "-std=c++17", "-ffp-contract=off", "-fPIC", "-shared", "-pthread")
 MAX_SPEEDS = 16
 
@@ -83,6 +88,14 @@ class NativeParams(ctypes.Structure):
         for name in "obs_count obs_features normalize absolute clip see_behind perception".split()
     ]
     _fields_ += [(name, ctypes.c_double * 8) for name in ("feature", "ranged", "low", "high")]
+    _fields_ += [
+        (name, ctypes.c_double)
+        for name in (
+            "initial_lane ego_speed ego_index ego_target ego_offset ego_base "
+            "speed_lo speed_span spacing_base spacing_per_speed inv_density decay "
+            "jitter_lo jitter_span delta_lo delta_span"
+        ).split()
+    ]
 
 
 _COLUMNS = FLOAT_FIELDS + INT_FIELDS + BOOL_FIELDS + ("speed_index", "steps", "action")
@@ -95,8 +108,13 @@ class NativeTable(ctypes.Structure):
 
 
 def _cache_dir() -> Path:
-    root = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(root) / "torchrl_grpo"
+    root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "torchrl_grpo"
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except OSError:  # a read-only home: the temporary directory instead
+        root = Path(tempfile.gettempdir()) / f"torchrl_grpo-{os.getuid()}"
+        root.mkdir(parents=True, exist_ok=True)
+    return root
 
 
 @functools.cache
@@ -123,7 +141,6 @@ def load_library() -> ctypes.CDLL:
                 "install g++ or step with tensors: "
                 "TensorHighwayEnv(..., native=False)"
             )
-        target.parent.mkdir(parents=True, exist_ok=True)
         # Built beside the target and renamed: concurrent builds (test workers) never
         # load a half-written library.
         with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
@@ -135,6 +152,12 @@ def load_library() -> ctypes.CDLL:
             os.replace(built, target)
         logger.info("built %s", target)
     library = ctypes.CDLL(str(target))
+    library.highway_reset.restype = ctypes.c_int
+    pointer = ctypes.c_void_p
+    library.highway_reset.argtypes = [
+        ctypes.POINTER(NativeParams), ctypes.POINTER(NativeTable), ctypes.c_int64,
+        ctypes.c_int64, pointer, pointer, pointer, pointer, pointer, pointer, ctypes.c_int,
+    ]  # fmt: skip
     library.highway_step.restype = ctypes.c_int
     library.highway_step.argtypes = [
         ctypes.POINTER(NativeParams),
@@ -177,7 +200,30 @@ def _native_params(params: HighwayParams) -> NativeParams:
         if name in ranges:
             values.ranged[k] = 1
             values.low[k], values.high[k] = ranges[name]
+    _fresh_constants(values, params)
     return values
+
+
+def _fresh_constants(values: NativeParams, params: HighwayParams) -> None:
+    """reset.py's constants, each computed by the same Python expression as there."""
+    t, limit = params.traffic, params.road.speed_limit
+    values.initial_lane = -1 if t.initial_lane_id is None else int(t.initial_lane_id)
+    ego = torch.tensor([t.ego_speed], dtype=torch.float64)
+    index = int(speed_to_index(ego, params.control.target_speeds)[0])
+    values.ego_speed, values.ego_index = t.ego_speed, index
+    table = torch.tensor(params.control.target_speeds, dtype=torch.float64)
+    values.ego_target = float(table[index])
+    values.decay = math.exp(-t.spacing_decay * params.road.lanes_count)
+    values.ego_offset = t.ego_spacing * (t.spacing_base + t.spacing_per_speed * t.ego_speed)
+    values.ego_offset *= values.decay
+    values.ego_base = t.first_offsets * values.ego_offset
+    values.speed_lo = t.speed_low * limit
+    values.speed_span = t.speed_high * limit - values.speed_lo
+    values.spacing_base, values.spacing_per_speed = t.spacing_base, t.spacing_per_speed
+    values.inv_density = 1 / t.vehicles_density
+    values.jitter_lo, values.jitter_span = t.jitter[0], t.jitter[1] - t.jitter[0]
+    low, high = params.idm.delta_range
+    values.delta_lo, values.delta_span = low, high - low
 
 
 def _run(world: World, action: torch.Tensor | None, params: HighwayParams, threads, frames):
@@ -258,3 +304,65 @@ def native_observe(
         torch.Size([2, 5, 5])
     """
     return _run(world, None, params, threads, 0)[1]
+
+
+def native_fresh(
+    world: World,
+    rows: torch.Tensor,
+    words: torch.Tensor,
+    seeds: torch.Tensor,
+    params: HighwayParams,
+) -> tuple[World, torch.Tensor, torch.Tensor]:
+    """Fresh episodes in ``rows``, drawn in C++ with the tensor path's bits.
+
+    What :func:`~torchrl_grpo.sim.reset.reset_world` and the env's highway-env generator
+    words (``fresh_highway_words``) give, from the same streams: a reset row holds the
+    same values either way (tested bit for bit).
+
+    Args:
+        world: B worlds on the CPU.
+        rows: ``[B]`` bool, the rows to reset.
+        words: ``[B, 10]`` int64, the highway-env generator words the bridge carries.
+        seeds: ``[B]`` int64, the seed each row was reset with (-1: drawn).
+        params: the constants.
+
+    Returns:
+        ``(world, words, seeds)`` with the rows reset (new tensors; the inputs are kept).
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> from torchrl_grpo.sim.rng import seed_keys
+        >>> from torchrl_grpo.sim.state import empty_world
+        >>> params = tensor_params("highway-fast-v0")
+        >>> world = empty_world(2, 21)._replace(rng_key=seed_keys(torch.arange(2), 0))
+        >>> words = torch.zeros(2, 10, dtype=torch.int64)
+        >>> world, words, seeds = native_fresh(world, torch.tensor([True, False]), words,
+        ...                                    torch.zeros(2, dtype=torch.int64), params)
+        >>> world.rng_counter.tolist(), seeds.tolist()
+        ([2, 0], [-1, 0])
+    """
+    v = world.vehicles
+    batch, n = v.x.shape
+    columns = {name: getattr(v, name).contiguous().clone() for name in v._fields}
+    columns["speed_index"] = world.speed_index.contiguous().clone()
+    columns["steps"] = world.steps.contiguous().clone()
+    key, counter = world.rng_key.contiguous(), world.rng_counter.contiguous().clone()
+    time = world.time.contiguous().clone()
+    words, seeds = words.contiguous().clone(), seeds.contiguous().clone()
+    rows = rows.to(torch.bool).contiguous()
+    table = NativeTable(*(columns[k].data_ptr() if k in columns else None for k in _COLUMNS))
+    status = load_library().highway_reset(
+        ctypes.byref(_native_params(params)), ctypes.byref(table), batch, n,
+        *(t.data_ptr() for t in (rows, key, counter, time, words, seeds)),
+        int(v.x.dtype == torch.float64),
+    )  # fmt: skip
+    if status != 0:
+        raise ValueError(f"the C++ reset refused its input (status {status})")
+    world = world._replace(
+        vehicles=v._replace(**{name: columns[name] for name in v._fields}),
+        speed_index=columns["speed_index"],
+        steps=columns["steps"],
+        time=time,
+        rng_counter=counter,
+    )
+    return world, words, seeds

@@ -16,7 +16,8 @@ functions of tensors:
   with ``dense=True`` (the default on a GPU) the whole dense step (static shapes for
   CUDA graphs; on a CPU 12 times the eager arithmetic, slower even compiled).
 - :func:`native_mode`: highway-v0 and highway-fast-v0 on a CPU with the
-  substeps in C++ (:mod:`torchrl_grpo.sim.native`), worlds split over threads.
+  substeps, the observation and the fresh episodes in C++
+  (:mod:`torchrl_grpo.sim.native`), worlds split over threads.
 
 Compiled and C++ steps compute the eager step's model expression by expression, but
 round a few functions differently (1 to 2 ulp): they replay their own bits after a
@@ -37,7 +38,7 @@ from typing import Any, NamedTuple
 
 import torch
 
-from torchrl_grpo.sim.native import load_library, native_observe, native_step
+from torchrl_grpo.sim.native import load_library, native_fresh, native_observe, native_step
 from torchrl_grpo.sim.simulate import compiled_stages
 
 __all__ = ["NATIVE_SCENARIOS", "StepMode", "compiled_mode", "eager_mode", "native_mode"]
@@ -53,11 +54,14 @@ class StepMode(NamedTuple):
         name: ``"eager"``, ``"compiled"`` or ``"native"``.
         step: ``(world, action) -> (world, outputs)``.
         observe: ``(world) -> outputs``.
+        fresh: ``(world, rows, words, seeds) -> (world, words, seeds)``: new episodes in
+            ``rows``, with the highway-env generator words the bridge carries.
     """
 
     name: str
     step: Callable
     observe: Callable
+    fresh: Callable
 
 
 def eager_mode(model, params, device: torch.device) -> StepMode:
@@ -72,7 +76,8 @@ def eager_mode(model, params, device: torch.device) -> StepMode:
         False
     """
     step = functools.partial(model.step, params=params, dense=device.type == "cuda")
-    return StepMode("eager", step, functools.partial(model.observe, params=params))
+    observe = functools.partial(model.observe, params=params)
+    return StepMode("eager", step, observe, functools.partial(model.fresh, params=params))
 
 
 def compiled_mode(
@@ -148,4 +153,5 @@ def native_mode(
         "native",
         functools.partial(native_step, params=params, threads=threads),
         functools.partial(native_observe, params=params, threads=threads),
+        functools.partial(native_fresh, params=params),
     )

@@ -346,8 +346,8 @@ class TensorHighwayEnv(EnvBase):
                 rows, state.get(("highway", "seed")), self._highway_seed
             )
         else:
-            self._world, self._highway_rng, self._highway_seed = self._model.fresh(
-                self._world, rows, self._highway_rng, self._highway_seed, self.params
+            self._world, self._highway_rng, self._highway_seed = self._mode.fresh(
+                self._world, rows, self._highway_rng, self._highway_seed
             )
         out = self._output(self._mode.observe(self._world))
         # As HighwayEnv: no action was taken yet in a fresh episode, so no reward parts.
