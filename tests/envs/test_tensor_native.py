@@ -188,3 +188,37 @@ def test_fresh_episodes_hold_the_tensor_paths_bits(scenario, dtype):
     assert (worlds[0] == worlds[1]).all()
     # The control: the reset rows hold new worlds.
     assert not (worlds[0][rows]["vehicles", "x"] == moved[rows]["vehicles", "x"]).all()
+
+
+def test_config_overrides_agree_with_the_tensor_step():
+    # Every key the C++ step reads from the config: lanes, vehicles, frequencies, the
+    # ego's initial lane, the target speeds and a different observation table.
+    config = {
+        "lanes_count": 4,
+        "vehicles_count": 12,
+        "simulation_frequency": 10,
+        "initial_lane_id": 2,
+        "vehicles_density": 1.5,
+        "action": {"type": "DiscreteMetaAction", "target_speeds": [15, 20, 25, 30, 35]},
+        "observation": {
+            "type": "Kinematics",
+            "vehicles_count": 7,
+            "features": ["presence", "x", "y", "vx", "vy", "heading", "cos_h", "sin_h"],
+            "absolute": True,
+            "see_behind": True,
+        },
+    }
+    envs = [
+        TensorHighwayEnv(config=config, num_envs=24, seed=2, dtype=torch.float64, native=flag)
+        for flag in (True, False)
+    ]
+    outs = []
+    for env in envs:
+        td, steps = env.reset(), []
+        for t in range(12):
+            td.set("action", (torch.arange(24) + t) % 5)
+            out, td = env.step_and_maybe_reset(td)
+            steps.append(out["next"])
+        outs.append(torch.stack(steps))
+    assert outs[0]["observation"].shape[-2:] == (7, 8)
+    torch.testing.assert_close(outs[0], outs[1], rtol=0, atol=1e-9)
