@@ -1,7 +1,10 @@
 """The parity ladder at full size: TensorHighwayEnv against highway-env itself (docs/sim.md).
 
 Usage: ``python benchmarks/bench_parity.py [--scenario highway-fast-v0 | highway-v0 |
-merge-v0 | roundabout-v0] [--worlds 2000] [--episodes 500] [--fresh 1000]``
+merge-v0 | roundabout-v0] [--worlds 2000] [--episodes 500] [--fresh 1000] [--native]``
+
+``--native``: the same ladder for the C++ step (``TensorHighwayEnv(native=True)``, the
+highway scenarios).
 
 Float64 on CPU, worlds moved through the bridge. Rungs (issue #17):
 
@@ -55,10 +58,12 @@ def main() -> None:
     parser.add_argument("--worlds", type=int, default=2000)
     parser.add_argument("--episodes", type=int, default=500)
     parser.add_argument("--fresh", type=int, default=1000)
+    parser.add_argument("--native", action="store_true", help="the C++ step's ladder")
     args = parser.parse_args()
     torch.set_num_threads(1)
     scenario = args.scenario
-    env = TensorHighwayEnv(scenario, num_envs=args.worlds, dtype=torch.float64)
+    native = args.native
+    env = TensorHighwayEnv(scenario, num_envs=args.worlds, dtype=torch.float64, native=native)
     layout = KinematicsLayout.from_highway_config(env.config)
     rule = make_scripted_policy("rule", layout)
     start = time.perf_counter()
@@ -84,7 +89,7 @@ def main() -> None:
             f"{miss.field} off by {miss.error:.3g}: {miss.explanation}"
         )
 
-    small = TensorHighwayEnv(scenario, num_envs=args.episodes, dtype=torch.float64)
+    small = TensorHighwayEnv(scenario, num_envs=args.episodes, dtype=torch.float64, native=native)
     pick = torch.linspace(0, args.worlds - 1, args.episodes).long()
     horizons = whole_episodes(small, states[pick], rule)
     agree = float((horizons == -1).double().mean())
@@ -107,7 +112,9 @@ def main() -> None:
     # seeds disjoint from the reference's (0 .. episodes - 1), or both sides would draw
     # the very same episodes.
     seed = FRESH_SEED if env._model.draws_from_words else 0
-    table = fresh_resets(scenario, reference, policies, episodes=args.fresh, seed=seed)
+    table = fresh_resets(
+        scenario, reference, policies, episodes=args.fresh, seed=seed, native=native
+    )
     n = len(table)
     threshold = 0.01 / n
     for row in table:

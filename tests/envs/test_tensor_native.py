@@ -38,8 +38,8 @@ def recorders(env):
 
 @pytest.fixture(scope="module")
 def fast_worlds():
-    env = TensorHighwayEnv("highway-fast-v0", num_envs=100, dtype=torch.float64, native=True)
-    states, kinds = record_worlds("highway-fast-v0", recorders(env), 100, seed=0)
+    env = TensorHighwayEnv("highway-fast-v0", num_envs=60, dtype=torch.float64, native=True)
+    states, kinds = record_worlds("highway-fast-v0", recorders(env), 60, seed=0)
     assert kinds["changing"] > 0 and kinds["near_miss"] > 0 and kinds["crashed"] > 0
     return env, states
 
@@ -55,9 +55,9 @@ def test_ladder_a_b_c_on_highway_fast(fast_worlds):
     worst = same_world(env, states)
     assert worst["observation"] <= 1e-9 and worst["reward"] <= 1e-9 and worst["flags"] == 0
     report = one_step(env, states)
-    assert report.pairs == 500 and report.agreement >= 0.995, report.misses
-    small = TensorHighwayEnv("highway-fast-v0", num_envs=8, dtype=torch.float64, native=True)
-    horizons = whole_episodes(small, states[::12][:8], recorders(env)[0])
+    assert report.pairs == 300 and report.agreement >= 0.995, report.misses
+    small = TensorHighwayEnv("highway-fast-v0", num_envs=5, dtype=torch.float64, native=True)
+    horizons = whole_episodes(small, states[::12][:5], recorders(env)[0])
     assert bool((horizons == -1).all()), horizons
 
 
@@ -76,17 +76,17 @@ def test_ladder_d_fresh_resets():
 
 
 def test_ladder_a_b_on_highway_v0_all_pairs_collisions():
-    env = TensorHighwayEnv("highway-v0", num_envs=8, dtype=torch.float64, native=True)
+    env = TensorHighwayEnv("highway-v0", num_envs=5, dtype=torch.float64, native=True)
     assert env.params.traffic.others_check_collisions
-    states, _ = record_worlds("highway-v0", recorders(env), 8, seed=0)
+    states, _ = record_worlds("highway-v0", recorders(env), 5, seed=0)
     worst = same_world(env, states)
     assert worst["observation"] <= 1e-9 and worst["flags"] == 0
     assert one_step(env, states).agreement >= 0.995
 
 
-def _states(dtype, batch=32, steps=25):
+def _states(dtype, scenario="highway-fast-v0", batch=32, steps=25):
     """States after ``steps`` random steps of the tensor step (lane changes among them)."""
-    env = TensorHighwayEnv(num_envs=batch, seed=5, dtype=dtype)
+    env = TensorHighwayEnv(scenario, num_envs=batch, seed=5, dtype=dtype)
     g = torch.Generator().manual_seed(2)
     td = env.reset()
     states = []
@@ -97,20 +97,25 @@ def _states(dtype, batch=32, steps=25):
     return states
 
 
+@pytest.mark.parametrize("scenario", ["highway-fast-v0", "highway-v0"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_one_step_agrees_with_the_tensor_step(dtype):
-    atol = {torch.float32: 1e-4, torch.float64: 1e-11}[dtype]
-    states = _states(dtype)
+def test_one_step_agrees_with_the_tensor_step(dtype, scenario):
+    # float32: an ulp or two (positions reach 1 km on highway-v0: an ulp is 1.2e-4 there).
+    rtol, atol = {torch.float32: (1e-6, 1e-4), torch.float64: (0, 1e-11)}[dtype]
+    states = _states(dtype, scenario)
     batch = states[0].shape[0]
     action = TensorDict(action=torch.arange(batch) % 5, batch_size=[batch])
-    envs = [TensorHighwayEnv(num_envs=batch, dtype=dtype, native=flag) for flag in (True, False)]
+    envs = [
+        TensorHighwayEnv(scenario, num_envs=batch, dtype=dtype, native=flag)
+        for flag in (True, False)
+    ]
     for state in states[::6]:
         outs = []
         for env in envs:
             env.reset(TensorDict(state=state, batch_size=[batch]), set_state=True)
             outs.append((env.step(action.clone())["next"], env.get_state()))
-        torch.testing.assert_close(outs[0][0], outs[1][0], rtol=0, atol=atol)
-        torch.testing.assert_close(outs[0][1], outs[1][1], rtol=0, atol=atol)
+        torch.testing.assert_close(outs[0][0], outs[1][0], rtol=rtol, atol=atol)
+        torch.testing.assert_close(outs[0][1], outs[1][1], rtol=rtol, atol=atol)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

@@ -16,6 +16,7 @@ from torchrl_grpo.envs.highway.tensor_env import TensorHighwayEnv
 from torchrl_grpo.envs.highway.tensor_params import check_tensor_config
 from torchrl_grpo.envs.highway.wrapper import HighwayEnv
 from torchrl_grpo.modules.kinematics_table import KinematicsLayout
+from torchrl_grpo.sim.native import NativeBuildError, load_library
 
 __all__ = [
     "steps_natively",
@@ -37,10 +38,11 @@ __all__ = [
 #: Ray actors, :class:`~torchrl_grpo.distributed.RayGroupCollector`).
 RolloutBackend = Literal[Backend, "ray"]
 #: The simulator training runs on (``env.backend``): ``tensor`` (the batched simulator,
-#: :class:`~torchrl_grpo.envs.TensorHighwayEnv`), ``native`` (the same with its step in
-#: C++, ``native=True``: highway-v0 and highway-fast-v0 on a CPU), ``highway``
-#: (highway-env itself, on ``rollout.backend`` workers), or ``auto``: the tensor
-#: simulator where it covers the scenario and config, highway-env elsewhere.
+#: :class:`~torchrl_grpo.envs.TensorHighwayEnv`, its tensor step), ``native`` (the same
+#: with its step in C++, ``native=True``: highway-v0 and highway-fast-v0 on a CPU),
+#: ``highway`` (highway-env itself, on ``rollout.backend`` workers), or ``auto``: the
+#: tensor simulator where it covers the scenario and config (its C++ step where it has
+#: one, on a CPU), highway-env elsewhere.
 EnvBackend = Literal["auto", "tensor", "native", "highway"]
 
 log = logging.getLogger(__name__)
@@ -80,14 +82,30 @@ def env_backend(env_cfg: DictConfig) -> Literal["tensor", "highway"]:
     return "tensor"
 
 
-def steps_natively(env_cfg: DictConfig) -> bool:
-    """Whether the tensor simulator steps in C++ (``env.backend=native``).
+def steps_natively(env_cfg: DictConfig, device: str | torch.device = "cpu") -> bool:
+    """Whether the tensor simulator steps in C++ (``TensorHighwayEnv(native=True)``).
+
+    ``env.backend=native`` always; ``auto`` for highway-v0 and highway-fast-v0 on a CPU,
+    unless the C++ step cannot be built here (no compiler: logged, the tensor step then).
+    Call it where :func:`env_backend` chose the tensor simulator.
 
     Example:
         >>> steps_natively(OmegaConf.create({"backend": "native"}))
         True
+        >>> steps_natively(OmegaConf.create({"backend": "tensor", "scenario": "highway-v0"}))
+        False
     """
-    return str(env_cfg.get("backend", "auto")) == "native"
+    chosen = str(env_cfg.get("backend", "auto"))
+    if chosen != "auto":
+        return chosen == "native"
+    if env_cfg.scenario not in NATIVE_SCENARIOS or torch.device(device).type != "cpu":
+        return False
+    try:
+        load_library()
+    except NativeBuildError as err:
+        log.warning("env.backend=auto: the tensor step, as the C++ one is unavailable (%s)", err)
+        return False
+    return True
 
 
 def tensor_covers(env_cfg: DictConfig) -> bool:
@@ -196,6 +214,9 @@ def make_rollout_env(
         torch.Size([])
     """
     if env_backend(env_cfg) == "tensor":
+        native = steps_natively(env_cfg, device)
+        if native and str(env_cfg.get("backend")) == "auto":
+            log.info("env.backend=auto: its C++ step (env.backend=tensor: the tensor step)")
         return TensorHighwayEnv(
             env_cfg.scenario,
             env_overrides(env_cfg),
@@ -203,7 +224,7 @@ def make_rollout_env(
             device=check_device(device),
             seed=seed,
             return_state=bool(env_kwargs.get("return_state", snapshots)),
-            native=steps_natively(env_cfg),
+            native=native,
         )
     return make_branch_env(
         env_cfg.scenario,

@@ -60,7 +60,7 @@ def actor_env(cfg: DictConfig) -> tuple[Callable[[], EnvBase], dict[str, Any]]:
             num_envs=num_envs,
             device=str(device),
             return_state=True,
-            native=steps_natively(cfg.env),
+            native=steps_natively(cfg.env, device),
         )
         options: dict[str, Any] = {"memory": 1024**3}
         if device.type == "cuda":
