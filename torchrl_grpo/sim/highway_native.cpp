@@ -10,6 +10,7 @@
 // functions round differently. Worlds are split over `threads` threads.
 //
 // Built and loaded by torchrl_grpo/sim/native.py; no dependency beyond the C++ library.
+#include <atomic>
 #include <thread>
 #include <vector>
 
@@ -287,18 +288,24 @@ using highway::Table;
 extern "C" int highway_step(const Params* p, const Table* t, int64_t batch, int64_t n,
                             int frames, void* obs, int is_double, int threads) {
   if (p->n_speeds < 1 || p->n_speeds > 16 || p->obs_features > 8 || n < 1) return 1;
-  auto run = [&](int64_t lo, int64_t hi) {
-    if (is_double)
-      highway::step_rows<double>(*p, *t, lo, hi, int(n), frames, obs);
-    else
-      highway::step_rows<float>(*p, *t, lo, hi, int(n), frames, obs);
+  // Threads take blocks of worlds as they free up, so that a thread on a core that
+  // another process shares does not hold the others back (a world's result does not
+  // depend on which thread steps it).
+  const int64_t block = 32;
+  std::atomic<int64_t> next{0};
+  auto run = [&]() {
+    for (int64_t lo; (lo = next.fetch_add(block)) < batch;) {
+      int64_t hi = std::min(batch, lo + block);
+      if (is_double)
+        highway::step_rows<double>(*p, *t, lo, hi, int(n), frames, obs);
+      else
+        highway::step_rows<float>(*p, *t, lo, hi, int(n), frames, obs);
+    }
   };
-  int64_t workers = std::max<int64_t>(1, std::min<int64_t>(threads, batch));
+  int64_t workers = std::max<int64_t>(1, std::min<int64_t>(threads, (batch + block - 1) / block));
   std::vector<std::thread> pool;
-  int64_t chunk = (batch + workers - 1) / workers;
-  for (int64_t k = 1; k < workers; ++k)
-    pool.emplace_back(run, k * chunk, std::min(batch, (k + 1) * chunk));
-  run(0, std::min(batch, chunk));
+  for (int64_t k = 1; k < workers; ++k) pool.emplace_back(run);
+  run();
   for (auto& th : pool) th.join();
   return 0;
 }
