@@ -261,7 +261,7 @@ void step_rows(const Params& p, const Table& t, int64_t lo, int64_t hi, int n, i
       model.move(w);
       collide(p, w);
     }
-    t.steps[b] += frames;
+    if (frames) t.steps[b] += frames;
     if (obs) observe(p, w, static_cast<T*>(obs) + b * size, model.key, model.order);
   }
 }

@@ -129,7 +129,7 @@ class TensorHighwayEnv(EnvBase):
         self._categorical = categorical_action_encoding
         self._bridge: HighwayBridge | None = None
         self.fingerprint = stable_hash("TensorHighwayEnv", scenario, repr(self.params), str(dtype))
-        self.native() if native else self.eager()
+        (self.native if native else self.eager)()  # the step mode
         self._world = empty_world(
             num_envs, self.params.num_vehicles, dtype, device, self._route_length
         )
@@ -169,7 +169,7 @@ class TensorHighwayEnv(EnvBase):
         return self
 
     def native(self, threads: int | None = None) -> TensorHighwayEnv:
-        """Run the substeps in C++ (highway scenarios, CPU); ``self``.
+        """Step in C++ (highway scenarios, CPU): substeps, observation, fresh episodes; ``self``.
 
         A loop per world, split over ``threads`` (default ``torch.get_num_threads()``),
         the fastest step on a CPU; see :mod:`torchrl_grpo.sim.native`.
