@@ -38,8 +38,8 @@ def recorders(env):
 
 @pytest.fixture(scope="module")
 def fast_worlds():
-    env = TensorHighwayEnv("highway-fast-v0", num_envs=60, dtype=torch.float64, native=True)
-    states, kinds = record_worlds("highway-fast-v0", recorders(env), 60, seed=0)
+    env = TensorHighwayEnv("highway-fast-v0", num_envs=40, dtype=torch.float64, native=True)
+    states, kinds = record_worlds("highway-fast-v0", recorders(env), 40, seed=0)
     assert kinds["changing"] > 0 and kinds["near_miss"] > 0 and kinds["crashed"] > 0
     return env, states
 
@@ -55,9 +55,9 @@ def test_ladder_a_b_c_on_highway_fast(fast_worlds):
     worst = same_world(env, states)
     assert worst["observation"] <= 1e-9 and worst["reward"] <= 1e-9 and worst["flags"] == 0
     report = one_step(env, states)
-    assert report.pairs == 300 and report.agreement >= 0.995, report.misses
+    assert report.pairs == 200 and report.agreement >= 0.995, report.misses
     small = TensorHighwayEnv("highway-fast-v0", num_envs=5, dtype=torch.float64, native=True)
-    horizons = whole_episodes(small, states[::12][:5], recorders(env)[0])
+    horizons = whole_episodes(small, states[::8][:5], recorders(env)[0])
     assert bool((horizons == -1).all()), horizons
 
 
@@ -75,6 +75,7 @@ def test_ladder_d_fresh_resets():
     assert all(row["p"] >= 0.01 / len(table) for row in table), table
 
 
+@pytest.mark.slow  # 9 s; the default suite holds highway-v0 to the tensor step (below)
 def test_ladder_a_b_on_highway_v0_all_pairs_collisions():
     env = TensorHighwayEnv("highway-v0", num_envs=5, dtype=torch.float64, native=True)
     assert env.params.traffic.others_check_collisions
@@ -102,7 +103,8 @@ def _states(dtype, scenario="highway-fast-v0", batch=32, steps=25):
 def test_one_step_agrees_with_the_tensor_step(dtype, scenario):
     # float32: an ulp or two (positions reach 1 km on highway-v0: an ulp is 1.2e-4 there).
     rtol, atol = {torch.float32: (1e-6, 1e-4), torch.float64: (0, 1e-11)}[dtype]
-    states = _states(dtype, scenario)
+    # highway-v0's tensor step is 3 times as long (15 substeps, 51 vehicles): fewer steps.
+    states = _states(dtype, scenario, steps=25 if scenario == "highway-fast-v0" else 10)
     batch = states[0].shape[0]
     action = TensorDict(action=torch.arange(batch) % 5, batch_size=[batch])
     envs = [
