@@ -1,8 +1,8 @@
 """How TensorHighwayEnv advances its worlds: eagerly, through ``torch.compile``, or in C++.
 
 Each function returns a :class:`StepMode`: the env's step, ``(world, action) -> (world,
-outputs)``, and its observation of worlds that did not step (after a reset), both pure
-functions of tensors:
+outputs)``, its observation of worlds that did not step (after a reset) and its fresh
+episodes, all pure functions of tensors:
 
 - :func:`eager_mode`: the tensor path of :mod:`torchrl_grpo.sim`, op by op. On a CPU it
   compacts the vehicles that take a decision; on a GPU it keeps static shapes (dense),
