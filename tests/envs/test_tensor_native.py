@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from parity_helpers import recording_policies, reference_policies
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
@@ -19,27 +20,16 @@ from torchrl_grpo.envs import TensorHighwayEnv, tensor_params
 from torchrl_grpo.envs.highway.parity import one_step, record_worlds, same_world, whole_episodes
 from torchrl_grpo.envs.highway.parity_resets import fresh_resets
 from torchrl_grpo.envs.highway.step_modes import native_mode
-from torchrl_grpo.modules import (
-    ConstantActionPolicy,
-    KinematicsLayout,
-    RandomPolicy,
-    make_scripted_policy,
-)
 from torchrl_grpo.sim import native
 from torchrl_grpo.sim.native import NativeBuildError, native_step
 
 REFERENCE = Path(__file__).resolve().parents[1] / "data" / "highway_reference"
 
 
-def recorders(env):
-    layout = KinematicsLayout.from_highway_config(env.config)
-    return [make_scripted_policy("rule", layout), RandomPolicy(seed=0), ConstantActionPolicy(3)]
-
-
 @pytest.fixture(scope="module")
 def fast_worlds():
     env = TensorHighwayEnv("highway-fast-v0", num_envs=40, dtype=torch.float64, native=True)
-    states, kinds = record_worlds("highway-fast-v0", recorders(env), 40, seed=0)
+    states, kinds = record_worlds("highway-fast-v0", recording_policies(env.config), 40, seed=0)
     assert kinds["changing"] > 0 and kinds["near_miss"] > 0 and kinds["crashed"] > 0
     return env, states
 
@@ -57,20 +47,14 @@ def test_ladder_a_b_c_on_highway_fast(fast_worlds):
     report = one_step(env, states)
     assert report.pairs == 200 and report.agreement >= 0.995, report.misses
     small = TensorHighwayEnv("highway-fast-v0", num_envs=5, dtype=torch.float64, native=True)
-    horizons = whole_episodes(small, states[::8][:5], recorders(env)[0])
+    horizons = whole_episodes(small, states[::8][:5], recording_policies(env.config)[0])
     assert bool((horizons == -1).all()), horizons
 
 
 def test_ladder_d_fresh_resets():
     reference = json.loads((REFERENCE / "highway-fast-v0.json").read_text())
     config = TensorHighwayEnv("highway-fast-v0", num_envs=1).config
-    layout = KinematicsLayout.from_highway_config(config)
-    policies = {
-        "idle": make_scripted_policy("idle"),
-        "slower": make_scripted_policy("slower"),
-        "random": make_scripted_policy("random", seed=1),
-        "rule": make_scripted_policy("rule", layout),
-    }
+    policies = reference_policies(config)
     table = fresh_resets("highway-fast-v0", reference, policies, episodes=300, native=True)
     assert all(row["p"] >= 0.01 / len(table) for row in table), table
 
@@ -79,7 +63,7 @@ def test_ladder_d_fresh_resets():
 def test_ladder_a_b_on_highway_v0_all_pairs_collisions():
     env = TensorHighwayEnv("highway-v0", num_envs=5, dtype=torch.float64, native=True)
     assert env.params.traffic.others_check_collisions
-    states, _ = record_worlds("highway-v0", recorders(env), 5, seed=0)
+    states, _ = record_worlds("highway-v0", recording_policies(env.config), 5, seed=0)
     worst = same_world(env, states)
     assert worst["observation"] <= 1e-9 and worst["flags"] == 0
     assert one_step(env, states).agreement >= 0.995

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from parity_helpers import recording_policies, reference_policies
 
 from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.envs.highway.parity import (
@@ -22,37 +23,14 @@ from torchrl_grpo.envs.highway.parity import (
     same_world,
     whole_episodes,
 )
-from torchrl_grpo.modules import (
-    ConstantActionPolicy,
-    KinematicsLayout,
-    RandomPolicy,
-    make_scripted_policy,
-)
 
 REFERENCE = Path(__file__).resolve().parents[1] / "data" / "highway_reference"
-
-
-def policies(env):
-    """The recording policies: the rule policy, random and always-FASTER."""
-    layout = KinematicsLayout.from_highway_config(env.config)
-    return [make_scripted_policy("rule", layout), RandomPolicy(seed=0), ConstantActionPolicy(3)]
-
-
-def reference_policies(config):
-    """The policies scripts/highway_reference.py drove highway-env with, by name."""
-    layout = KinematicsLayout.from_highway_config(config)
-    return {
-        "idle": make_scripted_policy("idle"),
-        "slower": make_scripted_policy("slower"),
-        "random": make_scripted_policy("random", seed=1),
-        "rule": make_scripted_policy("rule", layout),
-    }
 
 
 @pytest.fixture(scope="module")
 def fast_worlds():
     env = TensorHighwayEnv("highway-fast-v0", num_envs=100, dtype=torch.float64)
-    states, kinds = record_worlds("highway-fast-v0", policies(env), 100, seed=0)
+    states, kinds = record_worlds("highway-fast-v0", recording_policies(env.config), 100, seed=0)
     return env, states, kinds
 
 
@@ -78,7 +56,7 @@ def test_b_one_step_every_action(fast_worlds):
 def test_c_whole_episodes(fast_worlds):
     env, states, _ = fast_worlds
     small = TensorHighwayEnv("highway-fast-v0", num_envs=30, dtype=torch.float64)
-    horizons = whole_episodes(small, states[::3][:30], policies(env)[0])
+    horizons = whole_episodes(small, states[::3][:30], recording_policies(env.config)[0])
     assert float((horizons == -1).double().mean()) >= 0.95, horizons
 
 
@@ -93,7 +71,7 @@ def test_d_fresh_resets_match_highway_env_statistics():
 @pytest.mark.slow
 def test_ladder_on_highway_v0():
     env = TensorHighwayEnv("highway-v0", num_envs=40, dtype=torch.float64)
-    states, _ = record_worlds("highway-v0", policies(env), 40, seed=0)
+    states, _ = record_worlds("highway-v0", recording_policies(env.config), 40, seed=0)
     worst = same_world(env, states)
     assert worst["observation"] <= 1e-9 and worst["flags"] == 0
     assert one_step(env, states).agreement >= 0.995

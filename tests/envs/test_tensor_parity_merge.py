@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from parity_helpers import recording_policies, reference_policies
 
 from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.envs.highway.parity import (
@@ -23,9 +24,7 @@ from torchrl_grpo.envs.highway.parity import (
     whole_episodes,
 )
 from torchrl_grpo.modules import (
-    ConstantActionPolicy,
     KinematicsLayout,
-    RandomPolicy,
     make_scripted_policy,
 )
 
@@ -42,7 +41,7 @@ def rule(config):
 @pytest.fixture(scope="module")
 def merge_worlds():
     env = TensorHighwayEnv(SCENARIO, num_envs=15, dtype=torch.float64)
-    recorders = [rule(env.config), RandomPolicy(seed=0), ConstantActionPolicy(3)]
+    recorders = recording_policies(env.config)
     states, kinds = record_worlds(SCENARIO, recorders, 15, seed=0)
     return env, states, kinds
 
@@ -91,13 +90,7 @@ def test_d_fresh_worlds_match_highway_env_initial_statistics():
 def test_d_fresh_resets_match_highway_env_statistics():
     reference = json.loads((REFERENCE / f"{SCENARIO}.json").read_text())
     env = TensorHighwayEnv(SCENARIO, num_envs=1)
-    layout = KinematicsLayout.from_highway_config(env.config)
-    policies = {
-        "idle": make_scripted_policy("idle"),
-        "slower": make_scripted_policy("slower"),
-        "random": make_scripted_policy("random", seed=1),
-        "rule": make_scripted_policy("rule", layout),
-    }
+    policies = reference_policies(env.config)
     table = fresh_resets(SCENARIO, reference, policies, episodes=200, seed=FRESH_SEED)
     threshold = 0.01 / len(table)  # Bonferroni over every comparison
     assert all(row["p"] >= threshold for row in table), table
@@ -106,7 +99,7 @@ def test_d_fresh_resets_match_highway_env_statistics():
 @pytest.mark.slow
 def test_b_on_100_worlds():
     env = TensorHighwayEnv(SCENARIO, num_envs=100, dtype=torch.float64)
-    recorders = [rule(env.config), RandomPolicy(seed=0), ConstantActionPolicy(3)]
+    recorders = recording_policies(env.config)
     states, _ = record_worlds(SCENARIO, recorders, 100, seed=7)
     assert same_world(env, states)["flags"] == 0
     assert one_step(env, states).agreement >= 0.995
