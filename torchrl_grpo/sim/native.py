@@ -227,22 +227,38 @@ def _fresh_constants(values: NativeParams, params: HighwayParams) -> None:
     values.delta_lo, values.delta_span = low, high - low
 
 
-def _run(world: World, action: torch.Tensor | None, params: HighwayParams, threads, frames):
-    """The C++ call: ``frames`` substeps of a copy of ``world``, then its observation."""
+def _columns(world: World, clone: bool) -> dict[str, torch.Tensor]:
+    """The contiguous columns the C++ code reads (and, cloned, writes), by ``Table`` name.
+
+    Raises:
+        ValueError: a world off the CPU, or with routes (not a highway scenario).
+    """
     if world.vehicles.x.device.type != "cpu":
         raise ValueError(f"the C++ step runs on the CPU; the world is on {world.vehicles.x.device}")
     if world.route is not None:
         raise ValueError("the C++ step covers highway-v0 and highway-fast-v0 (no routes)")
+    columns = {name: getattr(world.vehicles, name) for name in world.vehicles._fields}
+    columns.update(speed_index=world.speed_index, steps=world.steps)
+    # Cloned: the C++ code writes into them and the input world stays as it was.
+    return {k: t.contiguous().clone() if clone else t.contiguous() for k, t in columns.items()}
+
+
+def _with_columns(world: World, columns: dict[str, torch.Tensor], **words) -> World:
+    """``world`` holding the columns the C++ code wrote, and the given per-world words."""
+    vehicles = world.vehicles._replace(**{k: columns[k] for k in world.vehicles._fields})
+    return world._replace(
+        vehicles=vehicles, speed_index=columns["speed_index"], steps=columns["steps"], **words
+    )
+
+
+def _run(world: World, action: torch.Tensor | None, params: HighwayParams, threads, frames):
+    """The C++ call: ``frames`` substeps of a copy of ``world``, then its observation."""
     library = load_library()
     v = world.vehicles
     batch, n = v.x.shape
-    # Fresh contiguous columns: the step writes into them, the input stays as it was.
-    copy = frames > 0
-    columns = {name: getattr(v, name).contiguous() for name in v._fields}
-    columns["speed_index"] = world.speed_index.contiguous()
-    columns["steps"] = world.steps.contiguous()
+    copy = frames > 0  # an observation alone writes nothing
+    columns = _columns(world, clone=copy)
     if copy:
-        columns = {name: column.clone() for name, column in columns.items()}
         columns["action"] = action.to(torch.int64).contiguous()
     obs = params.observation
     observation = v.x.new_empty(batch, obs.vehicles_count, len(obs.features))
@@ -257,12 +273,7 @@ def _run(world: World, action: torch.Tensor | None, params: HighwayParams, threa
     if status != 0:
         raise ValueError(f"the C++ step refused its input (status {status})")
     if copy:
-        world = world._replace(
-            vehicles=v._replace(**{name: columns[name] for name in v._fields}),
-            speed_index=columns["speed_index"],
-            steps=columns["steps"],
-            time=world.time + params.time.step_time,
-        )
+        world = _with_columns(world, columns, time=world.time + params.time.step_time)
     return world, observe_world(world, params, observation=observation)
 
 
@@ -345,9 +356,7 @@ def native_fresh(
     """
     v = world.vehicles
     batch, n = v.x.shape
-    columns = {name: getattr(v, name).contiguous().clone() for name in v._fields}
-    columns["speed_index"] = world.speed_index.contiguous().clone()
-    columns["steps"] = world.steps.contiguous().clone()
+    columns = _columns(world, clone=True)
     key, counter = world.rng_key.contiguous(), world.rng_counter.contiguous().clone()
     time = world.time.contiguous().clone()
     words, seeds = words.contiguous().clone(), seeds.contiguous().clone()
@@ -360,11 +369,4 @@ def native_fresh(
     )  # fmt: skip
     if status != 0:
         raise ValueError(f"the C++ reset refused its input (status {status})")
-    world = world._replace(
-        vehicles=v._replace(**{name: columns[name] for name in v._fields}),
-        speed_index=columns["speed_index"],
-        steps=columns["steps"],
-        time=time,
-        rng_counter=counter,
-    )
-    return world, words, seeds
+    return _with_columns(world, columns, time=time, rng_counter=counter), words, seeds
