@@ -1,22 +1,25 @@
 """Everything a GPU session measures, in one run of under 8 minutes on one H200.
 
-    python benchmarks/bench_gpu.py                     # cuda, B = 65,536 .. 1,048,576
+    python benchmarks/bench_gpu.py --checkpoints ckpt  # cuda, B = 65,536 .. 1,048,576
     python benchmarks/bench_gpu.py --device cpu --sizes 64 --train-frames 256 \\
         --planner-worlds 2 --budget 120                # the CPU smoke run (tests/test_bench_gpu.py)
 
 Each part is skipped (and says so) once ``--budget`` seconds are spent, so that the run
-ends in time; the cheap parts run first (eager rates, planner, training), the
-compilations last. The parts:
+ends in time; training, last, runs for what is left. The parts:
 
 1. env-steps/s of highway-fast-v0, float32, always-IDLE, finished worlds reset, at each B:
    * ``eager``: ``TensorHighwayEnv.step_and_maybe_reset`` (what training calls; on a
      GPU the step takes its dense, sync-free path);
-   * ``compiled``: the same env after ``env.compile(dense=True, dynamic=True)`` (the
-     whole dense step through Inductor, TorchRL's plumbing eager; GPU only);
-   * ``graph``: the pure dense step plus the sync-free reset of finished rows
-     (:func:`~torchrl_grpo.sim.reset.reset_world`), through
-     ``torch.compile(mode="reduce-overhead", dynamic=True)``: Inductor's kernels
-     replayed as CUDA graphs (GPU only), the simulator without TorchRL's per-step Python.
+   * ``compiled``: the simulator without TorchRL's per-step Python: one substep and the
+     step's outputs with the reset of finished rows
+     (:func:`~torchrl_grpo.sim.reset.reset_world`, sync-free on a GPU) each through
+     ``torch.compile(dynamic=True)`` (GPU only). The substep is compiled alone and called
+     ``frames`` times: the whole step unrolls its five substeps into one graph, which
+     Inductor had not finished lowering after five minutes on one CPU core, where one
+     substep compiles in 92 s (44 s with static shapes);
+   * ``graph``: those compiled kernels captured once per B in a CUDA graph
+     (``torch.cuda.graph``) that also copies the new worlds over its inputs, and
+     replayed: no launch cost left (GPU only).
    Every B of one kind runs before the next kind; a size that runs out of memory is
    reported as such.
 2. The branch-as-rows lookahead planner
@@ -25,8 +28,12 @@ compilations last. The parts:
    most 30 steps driven at once, horizon ``--horizon``, base policy ``slower``:
    episodes/s and planned env-steps/s.
 3. The recipe (``scripts/train.py``'s default config, GRPO with branching, on the
-   tensor simulator, on ``--device``) for ``--train-frames`` frames, no evaluation:
-   training frames/s end to end (collection, policy and learner).
+   tensor simulator, on ``--device``) for ``--train-frames`` frames (default: the
+   recipe's 2M) or ``--train-seconds``, whichever comes first, no evaluation: training
+   frames/s end to end (collection, policy and learner), and the frames and seconds at
+   every ``--milestone-frames``. With ``--checkpoints DIR``, the policy at each milestone
+   is saved there (``recipe_<frames>.pt``), to be evaluated on highway-env's episodes
+   elsewhere (``bench_crash_rates.py --checkpoint``): minutes to a return.
 
 It prints one ``NAME: VALUE`` line per figure and, with ``--json``, writes them all.
 """
@@ -36,15 +43,20 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import shutil
 import tempfile
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import torch
+from torch.utils._pytree import tree_flatten, tree_leaves, tree_unflatten
 
 from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.sim.reset import reset_world
-from torchrl_grpo.sim.simulate import step as sim_step
+from torchrl_grpo.sim.simulate import observe_world, substep
+from torchrl_grpo.sim.state import World
+from torchrl_grpo.training.hooks import Hook
 
 IDLE = 1
 GPU_SIZES = [65_536, 131_072, 262_144, 524_288, 1_048_576]
@@ -85,12 +97,10 @@ def timed_rate(
     return calls * per_call / (time.perf_counter() - start)
 
 
-def env_stepper(batch: int, device: torch.device, compiled: bool) -> Callable[[], None]:
+def env_stepper(batch: int, device: torch.device) -> Callable[[], None]:
     """``step_and_maybe_reset`` of B worlds, always-IDLE (the check of actions off)."""
     env = TensorHighwayEnv("highway-fast-v0", num_envs=batch, seed=0, device=device,
                            check_actions=False)  # fmt: skip
-    if compiled:
-        env.compile(dense=True, dynamic=True)  # one compilation for every B
     td = env.reset()
     action = torch.full((batch,), IDLE, device=device)
 
@@ -102,38 +112,85 @@ def env_stepper(batch: int, device: torch.device, compiled: bool) -> Callable[[]
     return fn
 
 
-def _advance(world, action, params):
-    """One env step of B worlds and the reset of the finished ones: a pure function."""
-    new, out = sim_step(world, action, params, dense=True)
-    return reset_world(new, out["terminated"] | out["truncated"], params), out["observation"]
+def _finish(world: World, params) -> World:
+    """The step's outputs and the reset of the finished worlds (a pure function)."""
+    out = observe_world(world, params)
+    return reset_world(world, out["terminated"] | out["truncated"], params)
 
 
-#: One compiled function for every B (``dynamic=True``: one Inductor compilation), its
-#: graphs replayed by cudagraph trees (``mode="reduce-overhead"``).
-_GRAPHED: dict[str, Callable] = {}
+def advance_fn(substep_fn: Callable, finish_fn: Callable, action, params) -> Callable:
+    """One env step of B worlds plus the reset of the finished ones: ``world -> world``.
 
-
-def graph_stepper(batch: int, device: torch.device) -> Callable[[], None]:
-    """The pure dense step plus the reset of finished rows, compiled and CUDA-graphed.
-
-    ``torch.compile(mode="reduce-overhead")`` rather than a hand capture with
-    ``torch.cuda.graph``: the step builds small constant tensors from Python lists
-    (host-to-device copies, which a stream capture refuses); Inductor makes them graph
-    constants.
+    ``substep_fn`` and ``finish_fn`` are :func:`~torchrl_grpo.sim.simulate.substep` and
+    :func:`_finish`, eager or compiled; eager, it is ``simulate.step`` plus
+    ``reset_world`` (tests/test_bench_gpu.py holds it to their bits).
     """
-    if "fn" not in _GRAPHED:
-        _GRAPHED["fn"] = torch.compile(_advance, mode="reduce-overhead", dynamic=True)
-    advance = _GRAPHED["fn"]
+    frames, step_time = params.time.frames, params.time.step_time
+
+    def advance(world: World) -> World:
+        world = world._replace(time=world.time + step_time)
+        for _ in range(frames):
+            world = substep_fn(world, action, params, True)
+        return finish_fn(world, params)
+
+    return advance
+
+
+def tensors(world: World) -> list[torch.Tensor]:
+    """The world's tensors, nested tables included (highway's empty routes left out)."""
+    return [t for t in tree_leaves(world) if t is not None]
+
+
+def returning_tensors(fn: Callable[..., World]) -> Callable[..., World]:
+    """``fn`` compiled, its world passed out as tensors and rebuilt outside.
+
+    torch 2.11's compiled functions return an empty ``World`` (a named tuple with
+    defaults) in place of the one built inside; 2.13's return it whole.
+    """
+    compiled = torch.compile(lambda *args: tuple(tensors(fn(*args))), dynamic=True)
+
+    def call(world: World, *args) -> World:
+        leaves, spec = tree_flatten(world)
+        new = iter(compiled(world, *args))
+        return tree_unflatten([None if x is None else next(new) for x in leaves], spec)
+
+    return call
+
+
+#: The compiled substep and finish, shared by every B and by both kinds (``dynamic=True``:
+#: one Inductor compilation each).
+_COMPILED: dict[str, Callable] = {}
+
+
+def pure_stepper(batch: int, device: torch.device, graph: bool) -> Callable[[], None]:
+    """The compiled pure step of B worlds, replayed from a CUDA graph if ``graph``."""
+    if not _COMPILED:
+        _COMPILED["substep"] = returning_tensors(substep)
+        _COMPILED["finish"] = returning_tensors(_finish)
     env = TensorHighwayEnv("highway-fast-v0", num_envs=batch, seed=0, device=device)
-    params, action = env.params, torch.full((batch,), IDLE, device=device)
+    action = torch.full((batch,), IDLE, device=device)
+    advance = advance_fn(_COMPILED["substep"], _COMPILED["finish"], action, env.params)
     world = env._world
+    if not graph:
 
-    def fn() -> None:
-        nonlocal world
-        torch.compiler.cudagraph_mark_step_begin()
-        world, _ = advance(world, action, params)
+        def fn() -> None:
+            nonlocal world
+            world = advance(world)
 
-    return fn
+        return fn
+    # Warm up on a side stream (compilation, the allocator), as torch.cuda.graph asks.
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side):
+        for _ in range(2):
+            world = advance(world)
+    torch.cuda.current_stream().wait_stream(side)
+    captured = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(captured):
+        new = advance(world)
+        for old, fresh in zip(tensors(world), tensors(new), strict=True):
+            old.copy_(fresh)  # each replay steps the worlds in place
+    return captured.replay
 
 
 def env_rates(args: argparse.Namespace, clock: Clock, out: dict, kinds: list[str]) -> None:
@@ -144,23 +201,24 @@ def env_rates(args: argparse.Namespace, clock: Clock, out: dict, kinds: list[str
     for kind in kinds:
         for i, batch in enumerate(args.sizes):
             name = f"env-steps/s {kind} B={batch}"
-            # A compiled kind compiles at its first size (minutes): start it with room.
-            compiles = kind != "eager" and i == 0
+            # The compiled kind compiles at its first size (minutes): start it with room.
+            compiles = kind == "compiled" and i == 0
             if clock.left() < args.seconds * 4 + (COMPILE_SECONDS if compiles else 0):
                 out[name] = "skipped: time"
                 report(name, out[name])
                 continue
             fn = None
             try:
-                if kind == "graph":
-                    fn = graph_stepper(batch, device)
+                if kind == "eager":
+                    fn = env_stepper(batch, device)
                 else:
-                    fn = env_stepper(batch, device, compiled=kind == "compiled")
+                    fn = pure_stepper(batch, device, graph=kind == "graph")
                 out[name] = timed_rate(fn, batch, device, args.seconds)
             except torch.OutOfMemoryError:
                 out[name] = "out of memory"
             except Exception as error:  # noqa: BLE001 - a failed part must not end the run
                 out[name] = f"failed: {type(error).__name__}: {str(error)[:200]}"
+                log.exception("%s", name)
             finally:
                 fn = None
                 if device.type == "cuda":
@@ -199,36 +257,77 @@ def planner_rate(args: argparse.Namespace, clock: Clock, out: dict) -> None:
         report("planner planned env-steps/s", out["planner planned env-steps/s"])
     except Exception as error:  # noqa: BLE001
         out[name] = f"failed: {type(error).__name__}: {str(error)[:200]}"
+        log.exception("%s", name)
     report(name, out[name])
+
+
+class Milestones(Hook):
+    """Notes the frames and seconds every ``every`` frames and at the end, saves the
+    policy there, and stops the run after ``seconds`` of training (as Ctrl-C would)."""
+
+    phase = "milestones"
+
+    def __init__(self, every: int, seconds: float, save_to: Path | None) -> None:
+        self.every, self.seconds, self.save_to = every, seconds, save_to
+        self.next = every
+        self.curve: list[list[float]] = []
+
+    def due(self, trainer, batch) -> bool:
+        return True
+
+    def on_iteration(self, trainer, batch, result) -> dict:
+        seconds = trainer.wall_seconds()
+        if seconds >= self.seconds:
+            trainer.stop_requested = True
+        ends = trainer.stop_requested or trainer.frames >= trainer.cfg.experiment.total_frames
+        if trainer.frames >= self.next or ends:
+            while self.next <= trainer.frames:
+                self.next += self.every
+            self.curve.append([trainer.frames, round(seconds, 1)])
+            if self.save_to is not None:
+                name = f"recipe_{trainer.frames}.pt"
+                shutil.copy(trainer.save(name=name), self.save_to / name)
+        return {}
 
 
 def training_rate(args: argparse.Namespace, clock: Clock, out: dict) -> None:
     from torchrl_grpo.training import Trainer, compose_config
 
-    name = f"training frames/s (recipe, {args.train_frames} frames, end to end)"
-    if clock.left() < 30 or args.train_frames <= 0:
-        out[name] = "skipped: time" if args.train_frames > 0 else "skipped"
+    name = "training frames/s (recipe, end to end)"
+    if clock.left() < 30 or args.train_frames == 0:
+        out[name] = "skipped: time" if args.train_frames != 0 else "skipped"
         report(name, out[name])
         return
     overrides = [
         f"device={args.device}",
         "env.backend=tensor",
         "logger=none",
-        f"experiment.total_frames={args.train_frames}",
         "experiment.eval_every=0",
         "experiment.final_eval_episodes=0",
+        "experiment.checkpoint_every=0",
+        *([f"experiment.total_frames={args.train_frames}"] if args.train_frames else []),
         *args.train_override,
     ]
+    seconds = min(args.train_seconds, clock.left() - 20)
+    save_to = Path(args.checkpoints) if args.checkpoints else None
+    if save_to is not None:
+        save_to.mkdir(parents=True, exist_ok=True)
     try:
         cfg = compose_config(overrides)
+        milestones = Milestones(args.milestone_frames, seconds, save_to)
         with tempfile.TemporaryDirectory() as run_dir:
             start = time.perf_counter()
-            result = Trainer(cfg, run_dir=run_dir).train()
+            result = Trainer(cfg, run_dir=run_dir, hooks=[milestones]).train()
             elapsed = time.perf_counter() - start
         out[name] = result.frames / elapsed
         out["training frames"] = int(result.frames)
+        out["training seconds"] = round(elapsed, 1)
+        out["training stopped by --train-seconds"] = bool(result.interrupted)
+        out["training milestones [frames, seconds]"] = milestones.curve
+        report("training milestones [frames, seconds]", milestones.curve)
     except Exception as error:  # noqa: BLE001
         out[name] = f"failed: {type(error).__name__}: {str(error)[:300]}"
+        log.exception("%s", name)
     report(name, out[name])
 
 
@@ -244,9 +343,12 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--seconds", type=float, default=3.0, help="timing per figure")
     parser.add_argument("--planner-worlds", type=int, default=1024)
     parser.add_argument("--horizon", type=int, default=4)
-    parser.add_argument("--train-frames", type=int, default=100_000)
+    parser.add_argument("--train-frames", type=int, default=None, help="default: the recipe's")
+    parser.add_argument("--train-seconds", type=float, default=200.0, help="training's cap")
+    parser.add_argument("--milestone-frames", type=int, default=500_000)
+    parser.add_argument("--checkpoints", default=None, help="save the policy at milestones here")
     parser.add_argument("--train-override", nargs="*", default=[], help="more config overrides")
-    parser.add_argument("--budget", type=float, default=420.0, help="seconds for the whole run")
+    parser.add_argument("--budget", type=float, default=500.0, help="seconds for the whole run")
     parser.add_argument("--json", default=None, help="also write the figures here")
     args = parser.parse_args(argv)
     if args.device.startswith("cuda") and not torch.cuda.is_available():
@@ -255,11 +357,11 @@ def main(argv: list[str] | None = None) -> dict:
     clock = Clock(args.budget)
     out: dict = {"device": torch.cuda.get_device_name() if args.device != "cpu" else "cpu"}
     print(f"bench_gpu on {out['device']}, torch {torch.__version__}", flush=True)
-    # The cheap figures first; the compilations (minutes) last, cut by the budget.
-    env_rates(args, clock, out, ["eager"])
+    # The simulator's rates first (the compilation takes minutes), then the planner, then
+    # training for what the budget leaves (--train-seconds at most).
+    env_rates(args, clock, out, ["eager", "compiled", "graph"])
     planner_rate(args, clock, out)
     training_rate(args, clock, out)
-    env_rates(args, clock, out, ["graph", "compiled"])
     out["seconds"] = round(time.perf_counter() - clock.start, 1)
     report("seconds", out["seconds"])
     if args.json:

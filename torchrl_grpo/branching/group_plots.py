@@ -98,7 +98,7 @@ def plot_group(
         >>> fig.image.shape[0], fig.image.dtype
         (3, torch.uint8)
     """
-    group_data = data[group]
+    group_data = data[group].cpu()  # drawn with numpy
     mask = group_data.get(MASK)
     returns = group_data.get(BRANCH_RETURN)[:, 0].reshape(-1).double().numpy()
     start = group_data.get("ego_position")[:, 0].double().numpy()

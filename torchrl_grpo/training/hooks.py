@@ -11,6 +11,7 @@ pass more with ``Trainer(cfg, hooks=[...])`` (BenchMARL's callbacks).
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import sys
@@ -271,9 +272,13 @@ class EvaluationHook(Hook):
         cfg = trainer.cfg
         if record and self._render is None:
             self._render = make_env(cfg.env, render_mode="rgb_array")
+        # The evaluation envs are CPU envs: a run on a GPU evaluates a CPU copy.
+        policy = trainer.eval_policy
+        if any(p.device.type != "cpu" for p in policy.parameters()):
+            policy = copy.deepcopy(policy).cpu()
         res, video = evaluate(
             trainer.eval_env,
-            trainer.eval_policy,
+            policy,
             episodes=episodes,
             seed=seed,
             max_steps=int(cfg.env.max_episode_steps),
@@ -283,7 +288,7 @@ class EvaluationHook(Hook):
         )
         summary = res.summary()
         if tensor_covers(cfg.env):
-            tensor = evaluate_on_tensor(cfg.env, trainer.eval_policy, episodes=episodes, seed=seed)
+            tensor = evaluate_on_tensor(cfg.env, policy, episodes=episodes, seed=seed)
             summary |= {f"transfer_{k}": v for k, v in paired_gap(res, tensor).items()}
         progress = trainer.progress
         # The seed names the seed set, so that a row is compared with baselines on its own.

@@ -148,9 +148,11 @@ class Trainer:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.seed = int(cfg.seed)
         seed_everything(self.seed)
-        check_device(str(cfg.get("device", "cpu")))
+        device = check_device(str(cfg.get("device", "cpu")))
         self.eval_env = make_env(cfg.env, seed=self.seed)
-        self.policy = make_policy(cfg.model, self.eval_env)
+        # Built on the evaluation env (a CPU env), then moved to where the rollouts and
+        # the learner run: evaluations drive a CPU copy (hooks.EvaluationHook).
+        self.policy = make_policy(cfg.model, self.eval_env).to(device)
         if cfg.get("init_from") and not cfg.get("resume"):
             # Before the algorithm: a reference policy and the weight average copy these.
             init_policy(str(cfg.init_from), self.policy, cfg)

@@ -128,9 +128,16 @@ class Algorithm:
             self.trained_head = self.ensemble
         # The value network draws its initial weights right after the policy's.
         self.value = self.make_value(cfg.model, env)
-        self.loss = self.make_loss(cfg.algo, policy, self.value)
+        if self.value is not None:
+            self.value = self.value.to(self.device)
+        self.loss = self.make_loss(cfg.algo, policy, self.value).to(self.device)
         self.optimizer = make_optimizer(cfg.optim, self.loss)
         self.updates = 0
+
+    @property
+    def device(self) -> torch.device:
+        """Where the policy's weights are (``cfg.device``): the learner's batches go there."""
+        return next(self.policy.parameters()).device
 
     # ---------------------------------------------------------------- schemas
     @classmethod
@@ -331,6 +338,7 @@ class Algorithm:
         """
         algo = self.cfg.algo
         params = [p for group in self.optimizer.param_groups for p in group["params"]]
+        data = data.to(self.device)
         n = data.shape[0]
         mb = min(int(algo.minibatch_size), n)
         cap = algo.get("max_minibatches")

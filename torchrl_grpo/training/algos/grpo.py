@@ -274,7 +274,7 @@ class GRPO(Algorithm):
         update is a trust region around the policy it starts from.
         """
         self.replay.extend(data.exclude("action_log_prob"))
-        return self.current_log_probs(self.replay[:])
+        return self.current_log_probs(self.replay[:].to(self.device))  # stored on the CPU
 
     def current_log_probs(self, data: TensorDictBase) -> TensorDictBase:
         """``data`` with the current policy's ``action_log_prob`` of each step's action.
