@@ -12,7 +12,11 @@ all of them, its expected regret under the planner's scores,
 
     sum_a pi(a | s) * (max_b Q(s, b) - Q(s, a))  +  beta * KL(pi_k(. | s) || pi(. | s)),
 
-with ``pi_k`` the round's starting network. Unlike hard argmax labels, tied actions
+with ``pi_k`` the round's starting network (``--loss regret``). ``--loss crash`` pulls
+only where the planner's branches decide a crash: at states where some action's branch
+crashes within the horizon and another's does not, the target is the round's starting
+distribution over the actions that do not crash (weighted by ``--weight``); every other
+state keeps its KL to the start. Unlike hard argmax labels, tied actions
 cost nothing (no index bias), and a state pulls in proportion to what the network's
 choice loses there: the crash-scale corrections weigh more than the many small ones
 (``search_labels.py`` measures both). After each round the network is evaluated
@@ -56,17 +60,41 @@ def regret_loss(
     return (expected + beta * kl).mean()
 
 
-def fit(policy, data: dict[str, torch.Tensor], epochs: int, lr: float, beta: float) -> float:
-    """Minimise :func:`regret_loss` over ``data``; the last epoch's mean loss."""
-    obs, scores = data["observation"], data["scores"]
+def crash_loss(
+    logits: torch.Tensor, crashed: torch.Tensor, start_logits: torch.Tensor, weight: float
+) -> torch.Tensor:
+    """Off the actions whose branch crashes where another's does not; as it was elsewhere.
+
+    At a deciding state (some action's branch crashes within the horizon, another's does
+    not) the target is the start's distribution over the actions that do not crash,
+    weighted by ``weight``; at every other state, the KL to the start.
+    """
+    safe = ~crashed
+    deciding = crashed.any(-1) & safe.any(-1)
+    log_p = logits.log_softmax(-1)
+    start = start_logits.log_softmax(-1)
+    kl = (start.exp() * (start - log_p)).sum(-1)
+    # Masked only where some action is safe (a row of -inf would give NaN gradients).
+    target = start.masked_fill(~safe & deciding[:, None], float("-inf")).softmax(-1)
+    cross_entropy = -(target * log_p).sum(-1)
+    return torch.where(deciding, weight * cross_entropy, kl).mean()
+
+
+def fit(policy, data: dict[str, torch.Tensor], args: argparse.Namespace) -> float:
+    """Minimise ``args.loss``'s loss over ``data``; the last epoch's mean loss."""
+    obs = data["observation"]
     with torch.no_grad():
         start = logits_of(policy, obs)
-    optim = torch.optim.Adam(policy.parameters(), lr=lr)
+    optim = torch.optim.Adam(policy.parameters(), lr=args.lr)
     n, last = obs.shape[0], 0.0
-    for _ in range(epochs):
+    for _ in range(args.epochs):
         total = 0.0
         for idx in torch.randperm(n).split(1024):
-            loss = regret_loss(logits_of(policy, obs[idx]), scores[idx], start[idx], beta)
+            logits = logits_of(policy, obs[idx])
+            if args.loss == "crash":
+                loss = crash_loss(logits, data["crashed"][idx], start[idx], args.weight)
+            else:
+                loss = regret_loss(logits, data["scores"][idx], start[idx], args.beta)
             optim.zero_grad()
             loss.backward()
             optim.step()
@@ -90,6 +118,8 @@ def main() -> None:
     parser.add_argument("--epochs", type=int, default=4)
     parser.add_argument("--lr", type=float, default=1e-4)
     parser.add_argument("--beta", type=float, default=0.05)
+    parser.add_argument("--loss", choices=["regret", "crash"], default="regret")
+    parser.add_argument("--weight", type=float, default=1.0, help="--loss crash: deciding states")
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -106,7 +136,7 @@ def main() -> None:
         return row
 
     history = [evaluate("start")]
-    data: dict[str, list[torch.Tensor]] = {"observation": [], "scores": []}
+    data: dict[str, list[torch.Tensor]] = {"observation": [], "scores": [], "crashed": []}
     frames = 0
     for k in range(args.rounds):
         seeds = list(range(40_000 + k * args.episodes, 40_000 + (k + 1) * args.episodes))
@@ -116,9 +146,12 @@ def main() -> None:
         for key in data:
             data[key].append(visited[key])
         merged = {key: torch.cat(value) for key, value in data.items()}
-        loss = fit(policy, merged, args.epochs, args.lr, args.beta)
+        loss = fit(policy, merged, args)
+        crashed = merged["crashed"]
+        row_deciding = float((crashed.any(-1) & ~crashed.all(-1)).float().mean())
         row = evaluate(str(k + 1))
         row.update(states=int(merged["scores"].shape[0]), loss=loss, frames_at_most=frames)
+        row.update(deciding=row_deciding)
         history.append(row)
         saved = copy.copy(ckpt)
         saved["policy"] = policy.state_dict()

@@ -31,8 +31,11 @@ from omegaconf import OmegaConf
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-from torchrl_grpo.branching import LookaheadPolicy
+from torchrl_grpo.branching import LookaheadPolicy, branch_rollout
 from torchrl_grpo.branching.batched_search import highway_starts
+from torchrl_grpo.branching.keys import MASK, STATE
+from torchrl_grpo.branching.lookahead import ActionThenBase
+from torchrl_grpo.branching.root_builders import as_roots
 from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.modules.actors import DeterministicActor
 from torchrl_grpo.training import make_env
@@ -43,23 +46,41 @@ warnings.filterwarnings("ignore")
 ACTIONS = ["LANE_LEFT", "IDLE", "LANE_RIGHT", "FASTER", "SLOWER"]
 
 
+def branch_outcomes(planner: LookaheadPolicy, td) -> tuple[torch.Tensor, torch.Tensor]:
+    """``[N, A]`` branch returns (``planner.returns``) and whether each branch crashed."""
+    data = branch_rollout(
+        planner.env, ActionThenBase(planner.base), as_roots(td.get(STATE)), 5, planner.horizon
+    )
+    mask = data.get(MASK)
+    planner.frames += int(mask.sum())
+    reward = data.get(("next", "reward")).reshape(mask.shape).double()
+    scores = torch.zeros(mask.shape[:-1], dtype=torch.float64)
+    for t in range(mask.shape[-1]):  # summed in order, as the planner sums them
+        scores += torch.where(mask[..., t], reward[..., t], 0.0)
+    crashed = (data.get(("next", "crashed")).reshape(mask.shape) & mask).any(-1)
+    return scores, crashed
+
+
 @torch.no_grad()
 def visit(
     policy: TensorDictModuleBase, scenario: str, seeds: list[int], horizon: int, max_steps: int
 ) -> dict[str, torch.Tensor]:
-    """Every action's score at every state the greedy ``policy`` visits; what it saw and did."""
+    """Every action's score and crash flag at every state the greedy ``policy`` visits;
+    what it saw and did."""
     n = len(seeds)
     planner = LookaheadPolicy(TensorHighwayEnv(scenario, num_envs=5 * n), policy, horizon)
     env = TensorHighwayEnv(scenario, num_envs=n, return_state=True)
     td = highway_starts(env, seeds)
     live = torch.ones(n, dtype=torch.bool)
-    scores, chosen, rewards, observations = [], [], [], []
+    scores, crashes, chosen, rewards, observations = [], [], [], [], []
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(max_steps):
             rows = live.nonzero().squeeze(-1)
             if rows.numel() == 0:
                 break
-            scores.append(planner.returns(td[rows]))
+            score, crash = branch_outcomes(planner, td[rows])
+            scores.append(score)
+            crashes.append(crash)
             observations.append(td.get("observation")[rows])
             action = policy(td.clone())["action"]
             chosen.append(action[rows])
@@ -69,6 +90,7 @@ def visit(
             td = step_mdp(stepped)
     return {
         "scores": torch.cat(scores),
+        "crashed": torch.cat(crashes),
         "action": torch.cat(chosen),
         "reward": torch.cat(rewards),
         "observation": torch.cat(observations),

@@ -209,6 +209,7 @@ def step(
     params: HighwayParams,
     dense: bool = False,
     stages: Stages | None = None,
+    frame: Callable = substep,
 ) -> tuple[World, dict[str, torch.Tensor]]:
     """``env.step(action)`` for B worlds.
 
@@ -219,6 +220,9 @@ def step(
         dense: static shapes throughout (for ``torch.compile`` and GPUs), see
             :mod:`.selection`; the same values as the default compacted path.
         stages: the dense stages (default :func:`eager_stages`; see :class:`Stages`).
+        frame: the substep, called ``params.time.frames`` times (:func:`substep`, or
+            one compiled substep: compiling the whole step unrolls its frames into one
+            graph that Inductor takes minutes to lower).
 
     Returns:
         ``(worlds after the step, observe_world of them)``.
@@ -229,7 +233,7 @@ def step(
     world = world._replace(time=world.time + params.time.step_time)
     stages = stages or EAGER
     for _ in range(params.time.frames):
-        world = substep(world, action, params, dense, stages)
+        world = frame(world, action, params, dense, stages)
     return world, stages.observe(world, params)
 
 

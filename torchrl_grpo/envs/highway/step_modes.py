@@ -39,7 +39,7 @@ from typing import Any, NamedTuple
 import torch
 
 from torchrl_grpo.sim.native import load_library, native_fresh, native_observe, native_step
-from torchrl_grpo.sim.simulate import compiled_stages
+from torchrl_grpo.sim.simulate import compiled_stages, eager_stages, substep
 
 __all__ = ["NATIVE_SCENARIOS", "StepMode", "compiled_mode", "eager_mode", "native_mode"]
 
@@ -89,7 +89,8 @@ def compiled_mode(
         model: the scenario's :class:`~torchrl_grpo.envs.highway.tensor_models.TensorModel`.
         params: its constants.
         device: where the worlds live.
-        dense: compile the whole dense step (default: on a GPU only).
+        dense: compile the dense step, one substep and the observation (default: on a
+            GPU only).
         **kwargs: forwarded to ``torch.compile``.
 
     Returns:
@@ -109,7 +110,13 @@ def compiled_mode(
     if not model.compiles:
         return eager
     if dense if dense is not None else device.type == "cuda":
-        step = torch.compile(functools.partial(model.step, params=params, dense=True), **kwargs)
+        # One compiled substep called `frames` times and a compiled observation: the
+        # whole step unrolls its substeps into one graph, which Inductor had not finished
+        # lowering after five minutes on a CPU core (one substep: 44 s).
+        eager_parts = eager_stages()
+        stages = eager_parts._replace(observe=torch.compile(eager_parts.observe, **kwargs))
+        frame = torch.compile(substep, **kwargs)
+        step = functools.partial(model.step, params=params, dense=True, stages=stages, frame=frame)
     else:
         step = functools.partial(model.step, params=params, stages=compiled_stages(**kwargs))
     return eager._replace(name="compiled", step=step)

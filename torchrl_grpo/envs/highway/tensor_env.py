@@ -157,7 +157,8 @@ class TensorHighwayEnv(EnvBase):
 
         Args:
             warmup: accepted for TorchRL's signature (the first call compiles).
-            dense: compile the whole dense step (default: on a GPU only).
+            dense: compile the dense step, one substep and the observation (default:
+                on a GPU only).
             **kwargs: forwarded to ``torch.compile`` (``dynamic`` defaults to ``False``).
 
         Example:
