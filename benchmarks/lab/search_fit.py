@@ -2,6 +2,8 @@
 
     python benchmarks/lab/search_fit.py --checkpoint runs/<name>/last.pt --out runs/search_fit \\
         [--rounds 3] [--episodes 200] [--horizon 8] [--eval-episodes 1000]
+    python benchmarks/lab/search_fit.py --checkpoint runs/best/last.pt --out runs/crash_fit \
+        --loss crash --weight 8 --lr 2e-4 --rounds 6 --episodes 600   # docs/lab/targets.md
 
 Round k: the network drives ``--episodes`` episodes greedily on the tensor simulator
 (highway-env's starts of seeds ``40000 + k * episodes ...``, disjoint between rounds),
@@ -16,7 +18,8 @@ with ``pi_k`` the round's starting network (``--loss regret``). ``--loss crash``
 only where the planner's branches decide a crash: at states where some action's branch
 crashes within the horizon and another's does not, the target is the round's starting
 distribution over the actions that do not crash (weighted by ``--weight``); every other
-state keeps its KL to the start. Unlike hard argmax labels, tied actions
+state keeps its KL to the start. ``--loss both`` adds the regret where no action's branch
+crashes (speed without a crash at stake). Unlike hard argmax labels, tied actions
 cost nothing (no index bias), and a state pulls in proportion to what the network's
 choice loses there: the crash-scale corrections weigh more than the many small ones
 (``search_labels.py`` measures both). After each round the network is evaluated
@@ -61,13 +64,23 @@ def regret_loss(
 
 
 def crash_loss(
-    logits: torch.Tensor, crashed: torch.Tensor, start_logits: torch.Tensor, weight: float
+    logits: torch.Tensor,
+    crashed: torch.Tensor,
+    start_logits: torch.Tensor,
+    weight: float,
+    scores: torch.Tensor | None = None,
+    beta: float = 0.0,
+    speed: float = 1.0,
+    temperature: float = 0.0,
 ) -> torch.Tensor:
     """Off the actions whose branch crashes where another's does not; as it was elsewhere.
 
     At a deciding state (some action's branch crashes within the horizon, another's does
     not) the target is the start's distribution over the actions that do not crash,
-    weighted by ``weight``; at every other state, the KL to the start.
+    weighted by ``weight``. At every other state: the KL to the start, and, with
+    ``scores``, where no branch crashes, ``speed`` times the expected regret plus ``beta``
+    times the KL. A ``temperature`` > 0 tilts the deciding states' target towards the
+    safe actions that score more: the start's distribution times ``exp(score / T)``.
     """
     safe = ~crashed
     deciding = crashed.any(-1) & safe.any(-1)
@@ -75,9 +88,19 @@ def crash_loss(
     start = start_logits.log_softmax(-1)
     kl = (start.exp() * (start - log_p)).sum(-1)
     # Masked only where some action is safe (a row of -inf would give NaN gradients).
-    target = start.masked_fill(~safe & deciding[:, None], float("-inf")).softmax(-1)
+    tilted = start
+    if temperature > 0 and scores is not None:
+        tilted = (
+            start + (scores - scores.max(-1, keepdim=True).values).to(start.dtype) / temperature
+        )
+    target = tilted.masked_fill(~safe & deciding[:, None], float("-inf")).softmax(-1)
     cross_entropy = -(target * log_p).sum(-1)
-    return torch.where(deciding, weight * cross_entropy, kl).mean()
+    other = kl
+    if scores is not None and speed > 0:
+        regret = (scores.max(-1, keepdim=True).values - scores).to(logits.dtype)
+        calm = safe.all(-1)
+        other = torch.where(calm, speed * (log_p.exp() * regret).sum(-1) + beta * kl, kl)
+    return torch.where(deciding, weight * cross_entropy, other).mean()
 
 
 def fit(policy, data: dict[str, torch.Tensor], args: argparse.Namespace) -> float:
@@ -92,7 +115,16 @@ def fit(policy, data: dict[str, torch.Tensor], args: argparse.Namespace) -> floa
         for idx in torch.randperm(n).split(1024):
             logits = logits_of(policy, obs[idx])
             if args.loss == "crash":
-                loss = crash_loss(logits, data["crashed"][idx], start[idx], args.weight)
+                loss = crash_loss(
+                    logits, data["crashed"][idx], start[idx], args.weight,
+                    data["scores"][idx] if args.temperature > 0 else None,
+                    temperature=args.temperature, speed=0.0,
+                )  # fmt: skip
+            elif args.loss == "both":
+                crashed, scores = data["crashed"][idx], data["scores"][idx]
+                loss = crash_loss(
+                    logits, crashed, start[idx], args.weight, scores, args.beta, args.speed
+                )
             else:
                 loss = regret_loss(logits, data["scores"][idx], start[idx], args.beta)
             optim.zero_grad()
@@ -118,8 +150,10 @@ def main() -> None:
     parser.add_argument("--epochs", type=int, default=4)
     parser.add_argument("--lr", type=float, default=1e-4)
     parser.add_argument("--beta", type=float, default=0.05)
-    parser.add_argument("--loss", choices=["regret", "crash"], default="regret")
+    parser.add_argument("--loss", choices=["regret", "crash", "both"], default="regret")
     parser.add_argument("--weight", type=float, default=1.0, help="--loss crash: deciding states")
+    parser.add_argument("--speed", type=float, default=1.0, help="--loss both: the regret's scale")
+    parser.add_argument("--temperature", type=float, default=0.0, help="tilt to safe scores")
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

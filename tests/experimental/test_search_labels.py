@@ -50,3 +50,55 @@ def test_regret_loss_by_hand():
     loss.backward()
     grad = logits.grad[0]
     assert grad[0] == grad[4] < 0 < grad[1] == grad[2] == grad[3]  # the ties alike
+
+
+def test_crash_flags_mark_the_branches_that_crash_and_scores_equal_the_planners():
+    from search_labels import branch_outcomes
+
+    from torchrl_grpo.branching import LookaheadPolicy
+    from torchrl_grpo.branching.batched_search import highway_starts
+    from torchrl_grpo.envs import TensorHighwayEnv
+    from torchrl_grpo.modules import make_scripted_policy
+
+    planner = LookaheadPolicy(TensorHighwayEnv(num_envs=100), make_scripted_policy("aggressive"), 8)
+    td = highway_starts(TensorHighwayEnv(num_envs=20, return_state=True), list(range(20)))
+    scores, crashed = branch_outcomes(planner, td)
+    assert torch.equal(scores, planner.returns(td))
+    assert crashed.any() and not crashed.all()
+    # A branch that crashes ends at its crash: it earns less than the 8 steps of the others.
+    assert scores[crashed].mean() < scores[~crashed].mean()
+
+
+def test_crash_loss_by_hand():
+    from search_fit import crash_loss
+
+    logits = torch.zeros(3, 5, requires_grad=True)  # uniform, and the start too
+    crashed = torch.tensor([[1, 0, 0, 0, 0], [0, 0, 0, 0, 0], [1, 1, 1, 1, 1]], dtype=torch.bool)
+    loss = crash_loss(logits, crashed, logits.detach(), weight=2.0)
+    # Only the first state decides a crash: the target is uniform over the 4 safe actions,
+    # a cross-entropy of log 5 against the uniform policy; the others keep a KL of 0.
+    assert torch.isclose(loss, 2 * torch.log(torch.tensor(5.0)) / 3)
+    loss.backward()
+    grad = logits.grad
+    assert grad[0, 0] > 0 > grad[0, 1] and torch.allclose(grad[1:], torch.zeros(2, 5), atol=1e-7)
+    # With the scores: where no branch crashes, the expected regret pulls (times speed).
+    scores = torch.tensor([[0.0, 8, 8, 8, 8], [7, 8, 8, 8, 6], [1, 1, 1, 1, 1]])
+    loss = crash_loss(logits, crashed, logits.detach(), 2.0, scores, beta=0.1, speed=0.5)
+    assert torch.isclose(loss, (2 * torch.log(torch.tensor(5.0)) + 0.5 * 0.6) / 3)
+
+
+def test_crash_loss_tilts_the_target_towards_the_safe_actions_that_score_more():
+    from search_fit import crash_loss
+
+    logits = torch.zeros(1, 5)
+    crashed = torch.tensor([[1, 0, 0, 1, 1]], dtype=torch.bool)  # actions 1 and 2 are safe
+    scores = torch.tensor([[0.0, 8.0, 6.0, 0.0, 0.0]])
+    tilted = crash_loss(logits, crashed, logits, 1.0, scores, temperature=1.0, speed=0.0)
+    # Target over the safe actions: e^0 and e^-2, normalised; the cross-entropy against
+    # the uniform policy is log 5 whatever the target, so compare the gradients instead.
+    p = torch.tensor([1.0, torch.exp(torch.tensor(-2.0))])
+    p = p / p.sum()
+    logits = torch.zeros(1, 5, requires_grad=True)
+    crash_loss(logits, crashed, logits.detach(), 1.0, scores, temperature=1.0, speed=0.0).backward()
+    assert torch.allclose(logits.grad[0, 1:3], 0.2 - p)  # softmax gradient: pi - target
+    assert torch.isclose(tilted, torch.log(torch.tensor(5.0)))
