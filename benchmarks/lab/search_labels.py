@@ -31,11 +31,10 @@ from omegaconf import OmegaConf
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-from torchrl_grpo.branching import LookaheadPolicy, branch_rollout
+from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.branching.batched_search import highway_starts
-from torchrl_grpo.branching.keys import MASK, STATE
-from torchrl_grpo.branching.lookahead import ActionThenBase
-from torchrl_grpo.branching.root_builders import as_roots
+from torchrl_grpo.branching.keys import MASK
+from torchrl_grpo.branching.lookahead import branch_returns
 from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.modules.actors import DeterministicActor
 from torchrl_grpo.training import make_env
@@ -48,17 +47,10 @@ ACTIONS = ["LANE_LEFT", "IDLE", "LANE_RIGHT", "FASTER", "SLOWER"]
 
 def branch_outcomes(planner: LookaheadPolicy, td) -> tuple[torch.Tensor, torch.Tensor]:
     """``[N, A]`` branch returns (``planner.returns``) and whether each branch crashed."""
-    data = branch_rollout(
-        planner.env, ActionThenBase(planner.base), as_roots(td.get(STATE)), 5, planner.horizon
-    )
+    data = planner.branches(td)
     mask = data.get(MASK)
-    planner.frames += int(mask.sum())
-    reward = data.get(("next", "reward")).reshape(mask.shape).double()
-    scores = torch.zeros(mask.shape[:-1], dtype=torch.float64)
-    for t in range(mask.shape[-1]):  # summed in order, as the planner sums them
-        scores += torch.where(mask[..., t], reward[..., t], 0.0)
     crashed = (data.get(("next", "crashed")).reshape(mask.shape) & mask).any(-1)
-    return scores, crashed
+    return branch_returns(data), crashed
 
 
 @torch.no_grad()

@@ -23,7 +23,28 @@ from torchrl_grpo.branching.rollout import branch_rollout
 from torchrl_grpo.branching.root_builders import as_roots
 from torchrl_grpo.envs.core.bits import to_bits
 
-__all__ = ["ActionThenBase", "LookaheadPolicy", "best_actions"]
+__all__ = ["ActionThenBase", "LookaheadPolicy", "best_actions", "branch_returns"]
+
+
+def branch_returns(data: TensorDictBase) -> torch.Tensor:
+    """Each branch's return, ``[..., G]``, of a ``[..., G, T]`` branch rollout.
+
+    Summed step by step in float64, the order of a sequential sum of the rewards; the
+    steps after a branch ended (``mask`` false) count nothing.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> data = TensorDict({"mask": torch.tensor([[True, True], [True, False]]),
+        ...                    ("next", "reward"): torch.ones(2, 2, 1)}, batch_size=[2, 2])
+        >>> branch_returns(data).tolist()
+        [2.0, 1.0]
+    """
+    mask = data.get(MASK)
+    reward = data.get(("next", "reward")).reshape(mask.shape).double()
+    scores = torch.zeros(mask.shape[:-1], dtype=torch.float64, device=reward.device)
+    for t in range(mask.shape[-1]):
+        scores += torch.where(mask[..., t], reward[..., t], 0.0)
+    return scores
 
 
 def best_actions(scores: torch.Tensor) -> torch.Tensor:
@@ -146,6 +167,15 @@ class LookaheadPolicy(TensorDictModuleBase):
         Returns:
             ``[n_actions]`` for an unbatched input, ``[N, n_actions]`` for ``N`` rows.
         """
+        scores = branch_returns(self.branches(tensordict))
+        return scores if tensordict.batch_dims else scores[0]
+
+    def branches(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """The branches from the state(s) in ``tensordict``: ``[N, n_actions, horizon]``.
+
+        Every action's branch (that action, then ``base``'s) as :func:`branch_rollout`
+        returns it, an unbatched input as one row; their steps count in :attr:`frames`.
+        """
         state = tensordict.get(STATE)
         _check_fresh(tensordict, state)
         if self.import_state is not None:
@@ -153,14 +183,8 @@ class LookaheadPolicy(TensorDictModuleBase):
         data = branch_rollout(
             self.env, self._branch_policy, as_roots(state), self.n_actions, self.horizon
         )
-        mask = data.get(MASK)
-        self.frames += int(mask.sum())
-        reward = data.get(("next", "reward")).reshape(mask.shape).double()
-        # Summed step by step, in float64: the order of a sequential sum of the rewards.
-        scores = torch.zeros(mask.shape[:-1], dtype=torch.float64, device=reward.device)
-        for t in range(mask.shape[-1]):
-            scores += torch.where(mask[..., t], reward[..., t], 0.0)
-        return scores if tensordict.batch_dims else scores[0]
+        self.frames += int(data.get(MASK).sum())
+        return data
 
     def _plan(self, tensordict: TensorDictBase) -> torch.Tensor:
         return best_actions(self.returns(tensordict))
