@@ -116,8 +116,12 @@ def test_branch_parallel_env_falls_back_to_torchrl_wait(no_workers_left, monkeyp
 
 
 def test_branch_parallel_env_uses_its_wait_on_this_torchrl(highway_parallel):
-    # The attributes the sleeping wait needs are there on the pinned TorchRL version.
+    # The attributes the sleeping wait needs are there on the pinned TorchRL version,
+    # once the workers run (the shared fixture starts them at its first use, which is
+    # this test when it runs first).
     assert isinstance(highway_parallel, BranchParallelEnv)
+    if highway_parallel.is_closed:
+        highway_parallel.start()
     assert highway_parallel._sleeping_wait_applies()
 
 
