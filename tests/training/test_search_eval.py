@@ -9,9 +9,10 @@ from train_setup import compose_config
 
 from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.envs import TensorHighwayEnv
+from torchrl_grpo.modules import make_scripted_policy
 from torchrl_grpo.modules.actors import DeterministicActor
-from torchrl_grpo.training import make_env, make_policy
-from torchrl_grpo.training.search_eval import evaluate_search
+from torchrl_grpo.training import evaluate, make_env, make_policy
+from torchrl_grpo.training.search_eval import evaluate_search, search_policy
 from torchrl_grpo.training.transfer import evaluate_on_tensor
 
 
@@ -43,3 +44,22 @@ def test_refusals_name_the_problem(scenario, on, match):
     cfg = OmegaConf.create({"scenario": scenario, "config": {}})
     with pytest.raises(ValueError, match=match):
         evaluate_search(cfg, DeterministicActor, 2, episodes=1, seed=0, on=on)
+
+
+def test_on_highway_env_it_plans_in_float64_where_float32_crashes():
+    # roundabout-v0, seed 40048, the search over always-SLOWER to the episode's end: the
+    # float32 planner's branches drift from highway-env's float64 episode on the ring and
+    # the ego crashes at step 7 (measured); the default float64 planner, like the one-state
+    # planner of search_policy, predicts the episode exactly and drives it to the end.
+    cfg = OmegaConf.create({"scenario": "roundabout-v0", "config": {}})
+    slower = make_scripted_policy("slower")
+    kw = {"episodes": 1, "seed": 40_048, "max_steps": 20}
+    exact = evaluate_search(cfg, slower, 11, **kw)
+    rounded = evaluate_search(cfg, slower, 11, dtype=torch.float32, **kw)
+    assert (exact.crashed, exact.lengths) == ([False], [11])
+    assert (rounded.crashed, rounded.lengths) == ([True], [7])
+    one_state, _ = evaluate(
+        make_env(cfg, return_state=True), search_policy(cfg, slower, 11), name="one", **kw
+    )
+    assert one_state.returns == pytest.approx(exact.returns, abs=1e-6)
+    assert one_state.crashed == exact.crashed

@@ -31,13 +31,21 @@ from torchrl_grpo.modules.actors import DeterministicActor
 from torchrl_grpo.training.env_builder import env_overrides, make_env, tensor_covers
 from torchrl_grpo.training.results import EvalResult
 
-__all__ = ["evaluate_search", "is_stochastic", "search_policy"]
+__all__ = ["PLAN_DTYPE", "evaluate_search", "is_stochastic", "search_policy"]
 
 log = logging.getLogger(__name__)
 
 #: Where the searched episodes run: highway-env itself (lock-step envs whose states are
 #: imported into the planner in one batch per step) or the tensor simulator's worlds.
 EpisodesOn = Literal["highway", "tensor"]
+
+#: The planner's float dtype by where the episodes run. highway-env computes in float64,
+#: and the tensor simulator in float64 follows it to 1e-9 (docs/sim.md, parity): a
+#: float32 planner's branches drift from the episode it drives, most on the roundabout's
+#: ring, where the search over always-SLOWER crashed in 27 of 1,000 highway-env episodes
+#: planning in float32 and in none in float64 (docs/results.md, section 5). On the tensor
+#: simulator the planner takes the episodes' own dtype, training's float32.
+PLAN_DTYPE: dict[str, torch.dtype] = {"highway": torch.float64, "tensor": torch.float32}
 
 
 def is_stochastic(policy: TensorDictModuleBase) -> bool:
@@ -54,7 +62,10 @@ def is_stochastic(policy: TensorDictModuleBase) -> bool:
 
 
 def search_policy(
-    env_cfg: DictConfig, policy: TensorDictModuleBase, horizon: int
+    env_cfg: DictConfig,
+    policy: TensorDictModuleBase,
+    horizon: int,
+    dtype: torch.dtype = torch.float64,
 ) -> LookaheadPolicy:
     """The lookahead planner over a trained policy's greedy actions: test-time search.
 
@@ -72,6 +83,8 @@ def search_policy(
         env_cfg: the ``env`` config group the policy was trained on.
         policy: the trained actor.
         horizon: steps per branch (>= 1).
+        dtype: the tensor simulator's float dtype for the branches: highway-env's float64
+            by default, so that a branch predicts the driven episode exactly (:data:`PLAN_DTYPE`).
 
     Example:
         >>> from omegaconf import OmegaConf
@@ -91,7 +104,8 @@ def search_policy(
         return LookaheadPolicy(highway, policy, horizon=horizon)
     # One row per action of the one state planned at a time.
     rows = int(highway.action_spec.n)
-    sim = TensorHighwayEnv(str(env_cfg.scenario), env_overrides(env_cfg), num_envs=rows, seed=0)
+    scenario, overrides = str(env_cfg.scenario), env_overrides(env_cfg)
+    sim = TensorHighwayEnv(scenario, overrides, num_envs=rows, seed=0, dtype=dtype)
     return LookaheadPolicy(sim, policy, horizon=horizon, import_state=sim.state_from_highway)
 
 
@@ -105,6 +119,7 @@ def evaluate_search(
     max_steps: int = 1000,
     name: str = "search",
     on: EpisodesOn = "highway",
+    dtype: torch.dtype | None = None,
     workers: int = 1,
     progress: bool = False,
 ) -> EvalResult:
@@ -129,6 +144,9 @@ def evaluate_search(
             they are worlds of the tensor simulator, started where highway-env's
             episodes start (as :func:`~torchrl_grpo.training.transfer.evaluate_on_tensor`
             starts them).
+        dtype: the tensor simulator's float dtype, the planner's (and the episodes' with
+            ``on="tensor"``); default :data:`PLAN_DTYPE` of ``on``: float64 for
+            highway-env's episodes, training's float32 for the tensor simulator's.
         workers: forked processes, each playing a contiguous share of the episodes with
             one thread (the same results as one process, episode for episode).
         progress: a tqdm bar over the steps (of the first worker's share).
@@ -162,7 +180,7 @@ def evaluate_search(
     workers = max(1, min(int(workers), episodes))
     if workers > 1 and "fork" not in mp.get_all_start_methods():
         workers = 1
-    job = (env_cfg, policy, int(horizon), int(max_steps), on, name)
+    job = (env_cfg, policy, int(horizon), int(max_steps), on, dtype or PLAN_DTYPE[on], name)
     if workers == 1:
         outs = [_play(job, seeds, progress)]
     else:
@@ -172,17 +190,19 @@ def evaluate_search(
 
 def _play(job: tuple, seeds: list[int], progress: bool = False) -> TensorDict:
     """The episodes of ``seeds`` in lock-step, with a planner of one row per action of each."""
-    env_cfg, policy, horizon, max_steps, on, name = job
+    env_cfg, policy, horizon, max_steps, on, dtype, name = job
     scenario, overrides = str(env_cfg.scenario), env_overrides(env_cfg)
     n_actions = 5  # the tensor simulator's DiscreteMetaAction
-    sim = TensorHighwayEnv(scenario, overrides, num_envs=n_actions * len(seeds), seed=0)
+    sim = TensorHighwayEnv(
+        scenario, overrides, num_envs=n_actions * len(seeds), seed=0, dtype=dtype
+    )
     if on == "highway":
         planner = LookaheadPolicy(sim, policy, horizon, import_state=sim.state_from_highway)
         episodes = [make_env(env_cfg, return_state=True) for _ in seeds]
     else:
         planner = LookaheadPolicy(sim, policy, horizon)
         episodes = TensorHighwayEnv(
-            scenario, overrides, num_envs=len(seeds), seed=0, return_state=True
+            scenario, overrides, num_envs=len(seeds), seed=0, return_state=True, dtype=dtype
         )
     if not progress:
         out = search_episodes(planner, episodes, seeds, max_steps)

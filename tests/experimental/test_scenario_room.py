@@ -1,0 +1,73 @@
+"""bench_scenario_room: its rows against hand-computed figures, and one short run."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "benchmarks" / "lab"))
+
+import bench_scenario_room as bench  # noqa: E402
+
+from torchrl_grpo.training.results import EvalResult  # noqa: E402
+
+pytestmark = pytest.mark.experimental
+
+
+def _result(name, returns, crashed):
+    n = len(returns)
+    return EvalResult(name, returns, crashed, [11] * n, [4.0] * n, list(range(n)))
+
+
+def test_a_row_pairs_with_always_slower_by_hand():
+    slower = _result("always-SLOWER", [9.0, 9.0, 9.0], [False] * 3)
+    search = _result("search", [10.0, 11.0, 12.0], [False] * 3)
+    # Differences 1, 2, 3: mean 2, standard deviation 1, standard error 1 / sqrt(3).
+    row = bench._row(search, slower, seconds=90.0)
+    # No crash of always-SLOWER: all 2.00 from the others, whose 5th percentile is
+    # 1 + 0.1 * (2 - 1) = 1.10 (numpy's linear interpolation between 1 and 2).
+    assert row == (
+        "| search | 11.00 ± 0.58 | 0.0% | 4.0 | +2.00 ± 0.58, beats always-SLOWER "
+        "| +0.00 / +2.00 (+1.10) | 1.5 |"
+    )
+    crashing = _result("crashing", [10.0, 11.0, 12.0], [True, False, False])
+    assert bench._row(crashing, slower, seconds=0.0).endswith(
+        "+2.00 ± 0.58, does not beat always-SLOWER | +0.00 / +2.00 (+1.10) | 0.0 |"
+    )
+    # always-SLOWER crashes in the first episode: 1 of the 6 there, 5 in the others.
+    slower_crash = _result("always-SLOWER", [9.0, 9.0, 9.0], [True, False, False])
+    assert "| +0.33 / +1.67 (+2.05) |" in bench._row(search, slower_crash, seconds=0.0)
+
+
+@pytest.mark.parametrize(("on", "other"), [("highway", "float32"), ("tensor", "float64")])
+def test_a_short_run_prints_every_policy_row(on, other):
+    out = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "benchmarks/lab/bench_scenario_room.py"),
+            *("--scenario", "roundabout-v0", "--bases", "slower", "--horizons", "2"),
+            *("--episodes", "2", "--workers", "1", "--on", on),
+            *("--dtypes", "float64", "float32"),
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=ROOT,
+    )
+    assert out.stdout.startswith(
+        f"roundabout-v0: 2 {'highway-env' if on == 'highway' else 'tensor-simulator'}"
+    )
+    rows = [line for line in out.stdout.splitlines() if line.startswith("| ")]
+    # The dtype is named where it is not the default for where the episodes run.
+    names = [r.split(" | ")[0] for r in rows[1:]]
+    assert sorted(names) == sorted(
+        [
+            "| always-SLOWER",
+            "| search 2 over always-SLOWER",
+            f"| search 2 over always-SLOWER, {other}",
+        ]
+    )
+    # always-SLOWER against itself: no difference, and not a win.
+    assert "+0.00 ± 0.00, does not beat always-SLOWER" in rows[1]
