@@ -80,7 +80,13 @@ def main() -> None:
         default="roundabout-v0",
         choices=["merge-v0", "roundabout-v0", "highway-fast-v0"],
     )
-    p.add_argument("--bases", nargs="+", default=["slower", "idle"], help="scripted base policies")
+    p.add_argument(
+        "--bases",
+        nargs="+",
+        default=["slower", "idle"],
+        choices=list(BASELINE_LABELS),
+        help="scripted base policies",
+    )
     p.add_argument("--horizons", type=int, nargs="*", default=[8, 30], help="none: no search")
     p.add_argument(
         "--dtypes",
@@ -145,7 +151,7 @@ def main() -> None:
         start = time.perf_counter()
         policy = load_run_policy(path, env_cfg, env)
         results.append((play(policy, str(Path(path).parent.name)), time.perf_counter() - start))
-    slower = results[0][0]
+    slower = next(res for res, _ in results if res.name == BASELINE_LABELS["slower"])
     where = "highway-env" if args.on == "highway" else "tensor-simulator"
     print(  # noqa: T201 (the benchmark's output)
         "\n".join(

@@ -41,13 +41,16 @@ def test_a_row_pairs_with_always_slower_by_hand():
     assert "| +0.33 / +1.67 (+2.05) |" in bench._row(search, slower_crash, seconds=0.0)
 
 
-@pytest.mark.parametrize(("on", "other"), [("highway", "float32"), ("tensor", "float64")])
-def test_a_short_run_prints_every_policy_row(on, other):
+@pytest.mark.parametrize(
+    ("on", "other", "bases"),
+    [("highway", "float32", ["slower"]), ("tensor", "float64", ["idle", "slower"])],
+)
+def test_a_short_run_prints_every_policy_row(on, other, bases):
     out = subprocess.run(
         [
             sys.executable,
             str(ROOT / "benchmarks/lab/bench_scenario_room.py"),
-            *("--scenario", "roundabout-v0", "--bases", "slower", "--horizons", "2"),
+            *("--scenario", "roundabout-v0", "--bases", *bases, "--horizons", "2"),
             *("--episodes", "2", "--workers", "1", "--on", on),
             *("--dtypes", "float64", "float32"),
         ],
@@ -62,12 +65,14 @@ def test_a_short_run_prints_every_policy_row(on, other):
     rows = [line for line in out.stdout.splitlines() if line.startswith("| ")]
     # The dtype is named where it is not the default for where the episodes run.
     names = [r.split(" | ")[0] for r in rows[1:]]
-    assert sorted(names) == sorted(
-        [
-            "| always-SLOWER",
-            "| search 2 over always-SLOWER",
-            f"| search 2 over always-SLOWER, {other}",
-        ]
-    )
-    # always-SLOWER against itself: no difference, and not a win.
-    assert "+0.00 ± 0.00, does not beat always-SLOWER" in rows[1]
+    labels = {"slower": "always-SLOWER", "idle": "always-IDLE"}
+    expected = []
+    for base in bases:
+        label = labels[base]
+        # One search row per --dtypes entry, in its order (float64, float32).
+        searches = [f"| search 2 over {label}", f"| search 2 over {label}, {other}"]
+        expected += [f"| {label}", *(searches if on == "highway" else searches[::-1])]
+    assert names == expected
+    # always-SLOWER against itself, wherever its row is: no difference, and not a win.
+    own = rows[1 + names.index("| always-SLOWER")]
+    assert "+0.00 ± 0.00, does not beat always-SLOWER" in own
