@@ -19,7 +19,7 @@ highway-env takes minutes).
 
 Printed in one run, one row per policy: return ± standard error, crash rate, mean
 speed, the paired difference to always-SLOWER with the verdict of
-:func:`~torchrl_grpo.training.results.compare_paired`, and where that difference comes
+:func:`~torchrl_grpo.training.results.paired_difference`, and where that difference comes
 from: the episodes always-SLOWER crashes in and the others (two shares of the mean that
 add up to it, and the others' 5th percentile).
 
@@ -43,7 +43,7 @@ from torchrl_grpo.training import evaluate, load_run_policy, make_env
 from torchrl_grpo.training.env_builder import make_layout
 from torchrl_grpo.training.eval_episodes import eval_workers
 from torchrl_grpo.training.evaluation import BASELINE_LABELS, baseline_policy
-from torchrl_grpo.training.results import EvalResult, compare_paired
+from torchrl_grpo.training.results import EvalResult, paired_difference
 from torchrl_grpo.training.search_eval import PLAN_DTYPE, evaluate_search
 from torchrl_grpo.training.transfer import evaluate_on_tensor
 
@@ -56,8 +56,8 @@ MAX_STEPS = 60
 
 def _row(res: EvalResult, slower: EvalResult, seconds: float) -> str:
     s = res.summary()
-    diff = np.asarray(res.returns) - np.asarray(slower.returns)
-    verdict = compare_paired(res, slower).rsplit(": ", 1)[-1]
+    diff, sem, beats = paired_difference(res, slower)
+    verdict = f"beats {slower.name}" if beats else f"does not beat {slower.name}"
     # Where the difference comes from: the episodes always-SLOWER crashes in, the others
     # (each share a mean over all episodes, so the two add up), and how the others spread.
     crashed = np.asarray(slower.crashed, dtype=bool)
@@ -66,7 +66,7 @@ def _row(res: EvalResult, slower: EvalResult, seconds: float) -> str:
     return (
         f"| {res.name} | {s['return']:.2f} ± {s['return_sem']:.2f} | "
         f"{100 * s['crash_rate']:.1f}% | {s['speed']:.1f} | "
-        f"{diff.mean():+.2f} ± {diff.std(ddof=1) / np.sqrt(len(diff)):.2f}, {verdict} | "
+        f"{diff.mean():+.2f} ± {sem:.2f}, {verdict} | "
         f"{diff[crashed].sum() / diff.size:+.2f} / {rest.sum() / diff.size:+.2f} ({low}) | "
         f"{seconds / 60:.1f} |"
     )

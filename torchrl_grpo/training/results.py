@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-__all__ = ["EvalResult", "compare_paired", "format_table", "paired_verdicts"]
+__all__ = ["EvalResult", "compare_paired", "format_table", "paired_difference", "paired_verdicts"]
 
 
 @dataclass
@@ -97,8 +97,8 @@ def format_table(results: Sequence[EvalResult]) -> str:
     return "\n".join(lines)
 
 
-def compare_paired(policy: EvalResult, baseline: EvalResult) -> str:
-    """Whether ``policy`` beats ``baseline`` on the same episodes, as one line.
+def paired_difference(policy: EvalResult, baseline: EvalResult) -> tuple[np.ndarray, float, bool]:
+    """The per-episode return differences, their standard error, and whether ``policy`` beats.
 
     "Beats" is paired on the same seeds: a mean return higher by more than two standard
     errors of the per-episode difference, and a crash rate no higher.
@@ -109,20 +109,38 @@ def compare_paired(policy: EvalResult, baseline: EvalResult) -> str:
     Example:
         >>> a = EvalResult("a", [22.0, 23.0, 24.0], [False] * 3, [30] * 3, [25.0] * 3, [0, 1, 2])
         >>> b = EvalResult("b", [20.0, 20.5, 21.0], [False] * 3, [30] * 3, [20.0] * 3, [0, 1, 2])
-        >>> print(compare_paired(a, b))
-        a vs b: return +2.50 ± 0.29 (paired, 3 episodes), crash rate 0.0% vs 0.0%: beats b
+        >>> diff, sem, beats = paired_difference(a, b)
+        >>> diff.tolist(), round(sem, 2), beats
+        ([2.0, 2.5, 3.0], 0.29, True)
     """
     if policy.seeds != baseline.seeds:
         raise ValueError(f"{policy.name} and {baseline.name} drove other episodes")
     diff = np.asarray(policy.returns, np.float64) - np.asarray(baseline.returns, np.float64)
     n = len(diff)
     sem = float(diff.std(ddof=1) / math.sqrt(n)) if n > 1 else math.inf
-    mean = float(diff.mean())
+    beats = float(diff.mean()) > 2 * sem and np.mean(policy.crashed) <= np.mean(baseline.crashed)
+    return diff, sem, bool(beats)
+
+
+def compare_paired(policy: EvalResult, baseline: EvalResult) -> str:
+    """Whether ``policy`` beats ``baseline`` on the same episodes, as one line.
+
+    The figures and the verdict of :func:`paired_difference`.
+
+    Raises:
+        ValueError: the results are not of the same seeds.
+
+    Example:
+        >>> a = EvalResult("a", [22.0, 23.0, 24.0], [False] * 3, [30] * 3, [25.0] * 3, [0, 1, 2])
+        >>> b = EvalResult("b", [20.0, 20.5, 21.0], [False] * 3, [30] * 3, [20.0] * 3, [0, 1, 2])
+        >>> print(compare_paired(a, b))
+        a vs b: return +2.50 ± 0.29 (paired, 3 episodes), crash rate 0.0% vs 0.0%: beats b
+    """
+    diff, sem, beats = paired_difference(policy, baseline)
     crash_a, crash_b = float(np.mean(policy.crashed)), float(np.mean(baseline.crashed))
-    beats = mean > 2 * sem and crash_a <= crash_b
     return (
-        f"{policy.name} vs {baseline.name}: return {mean:+.2f} ± {sem:.2f} (paired, {n} "
-        f"episodes), crash rate {100 * crash_a:.1f}% vs {100 * crash_b:.1f}%: "
+        f"{policy.name} vs {baseline.name}: return {diff.mean():+.2f} ± {sem:.2f} "
+        f"(paired, {len(diff)} episodes), crash rate {100 * crash_a:.1f}% vs {100 * crash_b:.1f}%: "
         + (f"beats {baseline.name}" if beats else f"does not beat {baseline.name}")
     )
 
