@@ -123,6 +123,7 @@ def main() -> None:
             )
         return evaluate(env, policy, name=name, **kw)[0]
 
+    dtypes = [getattr(torch, d) for d in args.dtypes or []] or [PLAN_DTYPE[args.on]]
     layout, n_actions = make_layout(env), int(env.action_spec.n)
     results: list[tuple[EvalResult, float]] = []
     if "slower" not in args.bases:  # every row pairs against it
@@ -132,16 +133,17 @@ def main() -> None:
         start = time.perf_counter()
         results.append((play(policy, label), time.perf_counter() - start))
         for horizon in args.horizons:
-            for dtype in args.dtypes or [str(PLAN_DTYPE[args.on]).removeprefix("torch.")]:
+            for dtype in dtypes:
                 start = time.perf_counter()
-                plain = getattr(torch, dtype) == PLAN_DTYPE[args.on]
-                name = f"search {horizon} over {label}" + ("" if plain else f", {dtype}")
+                name = f"search {horizon} over {label}"
+                if dtype != PLAN_DTYPE[args.on]:
+                    name += ", " + str(dtype).removeprefix("torch.")
                 res = evaluate_search(
                     env_cfg,
                     policy,
                     horizon,
                     name=name,
-                    dtype=getattr(torch, dtype),
+                    dtype=dtype,
                     on=args.on,
                     **kw,
                 )

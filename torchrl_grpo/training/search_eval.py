@@ -65,7 +65,7 @@ def search_policy(
     env_cfg: DictConfig,
     policy: TensorDictModuleBase,
     horizon: int,
-    dtype: torch.dtype = torch.float64,
+    dtype: torch.dtype = PLAN_DTYPE["highway"],
 ) -> LookaheadPolicy:
     """The lookahead planner over a trained policy's greedy actions: test-time search.
 
