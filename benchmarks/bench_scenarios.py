@@ -43,7 +43,7 @@ from torchrl_grpo.training.config import typed_config
 from torchrl_grpo.training.env_builder import make_layout
 from torchrl_grpo.training.eval_episodes import eval_workers
 from torchrl_grpo.training.evaluation import BASELINE_LABELS, baseline_policy
-from torchrl_grpo.training.results import EvalResult, compare_paired
+from torchrl_grpo.training.results import EvalResult, compare_paired, paired_difference
 from torchrl_grpo.training.search_eval import evaluate_search
 from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
 
@@ -198,9 +198,8 @@ def main() -> None:
             ("rule", scripted["rule"]),
             ("ppo", ppo),
         ):
-            verdict = compare_paired(grpo, other)
-            beats[key] += verdict.endswith(f"beats {other.name}")
-            lines.append(f"- {verdict}")
+            beats[key] += paired_difference(grpo, other)[2]
+            lines.append(f"- {compare_paired(grpo, other)}")
     for greedy, search in searched:
         lines.append(f"- {compare_paired(search, greedy)}")
     n = len(trained["grpo"])
