@@ -36,15 +36,20 @@ from torchrl_grpo.sim.control import speed_to_index
 from torchrl_grpo.sim.roundabout_params import RoundaboutParams
 from torchrl_grpo.sim.state import Vehicles, World
 
-__all__ = ["DRAWS", "reset_roundabout"]
+__all__ = ["DRAWS", "reset_roundabout", "route_paths"]
 
 #: Reset draws per world: (position normal, speed normal, destination, exponent) per IDM car.
 DRAWS = 16
 
 
 @functools.lru_cache(maxsize=16)
-def _paths(params: RoundaboutParams, device: torch.device) -> torch.Tensor:
-    """``[roads, destinations, R - 1]``: each path's legs as codes (a road, no lane), -1 padded."""
+def route_paths(params: RoundaboutParams, device: torch.device) -> torch.Tensor:
+    """``[roads, destinations, R - 1]``: each path's legs as codes (a road, no lane), -1 padded.
+
+    A route is ``[its lane] + route_paths(...)[that lane's road, destination]``; a path
+    that starts with -1 is empty (that destination cannot be reached from that road, or
+    the road ends there).
+    """
     road = params.road
     rows = [
         [
@@ -105,7 +110,7 @@ def reset_roundabout(
     choice = torch.tensor(t.destinations, device=device)[draws[:, 2::4].to(torch.int64)]
     goal = torch.cat([torch.full((batch, 1), t.ego_destination, device=device), choice], 1)
     road_of = torch.tensor(params.road.road, device=device)
-    route = torch.cat([lane.unsqueeze(-1), _paths(params, device)[road_of[lane], goal]], -1)
+    route = torch.cat([lane.unsqueeze(-1), route_paths(params, device)[road_of[lane], goal]], -1)
     zeros = torch.zeros(batch, n, **f64)
     flags = torch.zeros(batch, n, dtype=torch.bool, device=device)
     fresh = Vehicles(

@@ -1,0 +1,169 @@
+"""bench_hidden_search: the redraws keep what is seen, and the search is the plain one's."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "benchmarks" / "lab"))
+
+import bench_hidden_search as bench  # noqa: E402
+
+from torchrl_grpo.branching import LookaheadPolicy  # noqa: E402
+from torchrl_grpo.branching.keys import MASK, STATE  # noqa: E402
+from torchrl_grpo.branching.lookahead import branch_returns  # noqa: E402
+from torchrl_grpo.envs import TensorHighwayEnv  # noqa: E402
+from torchrl_grpo.modules import make_scripted_policy  # noqa: E402
+from torchrl_grpo.sim.roundabout_reset import route_paths  # noqa: E402
+
+pytestmark = pytest.mark.experimental
+
+# Everything an observation is read from, and more: only delta and the routes may move.
+SEEN = ("x", "y", "heading", "speed", "target_speed", "lane", "target_lane", "present")
+
+
+@pytest.fixture(scope="module")
+def worlds():
+    """Roundabout states a few steps in: vehicles on entries, the ring and exits."""
+    env = TensorHighwayEnv(bench.SCENARIO, num_envs=64, return_state=True, seed=3)
+    td = env.reset()
+    for _ in range(4):
+        td["action"] = torch.full((64,), 1)
+        td = env.step_and_maybe_reset(td)[1]
+    return env, td
+
+
+def test_a_redraw_moves_only_the_other_vehicles_hidden_variables(worlds):
+    env, td = worlds
+    state = td[STATE]
+    new = bench.redraw_hidden(state, env.params, "both", torch.Generator().manual_seed(0))
+    for key in SEEN:
+        assert torch.equal(new["vehicles", key], state["vehicles", key]), key
+    delta = new["vehicles", "delta"]
+    assert torch.equal(delta[:, 0], state["vehicles", "delta"][:, 0])
+    assert ((delta[:, 1:] >= 3.5) & (delta[:, 1:] <= 4.5)).all()
+    assert not torch.equal(delta, state["vehicles", "delta"])
+    # The ego keeps its route; a redrawn route starts at the vehicle's lane.
+    legs, head = new["route", "legs"], new["route", "head"]
+    assert torch.equal(legs[:, 0], state["route", "legs"][:, 0])
+    moved = (legs != state["route", "legs"]).any(-1) | (head != state["route", "head"])
+    assert moved.any()
+    assert torch.equal(legs[..., 0][moved], new["vehicles", "lane"][moved])
+    assert (head[moved] == 0).all()
+
+
+def test_routes_are_redrawn_among_the_exits_and_only_where_all_are_reachable(worlds):
+    env, td = worlds
+    state, params = td[STATE], env.params
+    paths = route_paths(params, torch.device("cpu"))
+    exits = torch.tensor(params.traffic.destinations)
+    road = torch.tensor(params.road.road)[state["vehicles", "lane"]]
+    reachable = (paths[:, exits, 0] >= 0).all(-1)[road]
+    reachable[:, 0] = False
+    seen = set()
+    for k in range(20):
+        new = bench.redraw_hidden(state, params, "route", torch.Generator().manual_seed(k))
+        legs = new["route", "legs"]
+        # Off the reachable roads, nothing moves.
+        assert torch.equal(legs[~reachable], state["route", "legs"][~reachable])
+        # On them, the tail of each route is one exit's path from the vehicle's road.
+        tails = legs[reachable][:, 1:]
+        options = paths[road[reachable]][:, exits, : tails.shape[-1]]
+        match = (options == tails.unsqueeze(1)).all(-1)
+        assert match.any(-1).all()
+        seen |= set(match.float().argmax(-1).tolist())
+    assert seen == {0, 1, 2}
+
+
+def _true_destinations(state, params):
+    """Each vehicle's destination index (into the exits), read back from its route; -1: none."""
+    paths = route_paths(params, torch.device("cpu"))
+    exits = torch.tensor(params.traffic.destinations)
+    legs, head = state["route", "legs"], state["route", "head"]
+    length = legs.shape[-1]
+    ahead = head.unsqueeze(-1) + 1 + torch.arange(length - 1)
+    rest = torch.where(ahead < length, legs.gather(-1, ahead.clamp(max=length - 1)), -1)
+    road = torch.tensor(params.road.road)[state["vehicles", "lane"]]
+    match = (paths[road][:, :, exits] == rest.unsqueeze(-2)).all(-1)
+    return torch.where(match.any(-1), match.float().argmax(-1), -1)
+
+
+def test_a_route_encoded_as_the_redraw_does_drives_as_the_original(worlds):
+    """The redraw's encoding of a destination ([lane] + path, from its start) is faithful:
+    re-encoding each vehicle's own destination that way changes no future bit.
+
+    A vehicle can leave its route (highway-env then picks its turns at random); those
+    have no destination to re-encode and keep their routes here.
+    """
+    env, td = worlds
+    state, params = td[STATE], env.params
+    exits = torch.tensor(params.traffic.destinations)
+    own = _true_destinations(state, params)
+    paths = route_paths(params, torch.device("cpu"))
+    lane = state["vehicles", "lane"]
+    road = torch.tensor(params.road.road)[lane]
+    recode = (paths[:, exits, 0] >= 0).all(-1)[road] & (own >= 0)
+    recode[:, 0] = False
+    # Mid-route vehicles among them: their head moves back to 0 in the new encoding.
+    assert (recode & (state["route", "head"] > 0)).any()
+    legs = torch.cat([lane.unsqueeze(-1), paths[road, exits[own.clamp(min=0)]]], -1)
+    recoded = state.clone()
+    recoded["route", "legs"] = torch.where(recode.unsqueeze(-1), legs, state["route", "legs"])
+    recoded["route", "head"] = torch.where(recode, 0, state["route", "head"])
+    assert not torch.equal(recoded["route", "legs"], state["route", "legs"])
+    futures = []
+    for start in (state, recoded):
+        sim = TensorHighwayEnv(bench.SCENARIO, num_envs=len(start), return_state=True)
+        out = sim.reset(TensorDict({STATE: start}, batch_size=[len(start)]), set_state=True)
+        for _ in range(8):
+            out["action"] = torch.full((len(start),), 1)
+            out = sim.step(out)["next"]
+        futures.append(out["state", "vehicles"])
+    for key in ("x", "y", "speed", "heading", "crashed"):
+        assert torch.equal(futures[0][key], futures[1][key]), key
+
+
+def test_without_a_redraw_it_is_the_plain_search_and_the_penalty_counts_crashes(worlds):
+    env, td = worlds
+    n = 8
+    roots = td[:n]
+    plain = LookaheadPolicy(
+        TensorHighwayEnv(bench.SCENARIO, num_envs=5 * n), make_scripted_policy("idle"), 11
+    )
+    data = plain.branches(roots)
+    crashed = data.get(("next", "crashed")).reshape(data.get(MASK).shape) & data.get(MASK)
+    expected = branch_returns(data) - 5.0 * crashed.any(-1).double()
+    search = bench.RedrawnSearch(
+        TensorHighwayEnv(bench.SCENARIO, num_envs=5 * n * 2), 11, copies=2, redraw="none",
+        aggregate="min", crash_penalty=5.0, seed=0,
+    )  # fmt: skip
+    assert torch.equal(search.returns(roots), expected)
+    assert crashed.any(), "no branch crashed: the penalty went untested"
+
+
+def test_bad_settings_are_refused_by_name(worlds):
+    env, td = worlds
+    with pytest.raises(ValueError, match="redraw must be one of"):
+        bench.redraw_hidden(td[STATE], env.params, "drivers", torch.Generator())
+    with pytest.raises(ValueError, match="aggregate must be"):
+        bench.RedrawnSearch(
+            env, 11, copies=1, redraw="none", aggregate="max", crash_penalty=0.0, seed=0
+        )
+
+
+@pytest.mark.slow  # about a minute: the episodes' starts come from highway-env
+def test_a_two_episode_run_prints_its_table():
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "lab" / "bench_hidden_search.py"),
+         "--episodes", "2", "--copies", "2", "--redraw", "none", "both"],
+        capture_output=True, text=True, check=True, timeout=600,
+    )  # fmt: skip
+    rows = [line for line in out.stderr.splitlines() if line.startswith("| ")]
+    assert rows[0].startswith("| policy | return |")
+    assert rows[1].startswith("| always-SLOWER | 9.1")
+    assert rows[2].startswith("| redraw none, 1 copies, mean, crash penalty 0 |")
+    assert rows[3].startswith("| redraw both, 2 copies, mean, crash penalty 0 |")
