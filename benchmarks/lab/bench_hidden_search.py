@@ -53,8 +53,6 @@ log = logging.getLogger("bench_hidden_search")
 SCENARIO = "roundabout-v0"
 # roundabout-v0 ends after 11 steps: a branch of 11 steps scores the rest of the episode.
 HORIZON = 11
-# The reset's draw of an IDM exponent (highway-env's IDMVehicle.randomize_behavior).
-DELTA_RANGE = (3.5, 4.5)
 REDRAWS = ("none", "delta", "route", "both")
 
 
@@ -87,8 +85,9 @@ def redraw_hidden(
     vehicles = state["vehicles"]
     n, count = vehicles["x"].shape
     if redraw in ("delta", "both"):
+        # The reset's draw of an IDM exponent (highway-env's IDMVehicle.randomize_behavior).
         delta = vehicles["delta"]
-        low, high = DELTA_RANGE
+        low, high = params.idm.delta_range
         fresh = low + (high - low) * torch.rand(n, count - 1, generator=generator)
         vehicles["delta"] = torch.cat([delta[:, :1], fresh.to(delta.dtype)], 1)
     if redraw in ("route", "both"):
@@ -101,10 +100,10 @@ def redraw_hidden(
         legs = torch.cat([lane.unsqueeze(-1), paths[road, goal]], -1)
         redo = reachable[road]
         redo[:, 0] = False
+        # As the reset encodes a route: the car's lane, then the path from its road, from
+        # the start (head 0); the tests check that this drives as the original encoding.
         old_legs, old_head = state["route", "legs"], state["route", "head"]
-        state["route", "legs"] = torch.where(
-            redo.unsqueeze(-1), legs[..., : old_legs.shape[-1]], old_legs
-        )
+        state["route", "legs"] = torch.where(redo.unsqueeze(-1), legs, old_legs)
         state["route", "head"] = torch.where(redo, torch.zeros_like(old_head), old_head)
     return state
 
