@@ -30,8 +30,8 @@ import itertools
 import logging
 import time
 
-import numpy as np
 import torch
+from bench_scenario_room import TABLE_HEADER, table_row  # the table of the scenario's room
 from omegaconf import OmegaConf
 from tensordict import TensorDictBase
 
@@ -45,7 +45,8 @@ from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.modules import make_scripted_policy
 from torchrl_grpo.sim.roundabout_params import RoundaboutParams
 from torchrl_grpo.sim.roundabout_reset import route_paths
-from torchrl_grpo.training.results import EvalResult, paired_difference
+from torchrl_grpo.training.results import EvalResult
+from torchrl_grpo.training.search_eval import searched_result
 from torchrl_grpo.training.transfer import evaluate_on_tensor
 
 log = logging.getLogger("bench_hidden_search")
@@ -142,8 +143,8 @@ class RedrawnSearch(LookaheadPolicy):
         data = branch_rollout(
             self.env, self._branch_policy, as_roots(state), self.n_actions, self.horizon
         )
-        self.frames += int(data.get(MASK).sum())
         mask = data.get(MASK)
+        self.frames += int(mask.sum())
         crashed = (data.get(("next", "crashed")).reshape(mask.shape) & mask).any(-1)
         scores = branch_returns(data) - self.crash_penalty * crashed.double()
         scores = scores.reshape(n, self.copies, self.n_actions)
@@ -155,28 +156,7 @@ def play(planner: RedrawnSearch, seeds: list[int], name: str) -> EvalResult:
     episodes = TensorHighwayEnv(
         SCENARIO, num_envs=len(seeds), return_state=True, dtype=torch.float64
     )
-    out = search_episodes(planner, episodes, seeds, HORIZON)
-    mask = out.get("mask")
-    return EvalResult(
-        name,
-        (out.get("reward").double() * mask).sum(-1).tolist(),
-        (out.get("crashed") & mask).any(-1).tolist(),
-        mask.sum(-1).tolist(),
-        ((out.get("speed").double() * mask).sum(-1) / mask.sum(-1)).tolist(),
-        seeds,
-    )
-
-
-def row(res: EvalResult, slower: EvalResult, seconds: float) -> str:
-    """One table row: the result, and its difference to always-SLOWER, paired."""
-    s = res.summary()
-    diff, sem, beats = paired_difference(res, slower)
-    verdict = "beats" if beats else "does not beat"
-    return (
-        f"| {res.name} | {s['return']:.2f} ± {s['return_sem']:.2f} | "
-        f"{100 * s['crash_rate']:.1f}% | {s['speed']:.1f} | "
-        f"{np.mean(diff):+.2f} ± {sem:.2f}, {verdict} always-SLOWER | {seconds / 60:.1f} |"
-    )
+    return searched_result(name, search_episodes(planner, episodes, seeds, HORIZON), seeds)
 
 
 def main() -> None:
@@ -197,7 +177,7 @@ def main() -> None:
         cfg, make_scripted_policy("slower"), episodes=args.episodes, seed=args.seed,
         name="always-SLOWER", dtype=torch.float64,
     )  # fmt: skip
-    rows = [row(slower, slower, time.perf_counter() - start)]
+    rows = [table_row(slower, slower, time.perf_counter() - start)]
     settings = itertools.product(args.redraw, args.aggregate, args.crash_penalty)
     for redraw, aggregate, penalty in settings:
         # The plain search needs one copy: every copy would be the same state.
@@ -211,13 +191,12 @@ def main() -> None:
         name = f"redraw {redraw}, {copies} copies, {aggregate}, crash penalty {penalty:g}"
         start = time.perf_counter()
         res = play(planner, seeds, name)
-        rows.append(row(res, slower, time.perf_counter() - start))
+        rows.append(table_row(res, slower, time.perf_counter() - start))
         log.info("played: %s", name)
     log.info(
         "\n%s: %d tensor-simulator episodes (float64) from highway-env's starts, seeds %d..%d"
-        "\n\n| policy | return | crash rate | speed (m/s) | paired against always-SLOWER "
-        "| minutes |\n|---|---|---|---|---|---|\n%s",
-        SCENARIO, args.episodes, seeds[0], seeds[-1], "\n".join(rows),
+        "\n\n%s\n%s",
+        SCENARIO, args.episodes, seeds[0], seeds[-1], TABLE_HEADER, "\n".join(rows),
     )  # fmt: skip
 
 

@@ -54,7 +54,16 @@ log = logging.getLogger("bench_scenario_room")
 MAX_STEPS = 60
 
 
-def _row(res: EvalResult, slower: EvalResult, seconds: float) -> str:
+#: The table's header: the columns of :func:`table_row`.
+TABLE_HEADER = (
+    "| policy | return | crash rate | speed (m/s) | paired against always-SLOWER "
+    "| of it: always-SLOWER's crashed episodes / the others (their 5th percentile) "
+    "| minutes |\n|---|---|---|---|---|---|---|"
+)
+
+
+def table_row(res: EvalResult, slower: EvalResult, seconds: float) -> str:
+    """One row of the table: ``res``, paired against always-SLOWER's ``slower``."""
     s = res.summary()
     diff, sem, beats = paired_difference(res, slower)
     verdict = f"beats {slower.name}" if beats else f"does not beat {slower.name}"
@@ -161,11 +170,8 @@ def main() -> None:
                 f"{args.scenario}: {args.episodes} {where} episodes, seeds "
                 f"{args.seed}..{args.seed + args.episodes - 1}",
                 "",
-                "| policy | return | crash rate | speed (m/s) | paired against always-SLOWER "
-                "| of it: always-SLOWER's crashed episodes / the others (their 5th percentile) "
-                "| minutes |",
-                "|---|---|---|---|---|---|---|",
-                *(_row(res, slower, sec) for res, sec in results),
+                TABLE_HEADER,
+                *(table_row(res, slower, sec) for res, sec in results),
             ]
         )
     )

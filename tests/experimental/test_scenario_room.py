@@ -25,7 +25,7 @@ def test_a_row_pairs_with_always_slower_by_hand():
     slower = _result("always-SLOWER", [9.0, 9.0, 9.0], [False] * 3)
     search = _result("search", [10.0, 11.0, 12.0], [False] * 3)
     # Differences 1, 2, 3: mean 2, standard deviation 1, standard error 1 / sqrt(3).
-    row = bench._row(search, slower, seconds=90.0)
+    row = bench.table_row(search, slower, seconds=90.0)
     # No crash of always-SLOWER: all 2.00 from the others, whose 5th percentile is
     # 1 + 0.1 * (2 - 1) = 1.10 (numpy's linear interpolation between 1 and 2).
     assert row == (
@@ -33,12 +33,12 @@ def test_a_row_pairs_with_always_slower_by_hand():
         "| +0.00 / +2.00 (+1.10) | 1.5 |"
     )
     crashing = _result("crashing", [10.0, 11.0, 12.0], [True, False, False])
-    assert bench._row(crashing, slower, seconds=0.0).endswith(
+    assert bench.table_row(crashing, slower, seconds=0.0).endswith(
         "+2.00 ± 0.58, does not beat always-SLOWER | +0.00 / +2.00 (+1.10) | 0.0 |"
     )
     # always-SLOWER crashes in the first episode: 1 of the 6 there, 5 in the others.
     slower_crash = _result("always-SLOWER", [9.0, 9.0, 9.0], [True, False, False])
-    assert "| +0.33 / +1.67 (+2.05) |" in bench._row(search, slower_crash, seconds=0.0)
+    assert "| +0.33 / +1.67 (+2.05) |" in bench.table_row(search, slower_crash, seconds=0.0)
 
 
 @pytest.mark.parametrize(

@@ -31,7 +31,7 @@ from torchrl_grpo.modules.actors import DeterministicActor
 from torchrl_grpo.training.env_builder import env_overrides, make_env, tensor_covers
 from torchrl_grpo.training.results import EvalResult
 
-__all__ = ["PLAN_DTYPE", "evaluate_search", "is_stochastic", "search_policy"]
+__all__ = ["PLAN_DTYPE", "evaluate_search", "is_stochastic", "search_policy", "searched_result"]
 
 log = logging.getLogger(__name__)
 
@@ -185,7 +185,7 @@ def evaluate_search(
         outs = [_play(job, seeds, progress)]
     else:
         outs = _forked(job, seeds, workers, progress)
-    return _result(name, torch.cat(outs), seeds)
+    return searched_result(name, torch.cat(outs), seeds)
 
 
 def _play(job: tuple, seeds: list[int], progress: bool = False) -> TensorDict:
@@ -263,9 +263,26 @@ def _forked(job: tuple, seeds: list[int], workers: int, progress: bool) -> list[
         _JOB = None
 
 
-def _result(name: str, out: TensorDict, seeds: list[int]) -> EvalResult:
-    # Each episode's figures as evaluate() computes them from its own steps (the same
-    # float32 sum of the rewards).
+def searched_result(name: str, out: TensorDict, seeds: list[int]) -> EvalResult:
+    """The :class:`EvalResult` of the episodes :func:`search_episodes` played.
+
+    Each episode's figures as :func:`~torchrl_grpo.training.evaluate` computes them from
+    its own steps (the same float32 sum of the rewards).
+
+    Args:
+        name: the label in the results.
+        out: :func:`search_episodes`'s output ``[episodes, max_steps]``.
+        seeds: the episodes' seeds, in its order.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> out = TensorDict(mask=torch.tensor([[True, True], [True, False]]),
+        ...                  reward=torch.ones(2, 2), crashed=torch.tensor([[False, False],
+        ...                  [True, False]]), speed=torch.full((2, 2), 20.0), batch_size=[2, 2])
+        >>> res = searched_result("search", out, [7, 8])
+        >>> res.returns, res.crashed, res.lengths
+        ([2.0, 1.0], [False, True], [2, 1])
+    """
     result = EvalResult(name)
     lengths = out.get("mask").sum(-1).tolist()
     for i, (seed, length) in enumerate(zip(seeds, lengths, strict=True)):
