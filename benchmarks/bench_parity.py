@@ -1,7 +1,8 @@
 """The parity ladder at full size: TensorHighwayEnv against highway-env itself (docs/sim.md).
 
 Usage: ``python benchmarks/bench_parity.py [--scenario highway-fast-v0 | highway-v0 |
-merge-v0 | roundabout-v0] [--worlds 2000] [--episodes 500] [--fresh 1000] [--native]``
+merge-v0 | roundabout-v0 | intersection-v0] [--worlds 2000] [--episodes 500] [--fresh 1000]
+[--native]``
 
 ``--native``: the same ladder for the C++ step (``TensorHighwayEnv(native=True)``, the
 highway scenarios).
@@ -9,14 +10,17 @@ highway scenarios).
 Float64 on CPU, worlds moved through the bridge. Rungs (issue #17):
 
 a. on ``--worlds`` worlds recorded from highway-env runs of the rule, random and
-   always-FASTER policies (lane changes in progress, near misses and crashes among
-   them): the observation, reward and flags agree to 1e-9;
-b. from each of those worlds, each of the 5 actions: every vehicle's position,
+   always-FASTER policies (intersection-v0: always-FASTER, random, always-IDLE; lane
+   changes in progress, near misses and crashes among them): the observation, reward
+   and flags agree to 1e-9;
+b. from each of those worlds, each action (5; intersection-v0's 3): every vehicle's position,
    heading, speed, lane, target lane and crash flag agree after the step to 1e-6 in
    at least 99.5% of (world, action) pairs; every miss is listed with its explanation;
-c. whole episodes of the rule policy from ``--episodes`` imported worlds: at least 95%
+c. whole episodes of the rule policy (intersection-v0: random actions) from ``--episodes``
+   imported worlds: at least 95%
    agree to 1e-6 to the end; the distribution of agreement horizons is printed;
-d. ``--fresh`` fresh episodes per policy (always-IDLE, always-SLOWER, random, rule),
+d. ``--fresh`` fresh episodes per policy (always-IDLE, always-SLOWER, random, rule;
+   intersection-v0: always-FASTER for the rule),
    no bridge, against highway-env's statistics stored by
    ``scripts/highway_reference.py``: no test differs at p < 0.01 after a Bonferroni
    correction over all of them.
@@ -41,12 +45,7 @@ from torchrl_grpo.envs.highway.parity import (
     same_world,
     whole_episodes,
 )
-from torchrl_grpo.modules import (
-    ConstantActionPolicy,
-    KinematicsLayout,
-    RandomPolicy,
-    make_scripted_policy,
-)
+from torchrl_grpo.envs.highway.parity_policies import ladder_policies, recording_policies
 
 REFERENCE = Path(__file__).resolve().parents[1] / "tests" / "data" / "highway_reference"
 FRESH_SEED = 1_000_000
@@ -64,11 +63,10 @@ def main() -> None:
     scenario = args.scenario
     native = args.native
     env = TensorHighwayEnv(scenario, num_envs=args.worlds, dtype=torch.float64, native=native)
-    layout = KinematicsLayout.from_highway_config(env.config)
-    rule = make_scripted_policy("rule", layout)
+    policies = ladder_policies(scenario, env.config)
+    drive = policies.pop("drive")
     start = time.perf_counter()
-    recorders = [rule, RandomPolicy(seed=0), ConstantActionPolicy(3)]
-    states, kinds = record_worlds(scenario, recorders, args.worlds)
+    states, kinds = record_worlds(scenario, recording_policies(scenario, env.config), args.worlds)
     took = time.perf_counter() - start
     print(f"{scenario}: {args.worlds} worlds recorded ({kinds}) in {took:.0f} s")
 
@@ -91,7 +89,7 @@ def main() -> None:
 
     small = TensorHighwayEnv(scenario, num_envs=args.episodes, dtype=torch.float64, native=native)
     pick = torch.linspace(0, args.worlds - 1, args.episodes).long()
-    horizons = whole_episodes(small, states[pick], rule)
+    horizons = whole_episodes(small, states[pick], drive)
     agree = float((horizons == -1).double().mean())
     spread = dict(sorted(Counter(horizons[horizons >= 0].tolist()).items()))
     note = f"{args.episodes} episodes; diverged at step: {spread}"
@@ -102,13 +100,8 @@ def main() -> None:
         print(f"  d skipped: no {path} (run scripts/highway_reference.py --scenario {scenario})")
         return
     reference = json.loads(path.read_text())
-    policies = {
-        "idle": make_scripted_policy("idle"),
-        "slower": make_scripted_policy("slower"),
-        "random": make_scripted_policy("random", seed=1),
-        "rule": rule,
-    }
-    # merge-v0's and roundabout-v0's fresh worlds replay highway-env's own generator:
+    # merge-v0's, roundabout-v0's and intersection-v0's fresh worlds replay highway-env's
+    # own generator:
     # seeds disjoint from the reference's (0 .. episodes - 1), or both sides would draw
     # the very same episodes.
     seed = FRESH_SEED if env._model.draws_from_words else 0

@@ -355,7 +355,7 @@ def main() -> None:
     parser.add_argument("--native", action="store_true", help="also the C++ step (env.native())")
     parser.add_argument("--device", default="cpu")
     parser.add_argument(
-        "--scenario", default="highway-fast-v0", help="or highway-v0, merge-v0, roundabout-v0"
+        "--scenario", default="highway-fast-v0", help="or another of TENSOR_SCENARIOS"
     )
     parser.add_argument("--checks-only", action="store_true", help="only the checks' costs")
     parser.add_argument("--highjax-python", help="a python with highjax: run it as a peer")

@@ -25,20 +25,27 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_grpo.envs import HighwayEnv
-from torchrl_grpo.modules import KinematicsLayout, make_scripted_policy
+from torchrl_grpo.envs.highway.lane_constants import lane_keys
+from torchrl_grpo.envs.highway.parity_policies import ladder_policies
 
-POLICIES = ("idle", "slower", "random", "rule")
 OUT = Path(__file__).resolve().parents[1] / "tests" / "data" / "highway_reference"
 
 
 def initial_world(env: HighwayEnv) -> dict[str, list]:
-    """Gaps between consecutive vehicles (creation order), others' speeds, lanes."""
-    vehicles = env.gym_env.unwrapped.road.vehicles
+    """Gaps between consecutive vehicles (road order), others' speeds, lanes.
+
+    A lane is its id within its road (``lane_index[2]``), on intersection-v0 (one lane
+    a road) its place in the network's lane order.
+    """
+    core = env.gym_env.unwrapped
+    vehicles = core.road.vehicles
     xs = [float(v.position[0]) for v in vehicles]
+    keys = lane_keys(core.road.network)
+    flat = env.scenario == "intersection-v0"
     return {
         "gaps": [round(b - a, 6) for a, b in zip(xs, xs[1:], strict=False)],
-        "speeds": [round(float(v.speed), 6) for v in vehicles[1:]],
-        "lanes": [int(v.lane_index[2]) for v in vehicles],
+        "speeds": [round(float(v.speed), 6) for v in vehicles if v is not core.vehicle],
+        "lanes": [keys.index(v.lane_index) if flat else int(v.lane_index[2]) for v in vehicles],
     }
 
 
@@ -47,12 +54,7 @@ def run(job: tuple[str, str, list[int]]) -> dict:
     scenario, name, seeds = job
     torch.set_num_threads(1)
     env = HighwayEnv(scenario)
-    layout = KinematicsLayout.from_highway_config(env.config)
-    policy = (
-        make_scripted_policy(name, layout, seed=0)
-        if name == "random"
-        else make_scripted_policy(name, layout)
-    )
+    policy = ladder_policies(scenario, env.config, seed=0)[name]
     out: dict = {"returns": [], "crashed": [], "lengths": [], "initial": []}
     for seed in seeds:
         env.set_seed(seed)
@@ -83,7 +85,8 @@ def main() -> None:
     args = parser.parse_args()
     seeds = list(range(args.episodes))
     chunks = [seeds[i :: args.workers] for i in range(args.workers)]
-    jobs = [(args.scenario, name, chunk) for name in POLICIES for chunk in chunks]
+    names = [n for n in ladder_policies(args.scenario, {}) if n != "drive"]
+    jobs = [(args.scenario, name, chunk) for name in names for chunk in chunks]
     start = time.perf_counter()
     with multiprocessing.get_context("spawn").Pool(args.workers) as pool:
         results = pool.map(run, jobs)

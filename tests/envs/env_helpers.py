@@ -151,3 +151,25 @@ def make_env_after_intersection(scenario: str, **kwargs):
     env = HighwayEnv(scenario, **kwargs)
     crossing.reset(seed=1)
     return env
+
+
+def assert_branches_match_highway_env(scenario: str, action: int, horizon: int) -> None:
+    """``branch_rollout`` of 2 roots x 2 branches of a constant action on the tensor
+    simulator (float64, roots imported from highway-env) gives highway-env's masks and
+    rewards (to HighwayEnv's float32)."""
+    from torchrl_grpo.branching import MASK, branch_rollout, make_roots, reset_roots
+    from torchrl_grpo.envs import HighwayEnv, TensorHighwayEnv
+
+    highway_roots = reset_roots(HighwayEnv(scenario), 2, seed=3)
+
+    def policy(td):
+        return td.set("action", torch.full(td.batch_size, action, dtype=torch.int64))
+
+    highway = branch_rollout(HighwayEnv(scenario), policy, highway_roots, 2, horizon)
+    env = TensorHighwayEnv(scenario, num_envs=4, dtype=torch.float64)
+    roots = make_roots(env.state_from_highway(highway_roots["state"]))
+    tensor = branch_rollout(env, policy, roots, 2, horizon)
+    assert torch.equal(tensor[MASK], highway[MASK])
+    mask = highway[MASK]
+    a, b = tensor["next", "reward"][mask].double(), highway["next", "reward"][mask].double()
+    assert torch.allclose(a, b, atol=1e-6)

@@ -133,7 +133,7 @@ def test_seeds_reproduce_and_differ():
 @pytest.mark.parametrize(
     ("scenario", "config", "match"),
     [
-        ("intersection-v0", None, "covers"),
+        ("racetrack-v0", None, "covers"),
         ("highway-fast-v0", {"lanes_cout": 3}, "did you mean 'lanes_count'"),
         ("highway-fast-v0", {"manual_control": True}, "manual_control"),
         ("highway-fast-v0", {"controlled_vehicles": 2}, "controlled_vehicles"),

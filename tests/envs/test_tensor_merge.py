@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from env_helpers import assert_branches_match_highway_env
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
-from torchrl_grpo.branching import MASK, branch_rollout, make_roots, reset_roots
 from torchrl_grpo.envs import HighwayEnv, TensorHighwayEnv, state_differences
 
 SCENARIO = "merge-v0"
@@ -113,19 +113,7 @@ def test_rollout_resets_finished_rows_into_new_episodes():
 
 
 def test_branch_rollout_runs_rows_as_highway_env_does():
-    highway_roots = reset_roots(HighwayEnv(SCENARIO), 2, seed=3)
-
-    def policy(td):  # always FASTER
-        return td.set("action", torch.full(td.batch_size, 3, dtype=torch.int64))
-
-    highway = branch_rollout(HighwayEnv(SCENARIO), policy, highway_roots, 2, 6)
-    env = TensorHighwayEnv(SCENARIO, num_envs=4, dtype=torch.float64)
-    roots = make_roots(env.state_from_highway(highway_roots["state"]))
-    tensor = branch_rollout(env, policy, roots, 2, 6)
-    assert torch.equal(tensor[MASK], highway[MASK])
-    mask = highway[MASK]
-    a, b = tensor["next", "reward"][mask].double(), highway["next", "reward"][mask].double()
-    assert torch.allclose(a, b, atol=1e-6)
+    assert_branches_match_highway_env(SCENARIO, 3, 6)  # always FASTER
 
 
 @pytest.mark.parametrize(

@@ -38,7 +38,7 @@ def test_on_two_workers_it_gives_the_one_state_planners_table_on_the_tensor_simu
 
 @pytest.mark.parametrize(
     ("scenario", "on", "match"),
-    [("intersection-v0", "highway", "does not cover"), ("highway-fast-v0", "gpu", "'highway' or")],
+    [("racetrack-v0", "highway", "does not cover"), ("highway-fast-v0", "gpu", "'highway' or")],
 )
 def test_refusals_name_the_problem(scenario, on, match):
     cfg = OmegaConf.create({"scenario": scenario, "config": {}})

@@ -148,8 +148,8 @@ def test_the_transfer_gap_is_zero_for_a_scripted_policy_and_pairs_the_episodes()
 
 
 def test_the_transfer_gap_needs_a_config_the_simulator_covers():
-    cfg = OmegaConf.create({"scenario": "intersection-v0", "config": {}, "max_episode_steps": 5})
-    with pytest.raises(ValueError, match="intersection-v0"):
+    cfg = OmegaConf.create({"scenario": "racetrack-v0", "config": {}, "max_episode_steps": 5})
+    with pytest.raises(ValueError, match="racetrack-v0"):
         evaluate_on_tensor(cfg, ConstantActionPolicy("IDLE"), episodes=1, seed=0)
     assert TensorHighwayEnv is not None
 

@@ -39,40 +39,16 @@ from torchrl_grpo.sim.kinematics import step_vehicles
 from torchrl_grpo.sim.merge import _ego_act, _Others, _others_act
 from torchrl_grpo.sim.roundabout_output import observe_roundabout
 from torchrl_grpo.sim.roundabout_params import RoundaboutParams
-from torchrl_grpo.sim.routes import head_leg, leg_lane_id, next_lane
+from torchrl_grpo.sim.routes import RouteFollower
 from torchrl_grpo.sim.state import World
 
-__all__ = ["roundabout_step", "roundabout_substep"]
-
-
-class _Routes:
-    """The routes during one substep: ``follow_road`` drops finished legs as it goes."""
-
-    def __init__(self, world: World, params: RoundaboutParams) -> None:
-        self.route, self.head, self.params = world.route, world.route_head.clone(), params
-
-    def follow(self, rows: slice, x, y, target, mask) -> torch.Tensor:
-        """``follow_road`` of the vehicles ``rows`` where ``mask`` holds (see merge's)."""
-        road = self.params.road
-        s, _ = L.local_coordinates(x, y, target, road.lanes)
-        due = mask & L.after_end(s, target, road.lanes)
-        if not bool(due.any()):
-            return target
-        heads = self.head[:, rows]
-        nxt, moved = next_lane(x, y, target, self.route[:, rows], heads, road)
-        self.head[:, rows] = torch.where(due, moved, heads)
-        return torch.where(due, nxt, target)
-
-    def wanted_id(self, rows: slice) -> torch.Tensor:
-        """The lane id each route's head leg names (-1: none, the plain MOBIL test)."""
-        leg = head_leg(self.route[:, rows], self.head[:, rows])
-        return leg_lane_id(leg, self.params.road)
+__all__ = ["act_on_routes", "roundabout_step", "roundabout_substep"]
 
 
 class _RoutedOthers(_Others):
     """The IDM vehicles deciding with MOBIL's route rule (``IDMVehicle.mobil``)."""
 
-    def __init__(self, v, params: RoundaboutParams, routes: _Routes) -> None:
+    def __init__(self, v, params: RoundaboutParams, routes: RouteFollower) -> None:
         super().__init__(v, params)
         self.routes = routes
 
@@ -89,8 +65,13 @@ class _RoutedOthers(_Others):
         return torch.where(wanted >= 0, routed, plain)
 
 
-def roundabout_substep(world: World, action: torch.Tensor, params: RoundaboutParams) -> World:
-    """One simulation frame; ``action`` applies where ``steps`` is a multiple of ``frames``.
+def act_on_routes(world: World, action: torch.Tensor, params) -> tuple:
+    """Every vehicle's ``act()`` of a frame on routed roads (the roundabout's, the intersection's).
+
+    ``action`` (meta-actions, -1: none) applies where ``steps`` is a multiple of
+    ``frames``. Returns ``(vehicles, decided, speed_index, routes)``: the table with the
+    ego's new target speed, the decided columns (target lanes, target speeds, commands,
+    timers) to step it with, the ego's speed index, and the routes with their new heads.
 
     Example:
         >>> # see the module's example
@@ -102,10 +83,20 @@ def roundabout_substep(world: World, action: torch.Tensor, params: RoundaboutPar
         k: getattr(v, k).clone()
         for k in ("target_lane", "target_speed", "steering", "acceleration", "timer")
     }
-    routes = _Routes(world, params)
+    routes = RouteFollower(world, params)
     index = _ego_act(v, world.speed_index, action, first, cols, params, routes.follow)
     v = v._replace(target_speed=cols["target_speed"])
     _others_act(v, cols, params, routes.follow, lambda v_, p: _RoutedOthers(v_, p, routes))
+    return v, cols, index, routes
+
+
+def roundabout_substep(world: World, action: torch.Tensor, params: RoundaboutParams) -> World:
+    """One simulation frame; ``action`` applies where ``steps`` is a multiple of ``frames``.
+
+    Example:
+        >>> # see the module's example
+    """
+    v, cols, index, routes = act_on_routes(world, action, params)
     moved = step_vehicles(
         v._replace(**cols),
         params,

@@ -32,7 +32,7 @@ import torch
 
 from torchrl_grpo.sim import lanes as L
 
-__all__ = ["head_leg", "leg_lane_id", "leg_road", "next_lane"]
+__all__ = ["RouteFollower", "head_leg", "leg_lane_id", "leg_road", "next_lane"]
 
 
 @functools.lru_cache(maxsize=64)
@@ -153,3 +153,41 @@ def next_lane(
     best = distance.argmin(-1, keepdim=True)
     nxt = pick.gather(-1, best).squeeze(-1)
     return torch.where(valid.any(-1), nxt, target), head
+
+
+class RouteFollower:
+    """The routes during one substep: ``follow_road`` drops finished legs as it goes.
+
+    Args:
+        world: worlds with routes (``route``, ``route_head``).
+        params: a routed scenario's constants (``params.road`` a routed road).
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> from torchrl_grpo.sim.state import empty_world
+        >>> params = tensor_params("roundabout-v0")
+        >>> world = empty_world(1, 2, torch.float64, route_length=params.route_length)
+        >>> follower = RouteFollower(world, params)
+        >>> follower.head is world.route_head  # a copy: the world is not changed
+        False
+    """
+
+    def __init__(self, world, params) -> None:
+        self.route, self.head, self.params = world.route, world.route_head.clone(), params
+
+    def follow(self, rows: slice, x, y, target, mask) -> torch.Tensor:
+        """``follow_road`` of the vehicles ``rows`` where ``mask`` holds (see merge's)."""
+        road = self.params.road
+        s, _ = L.local_coordinates(x, y, target, road.lanes)
+        due = mask & L.after_end(s, target, road.lanes)
+        if not bool(due.any()):
+            return target
+        heads = self.head[:, rows]
+        nxt, moved = next_lane(x, y, target, self.route[:, rows], heads, road)
+        self.head[:, rows] = torch.where(due, moved, heads)
+        return torch.where(due, nxt, target)
+
+    def wanted_id(self, rows: slice) -> torch.Tensor:
+        """The lane id each route's head leg names (-1: none, the plain MOBIL test)."""
+        leg = head_leg(self.route[:, rows], self.head[:, rows])
+        return leg_lane_id(leg, self.params.road)

@@ -38,6 +38,7 @@ __all__ = [
     "World",
     "check_world",
     "empty_world",
+    "map_world",
     "take",
     "world_from_tensordict",
     "world_to_tensordict",
@@ -123,6 +124,9 @@ class World(NamedTuple):
         rng_counter: ``[B]`` int64 counter of that stream.
         route: ``[B, N, R]`` int64 route legs (codes of :mod:`.routes`; roundabout-v0 only).
         route_head: ``[B, N]`` int64, each route's first leg not yet dropped (or ``None``).
+        yielding: ``[B, N]`` int8 yield states (intersection-v0 only, :mod:`.regulation`).
+        road_steps: ``[B]`` int64 frames the road has run, the reset's included (``road.steps``).
+        ego_rank: ``[B]`` int64, the ego's place in ``road.vehicles`` (vehicles before it).
 
     Example:
         >>> world = empty_world(4, 21)
@@ -138,6 +142,26 @@ class World(NamedTuple):
     rng_counter: torch.Tensor
     route: torch.Tensor | None = None
     route_head: torch.Tensor | None = None
+    yielding: torch.Tensor | None = None
+    road_steps: torch.Tensor | None = None
+    ego_rank: torch.Tensor | None = None
+
+
+def map_world(fn, *worlds: World) -> World:
+    """``fn`` of the corresponding tensors of ``worlds``, as a world (absent fields stay ``None``).
+
+    Example:
+        >>> w = map_world(lambda t: t[:1], empty_world(3, 2))
+        >>> w.vehicles.x.shape, w.steps.shape
+        (torch.Size([1, 2]), torch.Size([1]))
+    """
+
+    def apply(*parts):
+        if parts[0] is None or isinstance(parts[0], torch.Tensor):
+            return None if parts[0] is None else fn(*parts)
+        return type(parts[0])(*(apply(*column) for column in zip(*parts, strict=True)))
+
+    return apply(*worlds)
 
 
 def take(table: torch.Tensor, at: torch.Tensor) -> torch.Tensor:
@@ -159,6 +183,7 @@ def empty_world(
     dtype: torch.dtype = torch.float32,
     device: torch.device | str = "cpu",
     route_length: int = 0,
+    regulated: bool = False,
 ) -> World:
     """A world of zeros with every row present: a template for specs and tests.
 
@@ -168,6 +193,7 @@ def empty_world(
         dtype: the float dtype of the vehicle table.
         device: where the tensors live.
         route_length: R, the legs a route holds (0: no routes, as on the highway).
+        regulated: with the intersection's ``yielding``, ``road_steps`` and ``ego_rank``.
 
     Returns:
         A :class:`World`.
@@ -195,6 +221,9 @@ def empty_world(
         rng_counter=words.clone(),
         route=route,
         route_head=head,
+        yielding=torch.zeros(shape, dtype=torch.int8, device=device) if regulated else None,
+        road_steps=words.clone() if regulated else None,
+        ego_rank=words.clone() if regulated else None,
     )
 
 
@@ -226,6 +255,10 @@ def world_to_tensordict(world: World) -> TensorDict:
     if world.route is not None:
         route = TensorDict(legs=world.route, head=world.route_head, batch_size=v.x.shape[:2])
         td.set("route", route)
+    if world.yielding is not None:
+        td.set("yielding", world.yielding)
+        td.set("road_steps", world.road_steps)
+        td.set("ego_rank", world.ego_rank)
     return td
 
 
@@ -253,6 +286,9 @@ def world_from_tensordict(state: TensorDictBase) -> World:
         rng_counter=state.get(("rng", "counter")),
         route=None if route is None else route.get("legs"),
         route_head=None if route is None else route.get("head"),
+        yielding=state.get("yielding", None),
+        road_steps=state.get("road_steps", None),
+        ego_rank=state.get("ego_rank", None),
     )
 
 
@@ -331,7 +367,7 @@ def check_world(
     others = params.traffic.others_check_collisions
     expected = torch.full_like(v.check_collisions, others)
     expected[:, 0] = True
-    bad("vehicles.check_collisions", v.check_collisions != expected)
+    bad("vehicles.check_collisions", (v.check_collisions != expected) & v.present)
     speeds = len(params.control.target_speeds)
     bad("speed_index", (world.speed_index < 0) | (world.speed_index >= speeds))
     time_limit = min(max_magnitude, torch.finfo(world.time.dtype).max)

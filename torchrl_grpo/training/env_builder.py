@@ -56,7 +56,7 @@ def env_backend(env_cfg: DictConfig) -> Literal["tensor", "highway"]:
             does not cover (its own message, naming the key).
 
     Example:
-        >>> cfg = OmegaConf.create({"scenario": "intersection-v0", "config": {}, "backend": "auto"})
+        >>> cfg = OmegaConf.create({"scenario": "racetrack-v0", "config": {}, "backend": "auto"})
         >>> env_backend(cfg)
         'highway'
         >>> env_backend(OmegaConf.merge(cfg, {"scenario": "highway-fast-v0"}))
@@ -112,7 +112,7 @@ def tensor_covers(env_cfg: DictConfig) -> bool:
     """Whether the tensor simulator covers ``env_cfg``'s scenario and config.
 
     Example:
-        >>> tensor_covers(OmegaConf.create({"scenario": "intersection-v0", "config": {}}))
+        >>> tensor_covers(OmegaConf.create({"scenario": "racetrack-v0", "config": {}}))
         False
         >>> tensor_covers(OmegaConf.create({"scenario": "merge-v0", "config": {}}))
         True

@@ -29,10 +29,81 @@ from torchrl_grpo.sim.state import (
     INT_FIELDS,
     Vehicles,
     World,
+    map_world,
     world_from_tensordict,
+    world_to_tensordict,
 )
 
-__all__ = ["HighwayBridge", "export_states", "import_states"]
+__all__ = [
+    "HighwayBridge",
+    "export_states",
+    "import_states",
+    "read_vehicle",
+    "vehicle_columns",
+    "world_of",
+]
+
+
+def vehicle_columns(n: int) -> dict[str, np.ndarray]:
+    """Zeroed numpy columns of an ``n``-row vehicle table, by field (dtypes of the state).
+
+    Example:
+        >>> vehicle_columns(3)["lane"].dtype, vehicle_columns(3)["present"].any()
+        (dtype('int64'), np.False_)
+    """
+    return (
+        {k: np.zeros(n) for k in FLOAT_FIELDS}
+        | {k: np.zeros(n, dtype=np.int64) for k in INT_FIELDS}
+        | {k: np.zeros(n, dtype=bool) for k in BOOL_FIELDS}
+    )
+
+
+def read_vehicle(v, k: int, columns: dict[str, np.ndarray], other: bool) -> None:
+    """A highway-env vehicle's fields into row ``k`` of ``columns``, its lanes aside.
+
+    ``other``: an IDM vehicle (the ego has no MOBIL timer and no IDM exponent).
+
+    Example:
+        >>> hw = HighwayEnv("highway-fast-v0", seed=0)
+        >>> columns = vehicle_columns(1)
+        >>> read_vehicle(hw.gym_env.unwrapped.vehicle, 0, columns, other=False)
+        >>> bool(columns["present"][0]), float(columns["speed"][0])
+        (True, 25.0)
+    """
+    columns["x"][k], columns["y"][k] = v.position
+    columns["heading"][k], columns["speed"][k] = v.heading, v.speed
+    columns["target_speed"][k] = v.target_speed
+    columns["steering"][k] = v.action["steering"]
+    columns["acceleration"][k] = v.action["acceleration"]
+    if other:
+        columns["timer"][k], columns["delta"][k] = v.timer, v.DELTA
+    if v.impact is not None:
+        columns["impact"][k] = True
+        columns["impact_x"][k], columns["impact_y"][k] = v.impact
+    columns["crashed"][k], columns["check_collisions"][k] = v.crashed, v.check_collisions
+    columns["present"][k] = True
+
+
+def world_of(columns: dict[str, np.ndarray], core, words: torch.Tensor, **more) -> World:
+    """The float64 world ``[1]`` of read columns, the reset env ``core``'s clock and words.
+
+    Example:
+        >>> hw = HighwayEnv("highway-fast-v0", seed=0)
+        >>> words = hw.get_state()["sim", "env", "rng"].reshape(1, -1)
+        >>> world_of(vehicle_columns(2), hw.gym_env.unwrapped, words).steps.tolist()
+        [0]
+    """
+    table = {k: torch.from_numpy(a).unsqueeze(0) for k, a in columns.items()}
+    return World(
+        vehicles=Vehicles(**table),
+        speed_index=torch.tensor([int(core.vehicle.speed_index)]),
+        time=torch.tensor([float(core.time)], dtype=torch.float64),
+        steps=torch.tensor([int(core.steps)]),
+        # A stream of its own per imported world, derived from its generator words.
+        rng_key=mix64((words * torch.arange(1, words.shape[1] + 1)).sum(-1)),
+        rng_counter=torch.zeros(1, dtype=torch.int64),
+        **more,
+    )
 
 
 class HighwayBridge:
@@ -88,36 +159,23 @@ class HighwayBridge:
             raise StateMismatchError(
                 "the tensor simulator needs the ego (MDPVehicle) first and IDMVehicles after it"
             )
-        n = len(vehicles)
-        floats = {k: np.zeros(n) for k in FLOAT_FIELDS}
-        ints = {k: np.zeros(n, dtype=np.int64) for k in INT_FIELDS}
-        flags = {k: np.zeros(n, dtype=bool) for k in BOOL_FIELDS}
+        columns = vehicle_columns(len(vehicles))
         for k, v in enumerate(vehicles):
-            floats["x"][k], floats["y"][k] = v.position
-            floats["heading"][k], floats["speed"][k] = v.heading, v.speed
-            floats["target_speed"][k] = v.target_speed
-            floats["steering"][k] = v.action["steering"]
-            floats["acceleration"][k] = v.action["acceleration"]
-            if k:  # only the others have a MOBIL timer and an IDM exponent
-                floats["timer"][k], floats["delta"][k] = v.timer, v.DELTA
-            if v.impact is not None:
-                flags["impact"][k] = True
-                floats["impact_x"][k], floats["impact_y"][k] = v.impact
-            ints["lane"][k], ints["target_lane"][k] = v.lane_index[2], v.target_lane_index[2]
-            flags["crashed"][k], flags["check_collisions"][k] = v.crashed, v.check_collisions
-        flags["present"][:] = True
-        table = {k: torch.from_numpy(a).unsqueeze(0) for k, a in (floats | ints | flags).items()}
+            read_vehicle(v, k, columns, other=k > 0)
+            columns["lane"][k], columns["target_lane"][k] = v.lane_index[2], v.target_lane_index[2]
         words = state.get(("sim", "env", "rng")).reshape(1, -1)
-        world = World(
-            vehicles=Vehicles(**table),
-            speed_index=torch.tensor([int(core.vehicle.speed_index)]),
-            time=torch.tensor([float(core.time)], dtype=torch.float64),
-            steps=torch.tensor([int(core.steps)]),
-            # A stream of its own per imported world, derived from its generator words.
-            rng_key=mix64((words * torch.arange(1, words.shape[1] + 1)).sum(-1)),
-            rng_counter=torch.zeros(1, dtype=torch.int64),
-        )
+        world = world_of(columns, core, words)
         return world, words, state.get(("sim", "env", "seed")).reshape(1)
+
+    def _finish_write(self, core, world: World, row: int, words, seed: int) -> TensorDictBase:
+        """The ego's speed index, the clock and the generator of row ``row``; the state."""
+        core.vehicle.speed_index = int(world.speed_index[row])
+        core.time = float(world.time[row])
+        core.steps = int(world.steps[row])
+        restore_rng(core.np_random, words.numpy())
+        core._np_random_seed = None if seed < 0 else seed
+        self.env.refresh_output()
+        return self.env.get_state()
 
     def write(self, world: World, row: int, words: torch.Tensor, seed: int) -> TensorDictBase:
         """World row ``row`` (float64, on the CPU) as a HighwayEnv state."""
@@ -141,41 +199,40 @@ class HighwayBridge:
             v.lane = network.get_lane(v.lane_index)
             v.target_lane_index = ("0", "1", int(value["target_lane"]))
             v.crashed, v.check_collisions = bool(value["crashed"]), bool(value["check_collisions"])
-        core.vehicle.speed_index = int(world.speed_index[row])
-        core.time = float(world.time[row])
-        core.steps = int(world.steps[row])
-        restore_rng(core.np_random, words.numpy())
-        core._np_random_seed = None if seed < 0 else seed
-        self.env.refresh_output()
-        return self.env.get_state()
+        return self._finish_write(core, world, row, words, seed)
 
 
-def import_states(bridge: HighwayBridge, states: TensorDictBase) -> tuple[World, TensorDict]:
-    """HighwayEnv states ``[M]`` as one float64 world ``[M]`` and its ``highway`` words.
+def import_states(
+    bridge: HighwayBridge,
+    states: TensorDictBase,
+    dtype: torch.dtype = torch.float64,
+    fingerprint: int = 0,
+) -> TensorDict:
+    """HighwayEnv states ``[M]`` as one tensor state ``[M]``: the world, its ``highway`` words.
+
+    The world is read in float64; its float columns are cast to ``dtype``, and
+    ``fingerprint`` is the tensor env's.
 
     Example:
         >>> hw = HighwayEnv("highway-fast-v0", seed=3)
-        >>> world, words = import_states(HighwayBridge("highway-fast-v0", {}, 21),
-        ...                              torch.stack([hw.get_state()] * 2))
-        >>> world.vehicles.x.shape, words["rng"].shape
+        >>> state = import_states(HighwayBridge("highway-fast-v0", {}, 21),
+        ...                       torch.stack([hw.get_state()] * 2))
+        >>> state["vehicles", "x"].shape, state["highway", "rng"].shape
         (torch.Size([2, 21]), torch.Size([2, 10]))
     """
     rows = [bridge.read(states[i]) for i in range(states.shape[0])]
-    worlds = [w for w, _, _ in rows]
-    table = zip(*(w.vehicles for w in worlds), strict=True)
-    world = World(
-        Vehicles(*(torch.cat(column) for column in table)),
-        *(
-            None if column[0] is None else torch.cat(column)
-            for column in list(zip(*worlds, strict=True))[1:]
-        ),
-    )
+    world = map_world(lambda *columns: torch.cat(columns), *(w for w, _, _ in rows))
+    td = world_to_tensordict(world)
+    for name in FLOAT_FIELDS:
+        td.set(("vehicles", name), td.get(("vehicles", name)).to(dtype))
     words = TensorDict(
         rng=torch.cat([r[1] for r in rows]),
         seed=torch.cat([r[2] for r in rows]),
         batch_size=[len(rows)],
     )
-    return world, words
+    td.set("highway", words)
+    td.set("fingerprint", torch.full(td.batch_size, fingerprint, dtype=torch.int64))
+    return td
 
 
 def export_states(bridge: HighwayBridge, state: TensorDictBase) -> TensorDict:
@@ -184,9 +241,7 @@ def export_states(bridge: HighwayBridge, state: TensorDictBase) -> TensorDict:
     Example:
         >>> hw = HighwayEnv("highway-fast-v0", seed=3)
         >>> bridge = HighwayBridge("highway-fast-v0", {}, 21)
-        >>> world, words = import_states(bridge, hw.get_state().unsqueeze(0))
-        >>> from torchrl_grpo.sim import world_to_tensordict
-        >>> state = world_to_tensordict(world).set("highway", words)
+        >>> state = import_states(bridge, hw.get_state().unsqueeze(0))
         >>> export_states(bridge, state).batch_size
         torch.Size([1])
     """

@@ -28,13 +28,12 @@ from highway_env.vehicle.objects import Obstacle
 from tensordict import TensorDictBase
 
 from torchrl_grpo.envs.core.errors import StateMismatchError
-from torchrl_grpo.envs.core.gym_state import RNG_WORDS, decode_rng, encode_rng, restore_rng
-from torchrl_grpo.envs.highway.bridge import HighwayBridge
+from torchrl_grpo.envs.core.gym_state import decode_rng, encode_rng
+from torchrl_grpo.envs.highway.bridge import HighwayBridge, read_vehicle, vehicle_columns, world_of
 from torchrl_grpo.envs.highway.lane_constants import lane_keys
 from torchrl_grpo.envs.highway.tensor_params import tensor_params
 from torchrl_grpo.sim.merge_reset import DRAWS
-from torchrl_grpo.sim.rng import mix64
-from torchrl_grpo.sim.state import BOOL_FIELDS, FLOAT_FIELDS, INT_FIELDS, Vehicles, World
+from torchrl_grpo.sim.state import Vehicles, World
 
 __all__ = ["MergeBridge", "merge_draws"]
 
@@ -133,40 +132,26 @@ class MergeBridge(HighwayBridge):
         core = self.env.gym_env.unwrapped
         self._check(core)
         entities = [*core.road.vehicles, *core.road.objects]
-        n = len(entities)
-        floats = {k: np.zeros(n) for k in FLOAT_FIELDS}
-        ints = {k: np.zeros(n, dtype=np.int64) for k in INT_FIELDS}
-        flags = {k: np.zeros(n, dtype=bool) for k in BOOL_FIELDS}
+        columns = vehicle_columns(len(entities))
         flat = {key: i for i, key in enumerate(self.keys)}
         for k, v in enumerate(entities):
-            floats["x"][k], floats["y"][k] = v.position
-            floats["heading"][k], floats["speed"][k] = v.heading, v.speed
-            ints["lane"][k] = flat[tuple(v.lane_index[:2]) + (int(v.lane_index[2]),)]
-            flags["crashed"][k], flags["check_collisions"][k] = v.crashed, v.check_collisions
+            lane = flat[tuple(v.lane_index[:2]) + (int(v.lane_index[2]),)]
             if k >= len(core.road.vehicles):  # the obstacle: no target, commands, impact
-                ints["target_lane"][k] = ints["lane"][k]
+                columns["x"][k], columns["y"][k] = v.position
+                columns["heading"][k], columns["speed"][k] = v.heading, v.speed
+                columns["crashed"][k], columns["check_collisions"][k] = (
+                    v.crashed,
+                    v.check_collisions,
+                )
+                columns["present"][k] = True
+                columns["lane"][k] = columns["target_lane"][k] = lane
                 continue
-            floats["target_speed"][k] = v.target_speed
-            floats["steering"][k] = v.action["steering"]
-            floats["acceleration"][k] = v.action["acceleration"]
-            if k:
-                floats["timer"][k], floats["delta"][k] = v.timer, v.DELTA
-            if v.impact is not None:
-                flags["impact"][k] = True
-                floats["impact_x"][k], floats["impact_y"][k] = v.impact
+            read_vehicle(v, k, columns, other=k > 0)
             target = v.target_lane_index
-            ints["target_lane"][k] = flat[tuple(target[:2]) + (int(target[2]),)]
-        flags["present"][:] = True
-        table = {k: torch.from_numpy(a).unsqueeze(0) for k, a in (floats | ints | flags).items()}
+            columns["lane"][k] = lane
+            columns["target_lane"][k] = flat[tuple(target[:2]) + (int(target[2]),)]
         words = state.get(("sim", "env", "rng")).reshape(1, -1)
-        world = World(
-            vehicles=Vehicles(**table),
-            speed_index=torch.tensor([int(core.vehicle.speed_index)]),
-            time=torch.tensor([float(core.time)], dtype=torch.float64),
-            steps=torch.tensor([int(core.steps)]),
-            rng_key=mix64((words * torch.arange(1, RNG_WORDS + 1)).sum(-1)),
-            rng_counter=torch.zeros(1, dtype=torch.int64),
-        )
+        world = world_of(columns, core, words)
         return world, words, state.get(("sim", "env", "seed")).reshape(1)
 
     def write(self, world: World, row: int, words: torch.Tensor, seed: int) -> TensorDictBase:
@@ -196,10 +181,4 @@ class MergeBridge(HighwayBridge):
             v.target_lane_index = self.keys[int(value["target_lane"])]
             v.check_collisions = bool(value["check_collisions"])
         self._write_more(core, world, row)
-        core.vehicle.speed_index = int(world.speed_index[row])
-        core.time = float(world.time[row])
-        core.steps = int(world.steps[row])
-        restore_rng(core.np_random, words.numpy())
-        core._np_random_seed = None if seed < 0 else seed
-        self.env.refresh_output()
-        return self.env.get_state()
+        return self._finish_write(core, world, row, words, seed)

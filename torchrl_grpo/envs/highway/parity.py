@@ -46,7 +46,10 @@ __all__ = [
 Policy = Callable[[TensorDictBase], TensorDictBase]
 FIELDS = ("x", "y", "heading", "speed", "lane", "target_lane", "crashed")
 #: What :func:`record_worlds` counts of its worlds.
-KINDS = ("changing", "near_miss", "crashed", "curved", "ring", "sine", "forbidden", "hand_over")
+KINDS = (
+    "changing", "near_miss", "crashed", "curved", "ring", "sine", "forbidden", "hand_over",
+    "yielding",
+)  # fmt: skip
 
 
 def record_worlds(
@@ -69,8 +72,8 @@ def record_worlds(
         crash (``near_miss``), a crashed ego (``crashed``), a vehicle on a curved lane
         (``curved``), on a circular lane (``ring``: roundabout-v0's) or a sine lane
         (``sine``: merge-v0's ramp, roundabout-v0's entries and exits), on a forbidden
-        lane (``forbidden``: merge-v0's ramp) or handing over to another road
-        (``hand_over``).
+        lane (``forbidden``: merge-v0's ramp), handing over to another road
+        (``hand_over``) or yielding at the intersection (``yielding``).
     """
     env = HighwayEnv(scenario, config)
     states: list[TensorDictBase] = []
@@ -104,9 +107,11 @@ def _count_kinds(env: HighwayEnv, kinds: dict[str, int], near: float) -> None:
     kinds["sine"] += any(type(lane).__name__ == "SineLane" for lane in lanes)
     kinds["forbidden"] += any(lane.forbidden for lane in lanes)
     kinds["hand_over"] += any(v.lane_index[:2] != v.target_lane_index[:2] for v in vehicles)
+    kinds["yielding"] += any(getattr(v, "is_yielding", False) for v in vehicles)
+    others = [float(np.linalg.norm(v.position - ego.position)) for v in vehicles if v is not ego]
     if ego.crashed:
         kinds["crashed"] += 1
-    elif min(float(np.linalg.norm(v.position - ego.position)) for v in vehicles[1:]) < near:
+    elif min(others, default=float("inf")) < near:
         kinds["near_miss"] += 1
 
 
@@ -179,7 +184,7 @@ class StepReport:
     pairs: int = 0
     agree: int = 0
     max_error: dict[str, float] = field(
-        default_factory=lambda: dict.fromkeys((*FIELDS, "route"), 0.0)
+        default_factory=lambda: dict.fromkeys((*FIELDS, "route", "yielding", "present"), 0.0)
     )
     misses: list[StepMiss] = field(default_factory=list)
 
@@ -198,15 +203,24 @@ def _remaining(route: torch.Tensor, head: torch.Tensor) -> torch.Tensor:
 
 
 def _differences(a, b) -> dict[str, torch.Tensor]:
-    """Per field, ``[B, N]`` |a - b| (floats) or a != b (lanes, flags, routes) of two worlds."""
+    """Per field, ``[B, N]`` |a - b| (floats) or a != b (lanes, flags, routes) of two worlds.
+
+    Rows free in both worlds (intersection-v0's) are not compared; a row present in one
+    only differs in ``present``, as do worlds whose ego sits elsewhere in road order.
+    """
     out = {}
+    used = a.vehicles.present | b.vehicles.present
     for name in FIELDS:
         x, y = getattr(a.vehicles, name), getattr(b.vehicles, name)
         out[name] = (x.double() - y.double()).abs() if x.is_floating_point() else (x != y).double()
     if a.route is not None:
         legs = _remaining(a.route, a.route_head) != _remaining(b.route, b.route_head)
         out["route"] = legs.any(-1).double()
-    return out
+    if a.yielding is not None:
+        out["yielding"] = (a.yielding != b.yielding).double()
+        rank = (a.ego_rank != b.ego_rank).unsqueeze(-1)
+        out["present"] = ((a.vehicles.present != b.vehicles.present) | rank).double()
+    return {k: torch.where(used, d, 0.0) for k, d in out.items()}
 
 
 def _explain(before, after_hw, after_t, world: int, vehicle: int, name: str) -> str:
@@ -224,13 +238,21 @@ def _explain(before, after_hw, after_t, world: int, vehicle: int, name: str) -> 
         return "the closest-lane argmin flipped between two lanes"
     if name == "route":
         return "a route's leg was dropped on one side only (after_end at the lane's end)"
+    if name == "yielding":
+        return "a conflict test flipped (predicted rectangles touching at the tolerance)"
+    if name == "present":
+        return "a spawn's 15 m clearance or an exit's margin flipped"
     return "float rounding (transcendental functions of torch and libm differ by an ulp)"
 
 
 def one_step(
-    tensor_env, states: TensorDictBase, tolerance: float = 1e-6, actions: Sequence[int] = range(5)
+    tensor_env,
+    states: TensorDictBase,
+    tolerance: float = 1e-6,
+    actions: Sequence[int] | None = None,
 ) -> StepReport:
-    """Rung b: every vehicle after one step, each action from each world."""
+    """Rung b: every vehicle after one step, each action (default: all) from each world."""
+    actions = range(tensor_env.action_spec.space.n) if actions is None else actions
     report = StepReport()
     hw = tensor_env.bridge.env
     n = states.shape[0]

@@ -17,6 +17,7 @@ from tensordict import TensorDictBase
 
 from torchrl_grpo.envs.highway.parity_stats import chi2_counts, ks_2samp, proportions_z
 from torchrl_grpo.envs.highway.tensor_env import TensorHighwayEnv
+from torchrl_grpo.sim.intersection import road_order
 
 __all__ = ["fresh_resets"]
 
@@ -24,7 +25,16 @@ Policy = Callable[[TensorDictBase], TensorDictBase]
 
 
 def _initial_statistics(state: TensorDictBase, params) -> dict[str, torch.Tensor]:
-    """Gaps between consecutive vehicles (creation order), others' speeds, every lane's id."""
+    """Gaps between consecutive vehicles (road order), others' speeds, every lane's id.
+
+    On intersection-v0 (one lane a road) a lane is its flat id, and only the present
+    rows count, in road order (the ego after ``ego_rank`` others). Gaps and speeds are
+    rounded to 6 decimals, as the reference stores them: intersection-v0's gaps hold
+    point masses (cars spawned at the same place) that unrounded values of +-1e-14
+    would split, and the Kolmogorov-Smirnov statistic would see the split.
+    """
+    if "ego_rank" in state.keys():
+        return _present_statistics(state)
     n = getattr(params, "obstacle_row", params.num_vehicles)  # road.vehicles only
     x = state.get(("vehicles", "x"))[:, :n].double()
     lanes = state.get(("vehicles", "lane"))[:, :n]
@@ -32,9 +42,27 @@ def _initial_statistics(state: TensorDictBase, params) -> dict[str, torch.Tensor
     if lane_id is not None:  # a lane graph: the id within its road, as lane_index[2]
         lanes = torch.tensor(lane_id, device=lanes.device)[lanes]
     return {
-        "gaps": (x[:, 1:] - x[:, :-1]).flatten(),
-        "speeds": state.get(("vehicles", "speed"))[:, 1:n].double().flatten(),
+        "gaps": _rounded((x[:, 1:] - x[:, :-1]).flatten()),
+        "speeds": _rounded(state.get(("vehicles", "speed"))[:, 1:n].double().flatten()),
         "lanes": lanes.flatten(),
+    }
+
+
+def _rounded(values: torch.Tensor) -> torch.Tensor:
+    return torch.round(values, decimals=6)
+
+
+def _present_statistics(state: TensorDictBase) -> dict[str, torch.Tensor]:
+    present = state.get(("vehicles", "present"))
+    order = road_order(state.get("ego_rank"), present.shape[1])
+    x = state.get(("vehicles", "x")).double().gather(1, order)
+    pairs = present.gather(1, order)[:, 1:] & present.gather(1, order)[:, :-1]
+    others = present.clone()
+    others[:, 0] = False
+    return {
+        "gaps": _rounded((x[:, 1:] - x[:, :-1])[pairs]),
+        "speeds": _rounded(state.get(("vehicles", "speed")).double()[others]),
+        "lanes": state.get(("vehicles", "lane"))[present],
     }
 
 

@@ -26,7 +26,11 @@ from torchrl_grpo.envs.core.snapshot_env import STATE_KEY
 from torchrl_grpo.envs.core.state_codec import stable_hash
 from torchrl_grpo.envs.highway.bridge import HighwayBridge, export_states, import_states
 from torchrl_grpo.envs.highway.step_modes import compiled_mode, eager_mode, native_mode
-from torchrl_grpo.envs.highway.tensor_models import output_tensordict, tensor_model
+from torchrl_grpo.envs.highway.tensor_models import (
+    output_tensordict,
+    tensor_model,
+    zero_fresh_rewards,
+)
 from torchrl_grpo.envs.highway.tensor_params import check_tensor_config, tensor_params
 from torchrl_grpo.envs.highway.tensor_state import (
     check_state_structure,
@@ -37,7 +41,6 @@ from torchrl_grpo.envs.highway.tensor_state import (
 )
 from torchrl_grpo.sim.rng import seed_keys
 from torchrl_grpo.sim.state import (
-    FLOAT_FIELDS,
     empty_world,
     world_from_tensordict,
     world_to_tensordict,
@@ -47,12 +50,12 @@ __all__ = ["TensorHighwayEnv"]
 
 
 class TensorHighwayEnv(EnvBase):
-    """highway-v0, highway-fast-v0, merge-v0 or roundabout-v0 as ``num_envs`` worlds at once.
+    """A scenario of ``TENSOR_SCENARIOS`` as ``num_envs`` worlds at once.
 
     Args:
-        scenario: ``"highway-v0"``, ``"highway-fast-v0"``, ``"merge-v0"`` or
-            ``"roundabout-v0"`` (the last two: row ``i`` replays ``HighwayEnv(scenario)``'s
-            episodes after ``reset(seed=seed + i)``; their step is eager).
+        scenario: highway-v0, highway-fast-v0, merge-v0, roundabout-v0 or intersection-v0
+            (the last three: row ``i`` starts as ``HighwayEnv(scenario)`` after ``reset(seed=
+            seed + i)``, eagerly; intersection-v0's later spawns draw from the row's stream).
         config: overrides of the scenario's config, within what
             :func:`~torchrl_grpo.envs.check_tensor_config` covers (anything else is a
             ``ValueError`` naming it).
@@ -68,9 +71,8 @@ class TensorHighwayEnv(EnvBase):
             indices in range, valid generator words); structure and config are checked
             always. Turn off for speed once states are known good.
         check_actions: refuse, before stepping, actions outside the action spec with an
-            :class:`~torchrl_grpo.envs.InvalidActionError` naming the rows and values
-            (the env is left unchanged). One comparison per step, read back to the host
-            (a sync on a GPU): turn off once the policy is known to write valid actions.
+            :class:`~torchrl_grpo.envs.InvalidActionError` naming rows and values (the env
+            is left unchanged). One comparison a step, read back (a sync on a GPU).
         categorical_action_encoding: integer actions (``False``: one-hot).
         native: step highway-v0 and highway-fast-v0 in C++ on the CPU (:meth:`native`),
             the fastest step there (docs/sim.md, "Speed").
@@ -117,6 +119,7 @@ class TensorHighwayEnv(EnvBase):
         if device.type == "cuda" and not torch.cuda.is_available():
             raise ValueError("device='cuda' was asked for, but torch finds no CUDA device")
         self.params = tensor_params(scenario, config)
+        self._regulated = hasattr(self.params, "regulation")  # intersection-v0's state fields
         self._model = tensor_model(scenario)
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
         self.scenario = scenario
@@ -131,7 +134,7 @@ class TensorHighwayEnv(EnvBase):
         self.fingerprint = stable_hash("TensorHighwayEnv", scenario, repr(self.params), str(dtype))
         (self.native if native else self.eager)()  # the step mode
         self._world = empty_world(
-            num_envs, self.params.num_vehicles, dtype, device, self._route_length
+            num_envs, self.params.num_vehicles, dtype, device, self._route_length, self._regulated
         )
         #: Worlds stepped so far, masked rows included (the simulator's throughput).
         self.world_steps = 0
@@ -217,10 +220,11 @@ class TensorHighwayEnv(EnvBase):
             shape=b,
             device=dev,
         )
+        n = self._model.actions
         if self._categorical:
-            self.action_spec = Categorical(5, b, dtype=torch.int64, device=dev)
+            self.action_spec = Categorical(n, b, dtype=torch.int64, device=dev)
         else:
-            self.action_spec = OneHot(5, (*b, 5), dtype=torch.int64, device=dev)
+            self.action_spec = OneHot(n, (*b, n), dtype=torch.int64, device=dev)
         # Kept for the per-step check: reading action_spec goes through the input spec.
         self._action_leaf = self.action_spec
         self._name = f"TensorHighwayEnv({self.scenario!r}, num_envs={b[0]})"
@@ -228,7 +232,8 @@ class TensorHighwayEnv(EnvBase):
         self.done_spec = Composite(
             done=flag.clone(), terminated=flag.clone(), truncated=flag.clone(), shape=b, device=dev
         )
-        state = tensor_state_spec(b, self.params.num_vehicles, d, dev, self._route_length)
+        n = self.params.num_vehicles
+        state = tensor_state_spec(b, n, d, dev, self._route_length, self._regulated)
         self.state_spec = Composite({STATE_KEY: state}, shape=b, device=dev)
         if self.return_state:
             spec[STATE_KEY] = state.clone()
@@ -236,7 +241,7 @@ class TensorHighwayEnv(EnvBase):
 
     @property
     def _route_length(self) -> int:
-        """The legs a vehicle's route holds (roundabout-v0), 0 where there are no routes."""
+        """The legs a vehicle's route holds (routed scenarios), 0 where there are no routes."""
         return getattr(self.params, "route_length", 0)
 
     # ------------------------------------------------------------------ state
@@ -302,13 +307,7 @@ class TensorHighwayEnv(EnvBase):
             SnapshotError: a state of another scenario or config.
         """
         states = states.unsqueeze(0) if states.batch_dims == 0 else states
-        world, words = import_states(self.bridge, states)
-        td = world_to_tensordict(world)
-        for name in FLOAT_FIELDS:
-            td.set(("vehicles", name), td.get(("vehicles", name)).to(self.dtype))
-        td.set("highway", words)
-        td.set("fingerprint", torch.full(td.batch_size, self.fingerprint, dtype=torch.int64))
-        return td.to(self.device)
+        return import_states(self.bridge, states, self.dtype, self.fingerprint).to(self.device)
 
     def state_to_highway(self, state: TensorDictBase) -> TensorDict:
         """Tensor states ``[M]`` as HighwayEnv states ``[M]``.
@@ -351,11 +350,7 @@ class TensorHighwayEnv(EnvBase):
                 self._world, rows, self._highway_rng, self._highway_seed
             )
         out = self._output(self._mode.observe(self._world))
-        # As HighwayEnv: no action was taken yet in a fresh episode, so no reward parts.
-        fresh = (self._world.steps == 0).unsqueeze(-1)
-        for name in self._model.components:
-            part = out.get(("reward_components", name))
-            out.set(("reward_components", name), torch.where(fresh, torch.zeros_like(part), part))
+        zero_fresh_rewards(out, self._world.steps, self._model.components)
         flag = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
         out.update({"done": flag, "terminated": flag.clone(), "truncated": flag.clone()})
         out.set(STATE_KEY, self.get_state())
@@ -363,19 +358,24 @@ class TensorHighwayEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDict:
         action = tensordict.get("action")
-        # TorchRL's partial steps: rows outside the "_step" mask keep their world (their
-        # outputs are computed and discarded: one batched step costs the same).
+        # Partial steps: rows outside "_step" keep their world (one batched step anyway).
         rows = tensordict.get("_step", None)
         if self.check_actions:
             # Before anything changes, so that a refused action leaves the env as it was.
             check_action(action, self._action_leaf, self._name, batch_dims=1, rows=rows)
         if not self._categorical:
             action = action.argmax(-1)
-        world, outputs = self._mode.step(self._world, action.to(torch.int64))
+        action, words = action.to(torch.int64), self._highway_rng
+        if self._model.spawns:  # intersection-v0 spawns from highway-env's generator
+            world, outputs, words = self._mode.step(self._world, action, words)
+        else:
+            world, outputs = self._mode.step(self._world, action)
         self.world_steps += self.batch_size[0]
         if rows is not None:
-            world = where_rows(rows.reshape(self.batch_size), world, self._world)
-        self._world = world
+            rows = rows.reshape(self.batch_size)
+            world = where_rows(rows, world, self._world)
+            words = torch.where(rows.unsqueeze(-1), words, self._highway_rng)
+        self._world, self._highway_rng = world, words
         out = self._output(outputs)
         terminated = outputs["terminated"].unsqueeze(-1)
         truncated = outputs["truncated"].unsqueeze(-1)

@@ -6,8 +6,9 @@ simulator; a :class:`TensorModel` holds the scenario's pure functions and its br
 * highway-v0 / highway-fast-v0 draw fresh worlds from the simulator's own per-world
   streams (:mod:`torchrl_grpo.sim.rng`) and give highway-env generator words drawn
   from them;
-* merge-v0 and roundabout-v0 draw fresh worlds from highway-env's generator itself, carried in the
-  state's ``highway.rng`` words, on the host (:func:`~.merge_bridge.merge_draws`): row
+* merge-v0, roundabout-v0 and intersection-v0 draw fresh worlds from highway-env's
+  generator itself, carried in the state's ``highway.rng`` words, on the host
+  (:func:`~.merge_bridge.merge_draws`): row
   ``i`` of an env seeded with ``s`` replays ``HighwayEnv(scenario)``'s episodes
   after ``reset(seed=s + i)``.
 
@@ -27,9 +28,19 @@ from tensordict import TensorDict
 
 from torchrl_grpo.envs.core.gym_state import seeded_rng_words
 from torchrl_grpo.envs.highway.bridge import HighwayBridge
+from torchrl_grpo.envs.highway.intersection_bridge import (
+    IntersectionBridge,
+    intersection_fresh,
+    spawn_draws,
+)
 from torchrl_grpo.envs.highway.merge_bridge import MergeBridge, merge_draws
 from torchrl_grpo.envs.highway.roundabout_bridge import RoundaboutBridge, roundabout_draws
 from torchrl_grpo.envs.highway.tensor_state import fresh_highway_words
+from torchrl_grpo.sim.intersection import INTERSECTION_ACTIONS, intersection_step
+from torchrl_grpo.sim.intersection_output import (
+    INTERSECTION_REWARD_COMPONENTS,
+    observe_intersection,
+)
 from torchrl_grpo.sim.merge import merge_step
 from torchrl_grpo.sim.merge_output import MERGE_REWARD_COMPONENTS, observe_merge
 from torchrl_grpo.sim.merge_reset import reset_merge
@@ -41,7 +52,7 @@ from torchrl_grpo.sim.roundabout_reset import reset_roundabout
 from torchrl_grpo.sim.simulate import observe_world, step
 from torchrl_grpo.sim.state import World
 
-__all__ = ["TensorModel", "output_tensordict", "tensor_model"]
+__all__ = ["TensorModel", "output_tensordict", "tensor_model", "zero_fresh_rewards"]
 
 
 class TensorModel(NamedTuple):
@@ -58,6 +69,9 @@ class TensorModel(NamedTuple):
         bridge: the bridge class.
         draws_from_words: fresh worlds come from the words (not the sim's streams).
         compiles: the step has compiled stages (``TensorHighwayEnv.compile``).
+        actions: the number of discrete actions.
+        spawns: the step draws from highway-env's generator: ``step(world, action,
+            words) -> (world, outputs, words)`` (intersection-v0's spawns).
 
     Example:
         >>> tensor_model("merge-v0").bridge.__name__
@@ -72,6 +86,8 @@ class TensorModel(NamedTuple):
     bridge: type
     draws_from_words: bool
     compiles: bool
+    actions: int = 5
+    spawns: bool = False
 
 
 def _highway_fresh(world: World, rows, words, seeds, params):
@@ -95,6 +111,15 @@ def _roundabout_step(world, action, params, dense=False, stages=None):
     return roundabout_step(world, action, params)
 
 
+def _intersection_step(world, action, words, params, dense=False, stages=None):
+    del dense, stages
+    rows = torch.ones_like(world.steps, dtype=torch.bool)
+    probability = params.traffic.spawn_probability
+    draws, dropped, kept = spawn_draws(words, rows, params, probability)
+    world, out, stayed = intersection_step(world, action, draws, params)
+    return world, out, torch.where(stayed.unsqueeze(-1), kept, dropped)
+
+
 def _merge_seed_words(count: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     seeds = torch.arange(count, dtype=torch.int64) + seed
     return torch.stack([seeded_rng_words(int(s)) for s in seeds]), seeds
@@ -113,6 +138,19 @@ def tensor_model(scenario: str) -> TensorModel:
         >>> tensor_model("highway-fast-v0").compiles
         True
     """
+    if scenario == "intersection-v0":
+        return TensorModel(
+            components=INTERSECTION_REWARD_COMPONENTS,
+            step=_intersection_step,
+            observe=observe_intersection,
+            fresh=intersection_fresh,
+            seed_words=_merge_seed_words,
+            bridge=IntersectionBridge,
+            draws_from_words=True,
+            compiles=False,
+            actions=len(INTERSECTION_ACTIONS),
+            spawns=True,
+        )
     if scenario == "roundabout-v0":
         return TensorModel(
             components=ROUNDABOUT_REWARD_COMPONENTS,
@@ -178,3 +216,20 @@ def output_tensordict(
         batch_size=batch,
         device=device,
     )
+
+
+def zero_fresh_rewards(out: TensorDict, steps: torch.Tensor, components: tuple[str, ...]) -> None:
+    """Zero the reward components of fresh episodes (``steps == 0``) in ``out``, in place.
+
+    As HighwayEnv reports them: no action was taken yet in a fresh episode.
+
+    Example:
+        >>> out = TensorDict({("reward_components", "a"): torch.ones(2, 1)}, batch_size=[2])
+        >>> zero_fresh_rewards(out, torch.tensor([0, 3]), ("a",))
+        >>> out["reward_components", "a"].flatten().tolist()
+        [0.0, 1.0]
+    """
+    fresh = (steps == 0).unsqueeze(-1)
+    for name in components:
+        part = out.get(("reward_components", name))
+        out.set(("reward_components", name), torch.where(fresh, torch.zeros_like(part), part))

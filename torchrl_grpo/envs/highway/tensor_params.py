@@ -33,6 +33,11 @@ import gymnasium as gym
 import highway_env  # noqa: F401 - registers the scenarios
 from highway_env.road.lane import AbstractLane
 
+from torchrl_grpo.envs.highway.intersection_config import (
+    INTERSECTION_SUPPORTED,
+    check_intersection_values,
+    intersection_params,
+)
 from torchrl_grpo.envs.highway.merge_config import MERGE_SUPPORTED, check_merge_values, merge_params
 from torchrl_grpo.envs.highway.model_constants import model_constants, observation_params
 from torchrl_grpo.envs.highway.roundabout_config import (
@@ -54,7 +59,7 @@ from torchrl_grpo.sim.roundabout_params import RoundaboutParams
 __all__ = ["TENSOR_SCENARIOS", "check_tensor_config", "tensor_params"]
 
 #: The scenarios the batched simulator covers.
-TENSOR_SCENARIOS = ("highway-v0", "highway-fast-v0", "merge-v0", "roundabout-v0")
+TENSOR_SCENARIOS = ("highway-v0", "highway-fast-v0", "merge-v0", "roundabout-v0", "intersection-v0")
 
 # Config keys the simulator reads, and keys that only change rendering
 # (show_trajectories is not among them: it makes highway-env keep a per-vehicle history,
@@ -103,7 +108,7 @@ def check_tensor_config(scenario: str, config: dict | None = None) -> dict:
         >>> check_tensor_config("highway-fast-v0")["lanes_count"]
         3
         >>> try:
-        ...     check_tensor_config("intersection-v0")
+        ...     check_tensor_config("racetrack-v0")
         ... except ValueError as err:
         ...     print(str(err)[:62])
         the tensor simulator covers ('highway-v0', 'highway-fast-v0',
@@ -122,6 +127,7 @@ def check_tensor_config(scenario: str, config: dict | None = None) -> dict:
     supported, check_values = {
         "merge-v0": (MERGE_SUPPORTED, check_merge_values),
         "roundabout-v0": (ROUNDABOUT_SUPPORTED, check_roundabout_values),
+        "intersection-v0": (INTERSECTION_SUPPORTED, check_intersection_values),
     }.get(scenario, (_SUPPORTED, _check_values))
 
     def refuse(key: str, why: str) -> None:
@@ -139,8 +145,8 @@ def check_tensor_config(scenario: str, config: dict | None = None) -> dict:
             raise ValueError(f"unknown config key {key!r} for {scenario}{hint}")
         if full[key] != defaults[key]:
             refuse(key, f"only its default {defaults[key]!r} is simulated")
-    _check_observation(full, refuse, ranged=scenario == "roundabout-v0")
-    _check_action(full, refuse)
+    _check_observation(full, refuse, ranged=scenario in ("roundabout-v0", "intersection-v0"))
+    _check_action(full, refuse, defaults["action"])
     check_values(full, refuse)
     return full
 
@@ -167,7 +173,13 @@ def _check_observation(full: dict, refuse, ranged: bool = False) -> None:
     for key in obs:
         if ranged and key == "features_range":
             continue
-        if key not in _OBSERVATION and not (key == "order" and obs[key] == "sorted"):
+        # intersection-v0 names two options at their Kinematics defaults.
+        default = key in ("flatten", "observe_intentions") and obs[key] is False
+        if (
+            key not in _OBSERVATION
+            and not (key == "order" and obs[key] == "sorted")
+            and not default
+        ):
             why = (
                 "'shuffled' draws from numpy's generator every step"
                 if key == "order"
@@ -185,12 +197,14 @@ def _check_observation(full: dict, refuse, ranged: bool = False) -> None:
         )
 
 
-def _check_action(full: dict, refuse) -> None:
+def _check_action(full: dict, refuse, default: dict) -> None:
     action = full["action"]
     if not isinstance(action, dict) or action.get("type") != "DiscreteMetaAction":
         refuse("action.type", "only DiscreteMetaAction is simulated")
     for key in action:
-        if key not in _ACTION:
+        # intersection-v0's longitudinal-only actions are simulated as it sets them.
+        fixed = key in ("longitudinal", "lateral") and action[key] == default.get(key)
+        if key not in _ACTION and not fixed:
             refuse(f"action.{key}", "not among the simulated options")
     speeds = action.get("target_speeds")
     if speeds is not None:
@@ -266,6 +280,8 @@ def tensor_params(
         return merge_params(json.dumps(full, sort_keys=True, default=_jsonable))
     if scenario == "roundabout-v0":
         return roundabout_params(json.dumps(full, sort_keys=True, default=_jsonable))
+    if scenario == "intersection-v0":
+        return intersection_params(json.dumps(full, sort_keys=True, default=_jsonable))
     return _params(scenario, json.dumps(full, sort_keys=True, default=_jsonable))
 
 

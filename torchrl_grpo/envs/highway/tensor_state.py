@@ -24,15 +24,16 @@ from torchrl.data import Composite, Unbounded
 from torchrl_grpo.envs.core.errors import StateCorruptedError, StateMismatchError
 from torchrl_grpo.envs.core.gym_state import RNG_WORDS, seeded_rng_words
 from torchrl_grpo.envs.highway.schema import MAX_MAGNITUDE
+from torchrl_grpo.sim.intersection_reset import check_regulated
 from torchrl_grpo.sim.params import HighwayParams
 from torchrl_grpo.sim.rng import mix64, uniform
 from torchrl_grpo.sim.state import (
     BOOL_FIELDS,
     FLOAT_FIELDS,
     INT_FIELDS,
-    Vehicles,
     World,
     check_world,
+    map_world,
     world_from_tensordict,
 )
 
@@ -54,11 +55,14 @@ def tensor_state_spec(
     dtype: torch.dtype,
     device: torch.device,
     route_length: int = 0,
+    regulated: bool = False,
 ) -> Composite:
     """The spec of a tensor state ``[B]`` of worlds of ``num_vehicles`` vehicles.
 
-    With ``route_length`` R > 0 (roundabout-v0) it holds each vehicle's route too:
-    ``route.legs`` ``[B, N, R]`` and ``route.head`` ``[B, N]``.
+    With ``route_length`` R > 0 (roundabout-v0, intersection-v0) it holds each
+    vehicle's route too: ``route.legs`` ``[B, N, R]`` and ``route.head`` ``[B, N]``;
+    ``regulated`` (intersection-v0) adds ``yielding`` ``[B, N]`` int8, ``road_steps``
+    and ``ego_rank`` ``[B]``.
 
     Example:
         >>> spec = tensor_state_spec(torch.Size([4]), 21, torch.float32, torch.device("cpu"))
@@ -91,6 +95,9 @@ def tensor_state_spec(
     if route_length:
         legs, head = u((*b, n, route_length), torch.int64), u((*b, n), torch.int64)
         spec["route"] = Composite(legs=legs, head=head, shape=(*b, n), device=device)
+    if regulated:
+        spec["yielding"] = u((*b, n), torch.int8)
+        spec["road_steps"], spec["ego_rank"] = words.clone(), words.clone()
     return spec
 
 
@@ -160,7 +167,10 @@ def check_state_values(state: TensorDictBase, params: HighwayParams) -> None:
         ...     print(err)
         invalid state: highway.rng: not a valid PCG64 state in rows [0, 1]
     """
-    problems = check_world(world_from_tensordict(state), params, MAX_MAGNITUDE)
+    world = world_from_tensordict(state)
+    problems = check_world(world, params, MAX_MAGNITUDE)
+    if world.yielding is not None:
+        problems += check_regulated(world)
     words = state.get(("highway", "rng"))
     bad = ((words < 0) | (words > _MASK32)).any(-1) | (words[..., 4] & 1 == 0)
     bad |= (words[..., 8] < 0) | (words[..., 8] > 1)
@@ -182,16 +192,9 @@ def where_rows(rows: torch.Tensor, new: World, old: World) -> World:
         >>> where_rows(torch.tensor([True, False]), b, a).vehicles.x[:, 0].tolist()
         [1.0, 0.0]
     """
-    column = rows.unsqueeze(-1)
-    table = Vehicles(
-        *(torch.where(column, a, b) for a, b in zip(new.vehicles, old.vehicles, strict=True))
+    return map_world(
+        lambda a, b: torch.where(rows.reshape(-1, *([1] * (a.ndim - 1))), a, b), new, old
     )
-    rest = (torch.where(rows, a, b) for a, b in zip(new[1:6], old[1:6], strict=True))
-    if new.route is None:
-        return World(table, *rest)
-    route = torch.where(rows.view(-1, 1, 1), new.route, old.route)
-    head = torch.where(column, new.route_head, old.route_head)
-    return World(table, *rest, route=route, route_head=head)
 
 
 def fresh_highway_words(world: World, rows: torch.Tensor) -> tuple[World, torch.Tensor]:
