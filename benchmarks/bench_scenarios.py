@@ -9,7 +9,8 @@ training evaluates on 10000.. and 20000..). Printed, in one run:
   replayed on the tensor simulator (:func:`~torchrl_grpo.training.transfer.evaluate_on_tensor`,
   the worlds imported from highway-env; in float32 as training runs, or
   ``--tensor-dtype float64``) with the transfer gap, highway-env minus tensor;
-* for each seed, GRPO paired against always-SLOWER, the rule policy and PPO of that seed
+* for each seed, GRPO paired against always-SLOWER, the rule policy (intersection-v0,
+  whose actions are longitudinal only: always-IDLE) and PPO of that seed
   ("beats": a mean return higher by more than two standard errors of the per-episode
   difference, and a crash rate no higher);
 * each run's training minutes and frames;
@@ -161,7 +162,9 @@ def main() -> None:
     searched: list[tuple[EvalResult, EvalResult]] = []
     rows: list[tuple[EvalResult, EvalResult | None]] = []
     scripted = {}
-    for name in ("slower", "rule"):
+    # The rule policy changes lanes; intersection-v0 (3 longitudinal actions) has always-IDLE.
+    baselines = ("slower", "rule") if n_actions == 5 else ("slower", "idle")
+    for name in baselines:
         policy = baseline_policy(name, layout, n_actions)
         scripted[name] = run_policy(BASELINE_LABELS[name], "", policy)
         rows.append((scripted[name], None))
@@ -191,13 +194,9 @@ def main() -> None:
         *(_row(res, tensor) for res, tensor in rows),
         "",
     ]
-    beats = {"slower": 0, "rule": 0, "ppo": 0}
+    beats = dict.fromkeys((*baselines, "ppo"), 0)
     for grpo, ppo in zip(trained["grpo"], trained["ppo"], strict=True):
-        for key, other in (
-            ("slower", scripted["slower"]),
-            ("rule", scripted["rule"]),
-            ("ppo", ppo),
-        ):
+        for key, other in (*((b, scripted[b]) for b in baselines), ("ppo", ppo)):
             beats[key] += paired_difference(grpo, other)[2]
             lines.append(f"- {compare_paired(grpo, other)}")
     for greedy, search in searched:
@@ -205,8 +204,9 @@ def main() -> None:
     n = len(trained["grpo"])
     lines += [
         "",
-        f"GRPO beats always-SLOWER in {beats['slower']} of {n} seeds, the rule policy in "
-        f"{beats['rule']} of {n}, PPO of the same seed in {beats['ppo']} of {n}.",
+        "GRPO beats "
+        + ", ".join(f"{BASELINE_LABELS[b]} in {beats[b]} of {n} seeds" for b in baselines)
+        + f", PPO of the same seed in {beats['ppo']} of {n}.",
         "",
         *(f"- {_training(run)}" for run in [*args.grpo, *args.ppo]),
     ]

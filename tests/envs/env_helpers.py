@@ -173,3 +173,23 @@ def assert_branches_match_highway_env(scenario: str, action: int, horizon: int) 
     mask = highway[MASK]
     a, b = tensor["next", "reward"][mask].double(), highway["next", "reward"][mask].double()
     assert torch.allclose(a, b, atol=1e-6)
+
+
+def visited_states(scenario: str, n_actions: int, episodes: int = 3, steps: int = 10):
+    """HighwayEnv states along episodes of random actions (seeded), the final ones included."""
+    import numpy as np
+
+    from torchrl_grpo.envs import HighwayEnv
+
+    env = HighwayEnv(scenario, seed=0)
+    rng = np.random.default_rng(0)
+    states = []
+    for _ in range(episodes):
+        env.reset()
+        for _ in range(steps):
+            states.append(env.get_state())
+            td = env.step(TensorDict(action=torch.tensor(int(rng.integers(n_actions)))))
+            if bool(td["next", "done"]):
+                states.append(env.get_state())
+                break
+    return torch.stack(states)

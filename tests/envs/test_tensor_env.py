@@ -13,6 +13,7 @@ from torchrl_grpo.envs import (
     StateMismatchError,
     TensorHighwayEnv,
 )
+from torchrl_grpo.envs.highway.tensor_params import TENSOR_SCENARIOS
 
 SMALL = {"vehicles_count": 8}
 
@@ -42,7 +43,7 @@ def test_check_env_specs(scenario, kwargs):
     check_env_specs(TensorHighwayEnv(scenario, num_envs=4, seed=0, **kwargs))
 
 
-@pytest.mark.parametrize("scenario", ["highway-fast-v0", "highway-v0"])
+@pytest.mark.parametrize("scenario", TENSOR_SCENARIOS)
 def test_same_keys_and_specs_as_highway_env(scenario):
     tensor = TensorHighwayEnv(scenario, num_envs=3, seed=0)
     highway = HighwayEnv(scenario, seed=0)

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import torch
-from env_helpers import assert_branches_match_highway_env
+from env_helpers import assert_branches_match_highway_env, visited_states
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
@@ -17,20 +16,6 @@ SCENARIO = "roundabout-v0"
 @pytest.mark.parametrize("kwargs", [{}, {"dtype": torch.float64, "return_state": True}])
 def test_check_env_specs(kwargs):
     check_env_specs(TensorHighwayEnv(SCENARIO, num_envs=4, seed=0, **kwargs))
-
-
-def test_same_keys_and_specs_as_highway_env():
-    tensor = TensorHighwayEnv(SCENARIO, num_envs=3, seed=0)
-    highway = HighwayEnv(SCENARIO, seed=0)
-    for name in ("observation_spec", "reward_spec", "done_spec", "action_spec"):
-        a, b = getattr(tensor, name), getattr(highway, name)
-        if hasattr(b, "keys"):
-            assert set(a.keys(True, True)) == set(b.keys(True, True))
-            for key in b.keys(True, True):
-                assert a[key].shape[1:] == b[key].shape, key
-                assert a[key].dtype == b[key].dtype, key
-        else:
-            assert a.shape[1:] == b.shape and (a.dtype, type(a)) == (b.dtype, type(b))
 
 
 def test_fresh_worlds_are_highway_envs_own_episodes():
@@ -68,26 +53,11 @@ def test_routes_are_highway_envs_and_advance_as_it_drops_legs():
     assert routes == [v.route for v in core.road.vehicles]
 
 
-def visited_states(episodes=3, steps=8):
-    env = HighwayEnv(SCENARIO, seed=0)
-    rng = np.random.default_rng(0)
-    states = []
-    for _ in range(episodes):
-        env.reset()
-        for _ in range(steps):
-            states.append(env.get_state())
-            td = env.step(TensorDict(action=torch.tensor(int(rng.integers(5)))))
-            if bool(td["next", "done"]):
-                states.append(env.get_state())
-                break
-    return torch.stack(states)
-
-
 LAST_ACTION = ("output", "reward_components", "lane_change_reward")
 
 
 def test_round_trip_from_highway_env_is_bitwise():
-    states = visited_states()
+    states = visited_states(SCENARIO, 5, steps=8)
     env = TensorHighwayEnv(SCENARIO, num_envs=1, dtype=torch.float64)
     back = env.state_to_highway(env.state_from_highway(states))
     for i in range(states.shape[0]):

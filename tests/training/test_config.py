@@ -73,6 +73,20 @@ def test_a_scenario_sets_its_own_defaults_under_the_command_line(overrides, aver
     assert cfg.model.crash_aversion == aversion
 
 
+@pytest.mark.parametrize(
+    ("overrides", "group_size", "tail_policy"),
+    [
+        ([], 5, "rule"),  # highway-fast-v0: the recipe's five meta-actions
+        (["env=intersection"], 3, "idle"),  # conf/algo/scenario/intersection_grpo_branch.yaml
+        (["env=intersection", "algo=grpo_lab"], 3, "idle"),
+        (["env=intersection", "algo.tail_policy=slower"], 3, "slower"),  # the command line wins
+    ],
+)
+def test_intersection_groups_enumerate_its_three_actions(overrides, group_size, tail_policy):
+    cfg = compose_config(overrides)
+    assert (cfg.algo.group_size, cfg.algo.tail_policy) == (group_size, tail_policy)
+
+
 @pytest.mark.parametrize("algo", ["grpo_branch", "grpo_episode", "ppo", "distill"])
 def test_rollout_follows_the_algorithm(algo):
     cfg = compose_config([f"algo={algo}"])

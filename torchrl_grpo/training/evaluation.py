@@ -23,6 +23,7 @@ from torchrl.envs import EnvBase
 
 from torchrl_grpo.modules.actors import DeterministicActor
 from torchrl_grpo.modules.kinematics_table import KinematicsLayout
+from torchrl_grpo.modules.scripted.actions import LONGITUDINAL_ACTIONS, ConstantActionPolicy
 from torchrl_grpo.modules.scripted.policy_registry import SCRIPTED_POLICIES, make_scripted_policy
 from torchrl_grpo.training.baseline_cache import cache_key, read_cached
 from torchrl_grpo.training.checkpoint import load_checkpoint
@@ -64,15 +65,22 @@ def baseline_policy(
     """A scripted baseline by name, or ``None`` where it does not apply.
 
     The scripted policies speak highway-env's 5-action DiscreteMetaAction on a
-    Kinematics observation; for other action sets or observations only ``random``
-    applies.
+    Kinematics observation; on a longitudinal-only one (3 actions, intersection-v0)
+    ``idle``, ``slower`` and ``faster`` apply as constant actions; for other action sets
+    or observations only ``random`` applies.
 
     Example:
         >>> baseline_policy("slower", None, 5) is not None, baseline_policy("rule", None, 3)
         (True, None)
+        >>> from tensordict import TensorDict
+        >>> slower = baseline_policy("slower", None, 3)  # intersection-v0's SLOWER is 0
+        >>> slower(TensorDict(observation=torch.zeros(2, 15, 7), batch_size=[2]))["action"].tolist()
+        [0, 0]
     """
     if name == "random":
         return make_scripted_policy("random", n_actions=n_actions, seed=seed)
+    if n_actions == len(LONGITUDINAL_ACTIONS) and name in LONGITUDINAL_ACTIONS:
+        return ConstantActionPolicy(LONGITUDINAL_ACTIONS[name])
     if n_actions != 5 or (name == "rule" and layout is None):
         return None
     return make_scripted_policy(name, layout)

@@ -15,7 +15,11 @@ from torchrl_grpo.modules.crash_head import CrashHead
 from torchrl_grpo.modules.ensemble import PolicyEnsemble
 from torchrl_grpo.modules.networks import NetworkKind, make_network
 from torchrl_grpo.modules.scene_features import DEFAULT_TARGET_SPEEDS, FeatureMLP, SceneMLP
-from torchrl_grpo.modules.scripted.actions import ScriptedPolicy
+from torchrl_grpo.modules.scripted.actions import (
+    LONGITUDINAL_ACTIONS,
+    ConstantActionPolicy,
+    ScriptedPolicy,
+)
 from torchrl_grpo.modules.scripted.policy_registry import make_scripted_policy
 from torchrl_grpo.training.env_builder import make_layout
 
@@ -237,12 +241,17 @@ def _member(model_cfg: DictConfig, env: EnvBase, n_actions: int) -> nn.Module:
 def make_base_policy(name: str, env: EnvBase, key: str) -> ScriptedPolicy:
     """The scripted policy ``name`` for ``env``; the error names the config ``key``.
 
+    On a longitudinal-only action set (intersection-v0's SLOWER, IDLE, FASTER) the
+    constant policies ``slower``, ``idle`` and ``faster`` apply, and no other.
+
     Example:
         >>> from torchrl_grpo.envs import HighwayEnv
         >>> type(make_base_policy("rule", HighwayEnv(seed=0), "algo.tail_policy")).__name__
         'RulePolicy'
     """
     n_actions = getattr(env.action_spec, "n", None)
+    if n_actions == len(LONGITUDINAL_ACTIONS) and name in LONGITUDINAL_ACTIONS:
+        return ConstantActionPolicy(LONGITUDINAL_ACTIONS[name])
     layout = make_layout(env)
     if n_actions != 5 or layout is None:
         raise ValueError(
@@ -250,6 +259,11 @@ def make_base_policy(name: str, env: EnvBase, key: str) -> ScriptedPolicy:
             "DiscreteMetaAction on Kinematics observations; this env has "
             f"{n_actions or 'continuous'} actions"
             + ("" if layout is not None else " and no Kinematics observation")
+            + (
+                f" (on its 3 longitudinal actions: {', '.join(LONGITUDINAL_ACTIONS)})"
+                if n_actions == len(LONGITUDINAL_ACTIONS)
+                else ""
+            )
         )
     try:
         return make_scripted_policy(name, layout)

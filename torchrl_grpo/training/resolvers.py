@@ -54,7 +54,7 @@ def config_choices(*groups: str, conf_dir: str | Path | None = None) -> str:
         >>> print(config_choices().splitlines()[0])
         algo: distill, grpo_branch, grpo_episode, grpo_lab, ppo
         >>> print(config_choices("env"))
-        env: highway, highway_fast, merge, roundabout
+        env: highway, highway_fast, intersection, merge, roundabout
     """
     lines = []
     folders = sorted(p for p in Path(conf_dir or CONF_DIR).iterdir() if p.is_dir())

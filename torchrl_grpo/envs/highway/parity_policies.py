@@ -17,12 +17,11 @@ from torchrl_grpo.modules import (
     RandomPolicy,
     make_scripted_policy,
 )
+from torchrl_grpo.modules.scripted.actions import LONGITUDINAL_ACTIONS
 
 __all__ = ["ladder_policies", "recording_policies"]
 
 Policy = Callable[[TensorDictBase], TensorDictBase]
-# intersection-v0's actions: SLOWER, IDLE, FASTER (longitudinal only).
-_LONGITUDINAL = {"slower": 0, "idle": 1, "faster": 2}
 
 
 def ladder_policies(scenario: str, config: dict, seed: int = 1) -> dict[str, Policy]:
@@ -38,8 +37,8 @@ def ladder_policies(scenario: str, config: dict, seed: int = 1) -> dict[str, Pol
         ['drive', 'faster', 'idle', 'random', 'slower']
     """
     if scenario == "intersection-v0":
-        policies = {k: ConstantActionPolicy(a) for k, a in _LONGITUDINAL.items()}
-        policies["random"] = RandomPolicy(len(_LONGITUDINAL), seed=seed)
+        policies = {k: ConstantActionPolicy(a) for k, a in LONGITUDINAL_ACTIONS.items()}
+        policies["random"] = RandomPolicy(len(LONGITUDINAL_ACTIONS), seed=seed)
         return {**policies, "drive": policies["random"]}
     rule = make_scripted_policy("rule", KinematicsLayout.from_highway_config(config))
     return {

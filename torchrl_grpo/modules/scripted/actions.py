@@ -20,6 +20,7 @@ __all__ = [
     "IDLE",
     "LANE_LEFT",
     "LANE_RIGHT",
+    "LONGITUDINAL_ACTIONS",
     "META_ACTIONS",
     "SLOWER",
     "ConstantActionPolicy",
@@ -40,6 +41,11 @@ META_ACTIONS: dict[str, int] = {
     "FASTER": FASTER,
     "SLOWER": SLOWER,
 }
+
+
+#: The constant policies of a longitudinal-only DiscreteMetaAction (intersection-v0's
+#: ``lateral=False``: 0 SLOWER, 1 IDLE, 2 FASTER), by scripted-policy name.
+LONGITUDINAL_ACTIONS: dict[str, int] = {"slower": 0, "idle": 1, "faster": 2}
 
 
 class ScriptedPolicy(TensorDictModule):
