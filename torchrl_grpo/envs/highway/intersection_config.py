@@ -104,8 +104,6 @@ def check_intersection_values(full: dict, refuse) -> None:
     speeds = full["reward_speed_range"]
     if len(speeds) != 2 or not float(speeds[1]) > float(speeds[0]):
         refuse("reward_speed_range", "two speeds, low < high")
-    if RegulatedRoad.YIELD_DURATION != 0:
-        refuse("duration", "RegulatedRoad.YIELD_DURATION must be 0, as highway-env ships it")
 
 
 @functools.lru_cache(maxsize=16)
@@ -128,6 +126,8 @@ def intersection_params(config_json: str) -> IntersectionParams:
         speed_limits = set(graph.speed_limit)
         if len(speed_limits) != 1 or any(len(network.graph[k[0]][k[1]]) != 1 for k in graph.keys):
             raise ValueError("the tensor simulator assumes one lane a road and one speed limit")
+        if RegulatedRoad.YIELD_DURATION != 0:  # a yield then lasts until the next rule pass
+            raise ValueError("the tensor simulator assumes RegulatedRoad.YIELD_DURATION = 0")
         roads = [k[:2] for k in graph.keys]
         nodes = list(dict.fromkeys(n for r in roads for n in r))
         leaving = [[roads.index((t, n)) for n in network.graph.get(t, {})] for _, t in roads]
