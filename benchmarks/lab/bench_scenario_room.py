@@ -1,7 +1,8 @@
 """How much a scenario leaves to a policy that looks ahead to the episode's end.
 
 On merge-v0 and roundabout-v0 the learners find always-SLOWER (docs/results.md, section
-5). This script asks whether anything beats it: the test-time search over a scripted
+5), on intersection-v0 always-IDLE (section 6). This script asks whether anything beats
+always-SLOWER: the test-time search over a scripted
 base policy of ``--bases`` (every action tried from the current state, then the base
 policy for ``H - 1`` steps, on the tensor simulator from highway-env's state:
 :func:`~torchrl_grpo.training.search_eval.evaluate_search`) at each horizon of
@@ -87,7 +88,7 @@ def main() -> None:
     p.add_argument(
         "--scenario",
         default="roundabout-v0",
-        choices=["merge-v0", "roundabout-v0", "highway-fast-v0"],
+        choices=["merge-v0", "roundabout-v0", "intersection-v0", "highway-fast-v0"],
     )
     p.add_argument(
         "--bases",
