@@ -33,9 +33,10 @@ from highway_env.vehicle.controller import MDPVehicle
 from tensordict import TensorDictBase
 
 from torchrl_grpo.envs.core.errors import StateMismatchError
-from torchrl_grpo.envs.core.gym_state import decode_rng, encode_rng
+from torchrl_grpo.envs.core.gym_state import encode_rng
 from torchrl_grpo.envs.highway.bridge import HighwayBridge, read_vehicle, vehicle_columns, world_of
 from torchrl_grpo.envs.highway.lane_constants import lane_keys
+from torchrl_grpo.envs.highway.merge_bridge import row_generators
 from torchrl_grpo.envs.highway.tensor_params import tensor_params
 from torchrl_grpo.envs.highway.tensor_state import where_rows
 from torchrl_grpo.sim.intersection import warm_up
@@ -50,15 +51,6 @@ from torchrl_grpo.sim.regulation import NEVER, YIELDED, YIELDING
 from torchrl_grpo.sim.state import Vehicles, World
 
 __all__ = ["IntersectionBridge", "ego_draws", "intersection_fresh", "spawn_draws"]
-
-
-def _generators(words: torch.Tensor, rows: torch.Tensor):
-    """``(host words, a generator)`` and the rows to draw for, each row's state set in turn."""
-    host = words.detach().cpu().numpy()
-    generator = np.random.default_rng()
-    for row in np.flatnonzero(rows.detach().cpu().numpy()):
-        generator.bit_generator.state = decode_rng(host[row], f"highway.rng of row {row}")
-        yield row, generator
 
 
 def spawn_draws(
@@ -95,7 +87,7 @@ def spawn_draws(
     draws = np.ones((words.shape[0], SPAWN_DRAWS), dtype=np.float64)
     dropped = words.detach().cpu().numpy().copy()
     stays = dropped.copy()
-    for row, g in _generators(words, rows):
+    for row, g in row_generators(words, rows):
         u = g.uniform()
         draws[row] = (u, 0, 0, 0, 0, 0)
         if not u > probability:
@@ -130,7 +122,7 @@ def ego_draws(
     goal = np.full(words.shape[0], max(params.traffic.ego_destination, 0), dtype=np.int64)
     offset = np.zeros(words.shape[0], dtype=np.float64)
     after = words.detach().cpu().numpy().copy()
-    for row, g in _generators(words, rows):
+    for row, g in row_generators(words, rows):
         if params.traffic.ego_destination < 0:
             goal[row] = int(g.integers(1, 4))
         offset[row] = g.normal(1.0)

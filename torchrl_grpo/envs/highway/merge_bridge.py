@@ -35,7 +35,28 @@ from torchrl_grpo.envs.highway.tensor_params import tensor_params
 from torchrl_grpo.sim.merge_reset import DRAWS
 from torchrl_grpo.sim.state import Vehicles, World
 
-__all__ = ["MergeBridge", "merge_draws"]
+__all__ = ["MergeBridge", "merge_draws", "row_generators"]
+
+
+def row_generators(words: torch.Tensor, rows: torch.Tensor):
+    """``(row, generator)`` for each row of ``rows``, the generator set to that row's words.
+
+    One numpy PCG64 generator, its state replaced row after row (a world's draws are
+    replayed on the host as highway-env makes them); read its state back with
+    ``encode_rng`` before the next row.
+
+    Example:
+        >>> from torchrl_grpo.envs.core.gym_state import seeded_rng_words
+        >>> words = seeded_rng_words(0).unsqueeze(0).repeat(2, 1)
+        >>> rows = torch.tensor([False, True])
+        >>> [(int(row), round(g.uniform(), 3)) for row, g in row_generators(words, rows)]
+        [(1, 0.637)]
+    """
+    host = words.detach().cpu().numpy()
+    generator = np.random.default_rng()
+    for row in np.flatnonzero(rows.detach().cpu().numpy()):
+        generator.bit_generator.state = decode_rng(host[row], f"highway.rng of row {row}")
+        yield row, generator
 
 
 def merge_draws(words: torch.Tensor, rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -57,12 +78,9 @@ def merge_draws(words: torch.Tensor, rows: torch.Tensor) -> tuple[torch.Tensor, 
         >>> draws[0, :3].tolist()  # highway-env's seed 0: lane 1, -2.30 m, -0.92 m/s
         [1.0, -2.302132862361297, -0.9180529521276106]
     """
-    host = words.detach().cpu().numpy()
-    after = host.copy()
-    draws = np.zeros((host.shape[0], DRAWS), dtype=np.float64)
-    generator = np.random.default_rng()
-    for row in np.flatnonzero(rows.detach().cpu().numpy()):
-        generator.bit_generator.state = decode_rng(host[row], f"highway.rng of row {row}")
+    after = words.detach().cpu().numpy().copy()
+    draws = np.zeros((after.shape[0], DRAWS), dtype=np.float64)
+    for row, generator in row_generators(words, rows):
         for k in range(DRAWS // 3):
             lane = generator.integers(2)
             draws[row, 3 * k] = float(lane)

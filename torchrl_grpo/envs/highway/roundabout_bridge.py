@@ -25,8 +25,8 @@ from highway_env.vehicle.controller import MDPVehicle
 from tensordict import TensorDictBase
 
 from torchrl_grpo.envs.core.errors import StateMismatchError
-from torchrl_grpo.envs.core.gym_state import decode_rng, encode_rng
-from torchrl_grpo.envs.highway.merge_bridge import MergeBridge
+from torchrl_grpo.envs.core.gym_state import encode_rng
+from torchrl_grpo.envs.highway.merge_bridge import MergeBridge, row_generators
 from torchrl_grpo.envs.highway.tensor_params import tensor_params
 from torchrl_grpo.sim.roundabout_params import RoundaboutParams
 from torchrl_grpo.sim.roundabout_reset import DRAWS
@@ -61,12 +61,9 @@ def roundabout_draws(
     params = params or tensor_params("roundabout-v0")
     names = list(params.road.destinations[d] for d in params.traffic.destinations)
     low, high = params.idm.delta_range
-    host = words.detach().cpu().numpy()
-    after = host.copy()
-    draws = np.zeros((host.shape[0], DRAWS), dtype=np.float64)
-    generator = np.random.default_rng()
-    for row in np.flatnonzero(rows.detach().cpu().numpy()):
-        generator.bit_generator.state = decode_rng(host[row], f"highway.rng of row {row}")
+    after = words.detach().cpu().numpy().copy()
+    draws = np.zeros((after.shape[0], DRAWS), dtype=np.float64)
+    for row, generator in row_generators(words, rows):
         for k in range(DRAWS // 4):
             draws[row, 4 * k] = generator.normal()
             draws[row, 4 * k + 1] = generator.normal()
