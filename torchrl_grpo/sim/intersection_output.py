@@ -34,7 +34,7 @@ import torch
 
 from torchrl_grpo.sim import lanes as L
 from torchrl_grpo.sim.intersection_params import IntersectionParams
-from torchrl_grpo.sim.merge_output import _observation
+from torchrl_grpo.sim.merge_output import ego_on_road, outputs
 
 __all__ = ["INTERSECTION_REWARD_COMPONENTS", "arrived", "observe_intersection"]
 
@@ -78,9 +78,7 @@ def observe_intersection(world, params: IntersectionParams, action=None) -> dict
     del action
     r, v = params.reward, world.vehicles
     dtype = v.speed.dtype
-    lane = v.lane[:, 0]
-    s, lateral = L.local_coordinates(v.x[:, 0], v.y[:, 0], lane, params.road.lanes)
-    on_road = L.on_lane(s, lateral, lane, params.road.lanes)
+    on_road = ego_on_road(v, params)
     crashed, done = v.crashed[:, 0], arrived(world, params)
     low, high = r.reward_speed_range
     scaled = 0 + (v.speed[:, 0] - low) * (1 - 0) / (high - low)
@@ -101,15 +99,4 @@ def observe_intersection(world, params: IntersectionParams, action=None) -> dict
     terminated = crashed | done
     if r.offroad_terminal:
         terminated = terminated | ~on_road
-    return {
-        "observation": _observation(v, params),
-        "reward": total,
-        "terminated": terminated,
-        "truncated": world.time >= r.duration,
-        "crashed": crashed,
-        "on_road": on_road,
-        "speed": v.speed[:, 0],
-        "ego_position": torch.stack([v.x[:, 0], v.y[:, 0]], dim=-1),
-        "ego_heading": v.heading[:, 0],
-        "reward_components": parts,
-    }
+    return outputs(v, params, total, parts, terminated, world.time >= r.duration, on_road)

@@ -39,7 +39,7 @@ from torchrl_grpo.sim import lanes as L
 from torchrl_grpo.sim.merge_params import MergeParams
 from torchrl_grpo.sim.observation import kinematics_table
 
-__all__ = ["MERGE_REWARD_COMPONENTS", "merge_reward", "observe_merge"]
+__all__ = ["MERGE_REWARD_COMPONENTS", "ego_on_road", "merge_reward", "observe_merge", "outputs"]
 
 #: ``MergeEnv._rewards``' keys, in its order.
 MERGE_REWARD_COMPONENTS = (
@@ -67,6 +67,37 @@ def _observation(v, params: MergeParams) -> torch.Tensor:
     order = torch.argsort(key, dim=-1, stable=True)[:, : obs.vehicles_count - 1]
     shown = visible.gather(1, order)
     return kinematics_table(v, params, order, shown)
+
+
+def ego_on_road(v, params) -> torch.Tensor:
+    """``[B]``: the ego's ``on_road`` (within its current lane's width and ends).
+
+    Example:
+        >>> # see the module's example
+    """
+    lane = v.lane[:, 0]
+    s, r = L.local_coordinates(v.x[:, 0], v.y[:, 0], lane, params.road.lanes)
+    return L.on_lane(s, r, lane, params.road.lanes)
+
+
+def outputs(v, params, reward, parts, terminated, truncated, on_road) -> dict[str, torch.Tensor]:
+    """A step's report on a lane graph (merge, roundabout, intersection): ``observe_world``'s keys.
+
+    Example:
+        >>> # see the module's example
+    """
+    return {
+        "observation": _observation(v, params),
+        "reward": reward,
+        "terminated": terminated,
+        "truncated": truncated,
+        "crashed": v.crashed[:, 0],
+        "on_road": on_road,
+        "speed": v.speed[:, 0],
+        "ego_position": torch.stack([v.x[:, 0], v.y[:, 0]], dim=-1),
+        "ego_heading": v.heading[:, 0],
+        "reward_components": parts,
+    }
 
 
 def merge_reward(
@@ -124,18 +155,7 @@ def observe_merge(
     """
     v = world.vehicles
     total, parts = merge_reward(v, params, action)
-    lane = v.lane[:, 0]
-    s, r = L.local_coordinates(v.x[:, 0], v.y[:, 0], lane, params.road.lanes)
     crashed = v.crashed[:, 0]
-    return {
-        "observation": _observation(v, params),
-        "reward": total,
-        "terminated": crashed | (v.x[:, 0] > params.reward.terminal_x),
-        "truncated": torch.zeros_like(crashed),
-        "crashed": crashed,
-        "on_road": L.on_lane(s, r, lane, params.road.lanes),
-        "speed": v.speed[:, 0],
-        "ego_position": torch.stack([v.x[:, 0], v.y[:, 0]], dim=-1),
-        "ego_heading": v.heading[:, 0],
-        "reward_components": parts,
-    }
+    terminated = crashed | (v.x[:, 0] > params.reward.terminal_x)
+    truncated = torch.zeros_like(crashed)
+    return outputs(v, params, total, parts, terminated, truncated, ego_on_road(v, params))

@@ -31,8 +31,7 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_grpo.sim import lanes as L
-from torchrl_grpo.sim.merge_output import _observation
+from torchrl_grpo.sim.merge_output import ego_on_road, outputs
 from torchrl_grpo.sim.roundabout_params import RoundaboutParams
 
 __all__ = ["ROUNDABOUT_REWARD_COMPONENTS", "observe_roundabout", "roundabout_reward"]
@@ -100,20 +99,7 @@ def observe_roundabout(
         >>> # see the module's example
     """
     v = world.vehicles
-    lane = v.lane[:, 0]
-    s, r = L.local_coordinates(v.x[:, 0], v.y[:, 0], lane, params.road.lanes)
-    on_road = L.on_lane(s, r, lane, params.road.lanes)
+    on_road = ego_on_road(v, params)
     total, parts = roundabout_reward(world, params, action, on_road)
-    crashed = v.crashed[:, 0]
-    return {
-        "observation": _observation(v, params),
-        "reward": total,
-        "terminated": crashed,
-        "truncated": world.time >= params.reward.duration,
-        "crashed": crashed,
-        "on_road": on_road,
-        "speed": v.speed[:, 0],
-        "ego_position": torch.stack([v.x[:, 0], v.y[:, 0]], dim=-1),
-        "ego_heading": v.heading[:, 0],
-        "reward_components": parts,
-    }
+    truncated = world.time >= params.reward.duration
+    return outputs(v, params, total, parts, v.crashed[:, 0], truncated, on_road)
