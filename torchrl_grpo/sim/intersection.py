@@ -76,14 +76,12 @@ def _permute(t: torch.Tensor, order: torch.Tensor) -> torch.Tensor:
     return t.gather(1, index)
 
 
-def _in_road_order(fn, ego_rank: torch.Tensor, v: Vehicles, *tables):
-    """``fn(v, *tables)`` on the rows in ``road.vehicles`` order, its outputs put back.
+def _in_road_order(fn, order: torch.Tensor, back: torch.Tensor, v: Vehicles, *tables):
+    """``fn(v, *tables)`` on the rows in ``road.vehicles`` order (``order``), put back (``back``).
 
     Pairs are visited in that order, and it decides ties: the earlier vehicle's impact
     is overwritten by a later pair's, the later vehicle yields at equal distances.
     """
-    order = road_order(ego_rank, v.x.shape[1])
-    back = torch.argsort(order, dim=1)
     out = fn(Vehicles(*(_permute(t, order) for t in v)), *(_permute(t, order) for t in tables))
     if isinstance(out, Vehicles):
         return Vehicles(*(_permute(t, back) for t in out))
@@ -101,11 +99,14 @@ def intersection_substep(world: World, action: torch.Tensor, params: Intersectio
     due = torch.remainder(road_steps, params.regulation.every) == 0
     yielding = world.yielding
     ego_row = world.ego_rank
+    order = road_order(ego_row, v.x.shape[1])
+    back = torch.argsort(order, dim=1)
     if bool(due.any()):
         decided = v._replace(target_lane=cols["target_lane"])
         speed, flags = _in_road_order(
             lambda *a: enforce_road_rules(*a, params, ego_row=ego_row),
-            world.ego_rank,
+            order,
+            back,
             decided,
             world.route,
             routes.head,
@@ -118,7 +119,7 @@ def intersection_substep(world: World, action: torch.Tensor, params: Intersectio
         params,
         closest=lambda x, y, h: L.closest_lane(x, y, h, params.road.lanes),
     )
-    moved = _in_road_order(lambda t: collide(t, params), world.ego_rank, moved)
+    moved = _in_road_order(lambda t: collide(t, params), order, back, moved)
     return world._replace(
         vehicles=moved,
         speed_index=index,
