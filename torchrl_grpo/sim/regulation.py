@@ -44,7 +44,7 @@ from __future__ import annotations
 import torch
 
 from torchrl_grpo.sim import lanes as L
-from torchrl_grpo.sim.routes import _tables
+from torchrl_grpo.sim.routes import road_tables
 from torchrl_grpo.sim.state import Vehicles
 
 __all__ = ["NEVER", "YIELDED", "YIELDING", "conflicts", "enforce_road_rules", "predict_along_route"]
@@ -68,7 +68,7 @@ def predict_along_route(
     times = torch.tensor(params.regulation.times, dtype=v.x.dtype, device=v.x.device)
     s0, _ = L.local_coordinates(v.x, v.y, v.lane, geo)
     s = s0.unsqueeze(-1) + v.speed.unsqueeze(-1) * times  # [B, N, T]
-    tab = _tables(road, v.x.device)
+    tab = road_tables(road, v.x.device)
     length = route.shape[-1]
     steps = torch.arange(length, device=v.x.device)
     at = head.unsqueeze(-1) + steps  # [B, N, R]: the remaining legs

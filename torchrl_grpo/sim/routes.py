@@ -32,11 +32,22 @@ import torch
 
 from torchrl_grpo.sim import lanes as L
 
-__all__ = ["RouteFollower", "head_leg", "leg_lane_id", "leg_road", "next_lane"]
+__all__ = ["RouteFollower", "head_leg", "leg_lane_id", "leg_road", "next_lane", "road_tables"]
 
 
 @functools.lru_cache(maxsize=64)
-def _tables(road, device: torch.device) -> dict[str, torch.Tensor]:
+def road_tables(road, device: torch.device) -> dict[str, torch.Tensor]:
+    """A routed road's lookup tables on ``device`` (cached): per lane and per road.
+
+    ``road`` / ``id`` per leg code; ``lane_road``, ``lane_id`` per lane; ``from``,
+    ``to``, ``lanes`` (``[roads, W]``, -1 padded), ``count`` and ``next`` per road.
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> road_tables(tensor_params("roundabout-v0").road, torch.device("cpu"))["lanes"].shape
+        torch.Size([24, 2])
+    """
+
     def t(values) -> torch.Tensor:
         return torch.tensor(values, dtype=torch.int64, device=device)
 
@@ -75,7 +86,7 @@ def leg_road(leg: torch.Tensor, road) -> torch.Tensor:
         >>> leg_road(torch.tensor([0, 1, 32, -1]), tensor_params("roundabout-v0").road).tolist()
         [0, 0, 0, -1]
     """
-    table = _tables(road, leg.device)["road"]
+    table = road_tables(road, leg.device)["road"]
     return torch.where(leg >= 0, table[leg.clamp(min=0)], -1)
 
 
@@ -87,7 +98,7 @@ def leg_lane_id(leg: torch.Tensor, road) -> torch.Tensor:
         >>> leg_lane_id(torch.tensor([1, 32, -1]), tensor_params("roundabout-v0").road).tolist()
         [1, -1, -1]
     """
-    table = _tables(road, leg.device)["id"]
+    table = road_tables(road, leg.device)["id"]
     return torch.where(leg >= 0, table[leg.clamp(min=0)], -1)
 
 
@@ -115,7 +126,7 @@ def next_lane(
     Example:
         >>> # see the module's example
     """
-    geo, tab = road.lanes, _tables(road, x.device)
+    geo, tab = road.lanes, road_tables(road, x.device)
     current = tab["lane_road"][target]
     end = tab["to"][current]
     leg = head_leg(route, head)
