@@ -41,6 +41,7 @@ from omegaconf import OmegaConf
 
 import torchrl_grpo.experimental  # noqa: F401  (runs of algo=grpo_lab load too)
 from torchrl_grpo.training import evaluate, load_run_policy, make_env
+from torchrl_grpo.training.checkpoint import load_checkpoint
 from torchrl_grpo.training.env_builder import make_layout
 from torchrl_grpo.training.eval_episodes import eval_workers
 from torchrl_grpo.training.evaluation import BASELINE_LABELS, baseline_policy
@@ -119,8 +120,13 @@ def main() -> None:
     )
     args = p.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    # Trained runs are driven with their own config overrides (their observation, say),
+    # and every row of the table on the same env.
+    config = {}
+    if args.checkpoints:
+        config = OmegaConf.create(load_checkpoint(args.checkpoints[0])["config"]).env.config
     env_cfg = OmegaConf.create(
-        {"scenario": args.scenario, "config": {}, "max_episode_steps": MAX_STEPS}
+        {"scenario": args.scenario, "config": config, "max_episode_steps": MAX_STEPS}
     )
     env = make_env(env_cfg)
     kw = {"episodes": args.episodes, "seed": args.seed, "max_steps": MAX_STEPS}

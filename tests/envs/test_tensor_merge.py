@@ -91,7 +91,8 @@ def test_branch_rollout_runs_rows_as_highway_env_does():
     [
         ({"other_vehicles_type": "highway_env.vehicle.behavior.LinearVehicle"}, "other_vehicles"),
         ({"lanes_count": 3}, "unknown config key 'lanes_count'"),
-        ({"observation": {"type": "Kinematics", "features_range": {}}}, "features_range"),
+        ({"observation": {"type": "Kinematics", "features_range": {"x": [5, 5]}}},
+         "features_range"),
         ({"collision_reward": -0.5, "merging_speed_reward": 0.0, "high_speed_reward": -0.6,
           "right_lane_reward": 0.1}, "collision_reward"),
     ],

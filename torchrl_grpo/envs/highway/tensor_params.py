@@ -145,7 +145,12 @@ def check_tensor_config(scenario: str, config: dict | None = None) -> dict:
             raise ValueError(f"unknown config key {key!r} for {scenario}{hint}")
         if full[key] != defaults[key]:
             refuse(key, f"only its default {defaults[key]!r} is simulated")
-    _check_observation(full, refuse, ranged=scenario in ("roundabout-v0", "intersection-v0"))
+    # highway-env uses a configured features_range as given and fixes a missing one at the
+    # first observation, which the simulator models on the straight roads only.
+    ranged = scenario in ("roundabout-v0", "intersection-v0") or (
+        "features_range" in full["observation"]
+    )
+    _check_observation(full, refuse, ranged=ranged)
     _check_action(full, refuse, defaults["action"])
     check_values(full, refuse)
     return full
@@ -162,7 +167,7 @@ def _check_observation(full: dict, refuse, ranged: bool = False) -> None:
     obs = full["observation"]
     if not isinstance(obs, dict) or obs.get("type") != "Kinematics":
         refuse("observation.type", "only the Kinematics observation is simulated")
-    if ranged:  # roundabout-v0 gives the ranges; a missing one would be fixed at a reset
+    if ranged:
         ranges = obs.get("features_range")
         ok = isinstance(ranges, dict) and all(
             len(r) == 2 and math.isfinite(float(r[0])) and float(r[1]) > float(r[0])
