@@ -3,6 +3,9 @@
     python benchmarks/lab/label_inputs.py --scenario roundabout-v0 [--tail idle]
         [--worlds 1000] [--epsilon 0.3] [--horizon 8] [--seed 70000]
     python benchmarks/lab/label_inputs.py --tail runs/<name>/last.pt   # its own scenario
+    python benchmarks/lab/label_inputs.py --scenario merge-v0 --tail slower --horizon 30 \
+        --worlds 2000 --observation-only --drive 1000 --loss regret \
+        --ranges '{"x": [-400, 400], "y": [-8, 8], "vx": [-80, 80], "vy": [-80, 80]}'
 
 The lookahead planner (every action tried, then ``--horizon - 1`` steps of the scripted
 ``--tail`` policy or of a trained run's greedy actions, rows of the tensor simulator)
@@ -33,15 +36,18 @@ the learner cannot see; if more states close it, the fit is short of data.
 N`` then drives that fit greedily over ``N`` tensor-simulator episodes from highway-env's
 starts of seeds 40000.., beside the policy the search is over on the same episodes: what
 a network distilled from the search drives like.
-``--from-run`` fits the run's own network from its trained weights instead of a fresh MLP
-(one round of expert iteration on the planner's labels); with ``--keep-below R`` only the
-states where the run's own action loses more than ``R`` to the best are relabelled, the
-others keep the run's distribution as their target.
+``--loss regret`` fits the expected regret instead of the best set (see :func:`fit`), and
+``--ranges`` sets the observation's ``features_range`` (merge-v0's default hides the
+ego's x beyond 200 m). ``--from-run`` fits the run's own network from its trained
+weights instead of a fresh MLP (one round of expert iteration on the planner's labels);
+with ``--keep-below R`` only the states where the run's own action loses more than ``R``
+to the best are relabelled, the others keep the run's distribution as their target.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import warnings
 from pathlib import Path
 
@@ -68,11 +74,13 @@ warnings.filterwarnings("ignore")
 CONF_ENV = Path(__file__).resolve().parents[2] / "conf" / "env"
 
 
-def searched_policy(scenario: str, tail: str) -> tuple[DictConfig, int, nn.Module]:
+def searched_policy(
+    scenario: str, tail: str, config: dict | None = None
+) -> tuple[DictConfig, int, nn.Module]:
     """The env config, its number of actions and the greedy policy the search is over.
 
-    ``tail``: a scripted policy's name (on ``scenario``) or a run's checkpoint (on its own
-    scenario).
+    ``tail``: a scripted policy's name (on ``scenario``, with the highway-env overrides
+    ``config``) or a run's checkpoint (on its own scenario and config).
     """
     if tail.endswith(".pt"):
         cfg = OmegaConf.create(load_checkpoint(tail)["config"])["env"]
@@ -80,6 +88,7 @@ def searched_policy(scenario: str, tail: str) -> tuple[DictConfig, int, nn.Modul
         base = DeterministicActor(load_run_policy(tail, cfg, highway))
     else:
         cfg = _env_config(scenario)
+        cfg.config = config or {}
         highway = make_env(cfg)
         base = baseline_policy(tail, make_layout(highway), int(highway.action_spec.n))
     return cfg, int(highway.action_spec.n), base
@@ -87,15 +96,21 @@ def searched_policy(scenario: str, tail: str) -> tuple[DictConfig, int, nn.Modul
 
 @torch.no_grad()
 def labelled_states(
-    scenario: str, tail: str, worlds: int, epsilon: float, horizon: int, seed: int
+    scenario: str,
+    tail: str,
+    worlds: int,
+    epsilon: float,
+    horizon: int,
+    seed: int,
+    config: dict | None = None,
 ) -> tuple[str, torch.Tensor, TensorDict, torch.Tensor]:
     """The scenario, the planner's states (observations, full states), each action's score."""
-    cfg, n_actions, base = searched_policy(scenario, tail)
-    scenario = str(cfg.scenario)
+    cfg, n_actions, base = searched_policy(scenario, tail, config)
+    scenario, overrides = str(cfg.scenario), OmegaConf.to_container(cfg.config)
     planner = LookaheadPolicy(
-        TensorHighwayEnv(scenario, num_envs=n_actions * worlds), base, horizon
+        TensorHighwayEnv(scenario, overrides, num_envs=n_actions * worlds), base, horizon
     )
-    env = TensorHighwayEnv(scenario, num_envs=worlds, return_state=True)
+    env = TensorHighwayEnv(scenario, overrides, num_envs=worlds, return_state=True)
     td = highway_starts(env, list(range(seed, seed + worlds)))
     draws = torch.Generator().manual_seed(seed)
     live = torch.ones(worlds, dtype=torch.bool)
@@ -166,8 +181,15 @@ def fit(
     epochs: int,
     net: nn.Module | None = None,
     keep_below: float | None = None,
+    loss: str = "best-set",
 ) -> tuple[dict[str, float], nn.Module]:
     """Fits the best set from ``x[train]``; accuracy and regret on ``train`` and ``test``.
+
+    ``loss``: ``best-set``, the cross-entropy to the uniform distribution over the tied
+    best actions; or ``regret``, the expected regret of the network's distribution
+    (``sum_a pi(a) (max Q - Q(a))``) plus a tenth of that cross-entropy. The regret
+    weighs each state by what a wrong action costs there; alone it settles on one action
+    everywhere, since the actions the network gives no probability get no gradient.
 
     ``net``: the network to fit (default: a fresh MLP, standardisation included).
     ``keep_below``: where the network's own greedy action loses less than this to the
@@ -196,11 +218,15 @@ def fit(
     )
     optim = torch.optim.Adam(net.parameters(), lr=1e-3)
     order = torch.Generator().manual_seed(1)
+    regret = scores.amax(-1, keepdim=True) - scores
     for _ in range(epochs):
         for rows in train[torch.randperm(len(train), generator=order)].split(256):
-            loss = -(target[rows] * net(x[rows]).log_softmax(-1)).sum(-1).mean()
+            log_p = net(x[rows]).log_softmax(-1)
+            value = -(target[rows] * log_p).sum(-1).mean()
+            if loss == "regret":
+                value = (log_p.exp() * regret[rows]).sum(-1).mean() + 0.1 * value
             optim.zero_grad()
-            loss.backward()
+            value.backward()
             optim.step()
     with torch.no_grad():
         chosen = net(x).argmax(-1, keepdim=True)
@@ -251,9 +277,11 @@ class _Greedy(nn.Module):
         return td
 
 
-def drive(scenario: str, tail: str, net: nn.Module, episodes: int) -> None:
+def drive(
+    scenario: str, tail: str, net: nn.Module, episodes: int, config: dict | None = None
+) -> None:
     """The fit's greedy episodes beside the searched policy's own, on the tensor simulator."""
-    cfg, _, base_policy = searched_policy(scenario, tail)
+    cfg, _, base_policy = searched_policy(scenario, tail, config)
     kw = {"episodes": episodes, "seed": 40_000}
     base = evaluate_on_tensor(cfg, base_policy, name=f"{tail}, greedy", **kw)
     fitted = evaluate_on_tensor(cfg, _Greedy(net), name="the fit of its search, greedy", **kw)
@@ -285,10 +313,20 @@ def main() -> None:
         default=None,
         help="with --from-run: correct only the states where the run's action loses this much",
     )
+    parser.add_argument("--loss", default="best-set", choices=["best-set", "regret"])
+    parser.add_argument(
+        "--ranges",
+        type=json.loads,
+        default=None,
+        help='the observation\'s features_range, JSON: {"x": [-400, 400], ...}',
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
+    config = None
+    if args.ranges:
+        config = {"observation": {"type": "Kinematics", "features_range": args.ranges}}
     scenario, observation, state, scores = labelled_states(
-        args.scenario, args.tail, args.worlds, args.epsilon, args.horizon, args.seed
+        args.scenario, args.tail, args.worlds, args.epsilon, args.horizon, args.seed, config
     )
     n = len(scores)
     best = scores >= scores.amax(-1, keepdim=True) - 1e-6
@@ -313,7 +351,7 @@ def main() -> None:
             actor = load_run_policy(args.tail, cfg, make_env(cfg))
             start = _RunLogits(actor, observation.shape[1:])
         keep = args.keep_below if start is not None else None
-        r, net = fit(x, scores, fitted, test, args.epochs, start, keep)
+        r, net = fit(x, scores, fitted, test, args.epochs, start, keep, args.loss)
         print(
             f"| {name} | {len(fitted)} | {r['fitted accuracy']:.3f} | "
             f"{r['held-out accuracy']:.3f} | {r['held-out regret']:.3f} | "
@@ -321,7 +359,7 @@ def main() -> None:
         )
         if args.drive and fitted is train and name == "observation":
             print()
-            drive(scenario, args.tail, net, args.drive)
+            drive(scenario, args.tail, net, args.drive, config)
 
 
 if __name__ == "__main__":

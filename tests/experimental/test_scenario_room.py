@@ -76,3 +76,40 @@ def test_a_short_run_prints_every_policy_row(on, other, bases):
     # always-SLOWER against itself, wherever its row is: no difference, and not a win.
     own = rows[1 + names.index("| always-SLOWER")]
     assert "+0.00 ± 0.00, does not beat always-SLOWER" in own
+
+
+def test_trained_runs_are_driven_with_their_own_config(tmp_path):
+    # A run trained with merge-v0's x range widened: every row of the table, always-SLOWER
+    # included, is driven with that observation (the run's policy would refuse another).
+    from torchrl_grpo.training import compose_config, make_env
+    from torchrl_grpo.training.checkpoint import save_checkpoint
+    from torchrl_grpo.training.config import to_container
+    from torchrl_grpo.training.model_builder import make_policy
+
+    ranges = "{x:[-400,400],y:[-8,8],vx:[-80,80],vy:[-80,80]}"
+    cfg = compose_config(
+        [
+            "experiment=smoke",
+            "env=merge",
+            "model=mlp",
+            f"+env.config.observation={{type:Kinematics,features_range:{ranges}}}",
+        ]
+    )
+    policy = make_policy(cfg.model, make_env(cfg.env, seed=0))
+    path = save_checkpoint(
+        {"config": to_container(cfg), "policy": policy.state_dict()}, tmp_path / "run" / "last.pt"
+    )
+    out = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "benchmarks/lab/bench_scenario_room.py"),
+            *("--scenario", "merge-v0", "--bases", "slower", "--horizons"),
+            *("--episodes", "2", "--workers", "1", "--on", "tensor", "--checkpoints", str(path)),
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=ROOT,
+    )
+    names = [line.split(" | ")[0] for line in out.stdout.splitlines() if line.startswith("| ")]
+    assert names[1:] == ["| always-SLOWER", "| run"]

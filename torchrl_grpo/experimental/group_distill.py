@@ -39,13 +39,15 @@ __all__ = [
     "GroupDistillLoss",
     "GroupFitLossName",
     "GroupFitWeightingName",
+    "group_regret",
     "group_softmax_target",
     "group_spread",
 ]
 
 #: What the group fit fits (``algo.group_fit_loss``): each root's softmax target by
-#: cross-entropy, or its advantages by the policy's centred logits (the recipes').
-GroupFitLoss = Literal["cross_entropy", "regression"]
+#: cross-entropy, its advantages by the policy's centred logits (the recipes'), or the
+#: expected regret of the policy's distribution (:mod:`~torchrl_grpo.experimental.regret_fit`).
+GroupFitLoss = Literal["cross_entropy", "regression", "regret"]
 #: Weight of each root in the group fit (``algo.group_fit_weighting``): the same for
 #: all (the recipes'), or its group's spread (best minus worst advantage).
 GroupFitWeighting = Literal["uniform", "spread"]
@@ -131,6 +133,30 @@ def group_spread(advantage: torch.Tensor, group_id: torch.Tensor) -> torch.Tenso
     best = flat.new_full((n_groups,), -float("inf")).scatter_reduce(0, inverse, flat, reduce="amax")
     worst = flat.new_full((n_groups,), float("inf")).scatter_reduce(0, inverse, flat, reduce="amin")
     return (best - worst)[inverse].reshape(advantage.shape)
+
+
+def group_regret(advantage: torch.Tensor, group_id: torch.Tensor) -> torch.Tensor:
+    """Each row's regret: its group's best advantage minus its own (``>= 0``).
+
+    Args:
+        advantage: one advantage per row, ``[N]`` or ``[N, 1]``.
+        group_id: the integer id of each row's root, ``[N]``.
+
+    Returns:
+        The regrets, shaped like ``advantage`` (0 for a group's best rows).
+
+    Raises:
+        ValueError: shapes that disagree.
+
+    Example:
+        >>> import torch
+        >>> adv = torch.tensor([0.0, 1.0, -3.0, 2.0, 2.0])
+        >>> group_regret(adv, torch.tensor([0, 0, 0, 1, 1]))
+        tensor([1., 0., 4., 0., 0.])
+    """
+    flat, inverse, n_groups = _rows_by_group(advantage, group_id)
+    best = flat.new_full((n_groups,), -float("inf")).scatter_reduce(0, inverse, flat, reduce="amax")
+    return (best[inverse] - flat).reshape(advantage.shape)
 
 
 def _rows_by_group(

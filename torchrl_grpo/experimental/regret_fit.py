@@ -1,0 +1,139 @@
+"""The group fit by expected regret: ``algo.group_fit_loss=regret`` (``algo=grpo_lab``).
+
+A group that tries every first action from one root and then follows a fixed policy
+scores each action: its regret is the group's best advantage less the action's. The
+expected regret of the policy at the root, ``sum_a pi(a|s) regret(a)``, weighs the
+root by what a wrong action costs there: a crash's regret counts as much as the crash
+costs, a tie nothing. Alone it settles on one action everywhere, since an action the
+policy gives no probability gets no gradient; a tenth of the cross-entropy to the
+group's best actions (:data:`ANCHOR`) keeps every best action within reach.
+
+On merge-v0 a network fitted offline this way to the search's labels beats
+always-SLOWER where the cross-entropy alone does not (``benchmarks/lab/label_inputs.py
+--loss regret``, docs/results.md, section 5). Importing this module registers the fit
+with the core's GRPO (:func:`~torchrl_grpo.training.algos.enumerated.register_group_fit`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import NestedKey, TensorDict, TensorDictBase
+from tensordict.nn import ProbabilisticTensorDictSequential
+from torch import nn
+from torchrl.objectives import LossModule
+
+from torchrl_grpo.branching.keys import GROUP_ID
+from torchrl_grpo.experimental.group_distill import group_regret, group_softmax_target
+from torchrl_grpo.objectives.loss_checks import check_finite, require
+from torchrl_grpo.training.algos.enumerated import DISTILL_TARGET, GroupFit, register_group_fit
+
+__all__ = ["ANCHOR", "GroupRegretLoss"]
+
+#: Weight of the cross-entropy to the group's best actions beside the expected regret
+#: (the offline fit's, ``label_inputs.fit``).
+ANCHOR = 0.1
+
+
+class GroupRegretLoss(LossModule):
+    r"""Expected regret of the policy at each root, with a cross-entropy anchor.
+
+    Each row is one branch's first step: its action ``a``, its regret and its weight
+    ``w`` in its group's hard target (``1 / |best set|`` for a best action, else 0). The
+    loss is ``coeff * (sum pi(a|s) regret + ANCHOR * sum -w log pi(a|s)) / sum w``: per
+    root, the expected regret of the policy over its actions plus the anchor, averaged
+    over the roots of the minibatch (``sum w`` counts them).
+
+    Args:
+        actor_network: the policy; its ``get_dist`` gives the distribution (its
+            parameters are used as they are, so the GRPO optimiser trains this term).
+
+    Keyword Args:
+        coeff: the weight of the term (``> 0``).
+
+    Keys (change them with :meth:`set_keys`): ``action`` (``"action"``), ``regret``
+    (``"distill_target"``) and ``target_weight`` (``"distill_weight"``).
+
+    Outputs: ``loss_distill`` and the diagnostic ``distill_expected_regret`` (without
+    ``coeff`` and the anchor).
+
+    Example:
+        >>> from tensordict.nn import TensorDictModule
+        >>> from torchrl.modules import ProbabilisticActor
+        >>> net = TensorDictModule(torch.nn.Linear(3, 2), ["observation"], ["logits"])
+        >>> _ = torch.nn.init.zeros_(net.module.weight), torch.nn.init.zeros_(net.module.bias)
+        >>> actor = ProbabilisticActor(net, ["logits"],
+        ...                            distribution_class=torch.distributions.Categorical)
+        >>> data = TensorDict(observation=torch.ones(2, 3), action=torch.tensor([0, 1]),
+        ...                   distill_target=torch.tensor([0.0, 4.0]),
+        ...                   distill_weight=torch.tensor([1.0, 0.0]), batch_size=[2])
+        >>> out = GroupRegretLoss(actor, coeff=1.0)(data)
+        >>> float(out["distill_expected_regret"])  # pi = 1/2 each: (0 + 4) / 2
+        2.0
+        >>> round(float(out["loss_distill"]), 4)  # 2 + 0.1 * log 2
+        2.0693
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Tensordict keys read by :class:`GroupRegretLoss`, set with ``set_keys``.
+
+        Attributes:
+            action: the row's action (its branch's first action).
+            regret: the row's regret (its group's best advantage less its own).
+            target_weight: the row's weight in its group's hard target.
+        """
+
+        action: NestedKey = "action"
+        regret: NestedKey = DISTILL_TARGET
+        target_weight: NestedKey = "distill_weight"
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    out_keys = ["loss_distill", "distill_expected_regret"]
+
+    def __init__(self, actor_network: ProbabilisticTensorDictSequential, *, coeff: float) -> None:
+        if not (coeff > 0 and coeff < float("inf")):
+            raise ValueError(f"coeff must be a finite number > 0, got {coeff}")
+        super().__init__()
+        self.actor_network = actor_network
+        self.coeff = coeff
+
+    @property
+    def in_keys(self) -> list[NestedKey]:  # noqa: D102
+        keys = self.tensor_keys
+        own = [keys.action, keys.regret, keys.target_weight]
+        return list(dict.fromkeys([*self.actor_network.in_keys, *own]))
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """The loss over ``tensordict``'s rows (a flat batch)."""
+        keys = self.tensor_keys
+        weight = require(tensordict, keys.target_weight, "target_weight").reshape(-1)
+        regret = require(tensordict, keys.regret, "regret").reshape(-1)
+        action = require(tensordict, keys.action, "action")
+        log_prob = self.actor_network.get_dist(tensordict).log_prob(action).reshape(-1)
+        check_finite({repr(keys.regret): regret, "the policy's log-prob": log_prob})
+        # A minibatch may hold none of its groups' best rows: then it counts one root.
+        roots = weight.sum().clamp_min(1.0)
+        expected = (log_prob.exp() * regret).sum() / roots
+        anchor = -(weight * log_prob).sum() / roots
+        return TensorDict(
+            loss_distill=self.coeff * (expected + ANCHOR * anchor),
+            distill_expected_regret=expected.detach(),
+            batch_size=[],
+        )
+
+
+def _regret_targets(data: TensorDictBase, temperature: float) -> torch.Tensor:
+    # The temperature plays no part: the regret is in return units.
+    advantage, group_id = data.get("advantage"), data.get(GROUP_ID)
+    data.set(DISTILL_TARGET, group_regret(advantage, group_id))
+    return group_softmax_target(advantage, group_id, 0.0)
+
+
+def _regret_loss(policy: nn.Module, coeff: float, temperature: float) -> LossModule:
+    return GroupRegretLoss(policy, coeff=coeff)
+
+
+register_group_fit("regret", GroupFit(_regret_targets, _regret_loss))
