@@ -22,7 +22,8 @@ training evaluates on 10000.. and 20000..). Printed, in one run:
   policy that looks ahead, and how far the learner trails it.
 
 Each policy's episodes are kept in ``--out`` (one JSON file per policy, run folder and
-seed set), so an interrupted run picks up where it stopped.
+seed set; runs trained with config overrides, such as another observation, in a folder of
+that config's own), so an interrupted run picks up where it stopped.
 
     python benchmarks/bench_scenarios.py --grpo runs/merge_grpo_s0 runs/merge_grpo_s1 \\
         runs/merge_grpo_s2 --ppo runs/merge_ppo_s0 runs/merge_ppo_s1 runs/merge_ppo_s2 \\
@@ -32,11 +33,13 @@ seed set), so an interrupted run picks up where it stopped.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import logging
 from pathlib import Path
 
 import torch
+from omegaconf import OmegaConf
 
 from torchrl_grpo.training import evaluate, load_checkpoint, load_run_policy, make_env
 from torchrl_grpo.training.baseline_cache import read_cached, write_cached
@@ -115,6 +118,9 @@ def main() -> None:
         raise SystemExit("give one PPO run per GRPO run (the same seeds, in the same order)")
     env_cfg = typed_config(load_checkpoint(args.grpo[0] / "last.pt")["config"]).env
     out = args.out / str(env_cfg.scenario)
+    if env_cfg.config:  # the baselines' results hold for one config: a folder per config
+        overrides = json.dumps(OmegaConf.to_container(env_cfg.config), sort_keys=True)
+        out = out / f"config_{hashlib.sha1(overrides.encode()).hexdigest()[:10]}"
     out.mkdir(parents=True, exist_ok=True)
     env = make_env(env_cfg)
     steps = int(env_cfg.max_episode_steps)

@@ -8,6 +8,7 @@ configured. The reference is highway-env's own observation of the same recorded 
 import pytest
 import torch
 from highway_env.envs.intersection_env import IntersectionEnv
+from tensordict import TensorDict
 
 from torchrl_grpo.envs import TENSOR_SCENARIOS, TensorHighwayEnv
 from torchrl_grpo.envs.highway.parity import record_worlds, same_world
@@ -40,14 +41,12 @@ def test_configured_ranges_reach_the_cpp_step():
         TensorHighwayEnv(config=config, num_envs=8, seed=1, dtype=torch.float64, native=flag)
         for flag in (True, False)
     ]
+    actions = [(torch.arange(8) + t) % 5 for t in range(4)]
     outs = []
     for env in envs:
-        td, steps = env.reset(), []
-        for t in range(4):
-            td.set("action", (torch.arange(8) + t) % 5)
-            out, td = env.step_and_maybe_reset(td)
-            steps.append(out["next", "observation"])
-        outs.append(torch.stack(steps))
+        env.reset()
+        steps = [env.step(TensorDict(action=a, batch_size=[8]))["next"] for a in actions]
+        outs.append(torch.stack([step["observation"] for step in steps]))
     torch.testing.assert_close(outs[0], outs[1], rtol=0, atol=1e-9)
     # At a reset, the egos' x is normalised by 400 m and their y left in metres.
     env = envs[0]

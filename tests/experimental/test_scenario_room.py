@@ -16,6 +16,15 @@ from torchrl_grpo.training.results import EvalResult  # noqa: E402
 pytestmark = pytest.mark.experimental
 
 
+def _bench(*args: str) -> str:
+    """The script's standard output for ``args``."""
+    script = str(ROOT / "benchmarks/lab/bench_scenario_room.py")
+    run = subprocess.run(
+        [sys.executable, script, *args], capture_output=True, text=True, check=True, cwd=ROOT
+    )
+    return run.stdout
+
+
 def _result(name, returns, crashed):
     n = len(returns)
     return EvalResult(name, returns, crashed, [11] * n, [4.0] * n, list(range(n)))
@@ -46,23 +55,15 @@ def test_a_row_pairs_with_always_slower_by_hand():
     [("highway", "float32", ["slower"]), ("tensor", "float64", ["idle", "slower"])],
 )
 def test_a_short_run_prints_every_policy_row(on, other, bases):
-    out = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "benchmarks/lab/bench_scenario_room.py"),
-            *("--scenario", "roundabout-v0", "--bases", *bases, "--horizons", "2"),
-            *("--episodes", "2", "--workers", "1", "--on", on),
-            *("--dtypes", "float64", "float32"),
-        ],
-        capture_output=True,
-        text=True,
-        check=True,
-        cwd=ROOT,
+    out = _bench(
+        *("--scenario", "roundabout-v0", "--bases", *bases, "--horizons", "2"),
+        *("--episodes", "2", "--workers", "1", "--on", on),
+        *("--dtypes", "float64", "float32"),
     )
-    assert out.stdout.startswith(
+    assert out.startswith(
         f"roundabout-v0: 2 {'highway-env' if on == 'highway' else 'tensor-simulator'}"
     )
-    rows = [line for line in out.stdout.splitlines() if line.startswith("| ")]
+    rows = [line for line in out.splitlines() if line.startswith("| ")]
     # The dtype is named where it is not the default for where the episodes run.
     names = [r.split(" | ")[0] for r in rows[1:]]
     labels = {"slower": "always-SLOWER", "idle": "always-IDLE"}
@@ -99,17 +100,9 @@ def test_trained_runs_are_driven_with_their_own_config(tmp_path):
     path = save_checkpoint(
         {"config": to_container(cfg), "policy": policy.state_dict()}, tmp_path / "run" / "last.pt"
     )
-    out = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "benchmarks/lab/bench_scenario_room.py"),
-            *("--scenario", "merge-v0", "--bases", "slower", "--horizons"),
-            *("--episodes", "2", "--workers", "1", "--on", "tensor", "--checkpoints", str(path)),
-        ],
-        capture_output=True,
-        text=True,
-        check=True,
-        cwd=ROOT,
+    out = _bench(
+        *("--scenario", "merge-v0", "--bases", "slower", "--horizons"),
+        *("--episodes", "2", "--workers", "1", "--on", "tensor", "--checkpoints", str(path)),
     )
-    names = [line.split(" | ")[0] for line in out.stdout.splitlines() if line.startswith("| ")]
+    names = [line.split(" | ")[0] for line in out.splitlines() if line.startswith("| ")]
     assert names[1:] == ["| always-SLOWER", "| run"]

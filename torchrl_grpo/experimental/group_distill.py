@@ -95,7 +95,7 @@ def group_softmax_target(
     if not (temperature >= 0 and temperature < float("inf")):
         raise ValueError(f"temperature must be a finite number >= 0, got {temperature}")
     flat, inverse, n_groups = _rows_by_group(advantage, group_id)
-    best = flat.new_full((n_groups,), -float("inf")).scatter_reduce(0, inverse, flat, reduce="amax")
+    best = _group_extreme(flat, inverse, n_groups, "amax")
     gap = flat - best[inverse]
     if temperature == 0:
         score = (gap == 0).to(flat.dtype)
@@ -130,8 +130,8 @@ def group_spread(advantage: torch.Tensor, group_id: torch.Tensor) -> torch.Tenso
         tensor([4., 4., 4., 0., 0.])
     """
     flat, inverse, n_groups = _rows_by_group(advantage, group_id)
-    best = flat.new_full((n_groups,), -float("inf")).scatter_reduce(0, inverse, flat, reduce="amax")
-    worst = flat.new_full((n_groups,), float("inf")).scatter_reduce(0, inverse, flat, reduce="amin")
+    best = _group_extreme(flat, inverse, n_groups, "amax")
+    worst = _group_extreme(flat, inverse, n_groups, "amin")
     return (best - worst)[inverse].reshape(advantage.shape)
 
 
@@ -155,8 +155,16 @@ def group_regret(advantage: torch.Tensor, group_id: torch.Tensor) -> torch.Tenso
         tensor([1., 0., 4., 0., 0.])
     """
     flat, inverse, n_groups = _rows_by_group(advantage, group_id)
-    best = flat.new_full((n_groups,), -float("inf")).scatter_reduce(0, inverse, flat, reduce="amax")
+    best = _group_extreme(flat, inverse, n_groups, "amax")
     return (best[inverse] - flat).reshape(advantage.shape)
+
+
+def _group_extreme(
+    flat: torch.Tensor, inverse: torch.Tensor, n_groups: int, reduce: str
+) -> torch.Tensor:
+    """Each group's largest (``"amax"``) or smallest (``"amin"``) advantage, ``[n_groups]``."""
+    start = -float("inf") if reduce == "amax" else float("inf")
+    return flat.new_full((n_groups,), start).scatter_reduce(0, inverse, flat, reduce=reduce)
 
 
 def _rows_by_group(

@@ -20,12 +20,15 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
-from tensordict.nn import ProbabilisticTensorDictSequential
 from torch import nn
 from torchrl.objectives import LossModule
 
 from torchrl_grpo.branching.keys import GROUP_ID
-from torchrl_grpo.experimental.group_distill import group_regret, group_softmax_target
+from torchrl_grpo.experimental.group_distill import (
+    GroupDistillLoss,
+    group_regret,
+    group_softmax_target,
+)
 from torchrl_grpo.objectives.loss_checks import check_finite, require
 from torchrl_grpo.training.algos.enumerated import DISTILL_TARGET, GroupFit, register_group_fit
 
@@ -36,7 +39,7 @@ __all__ = ["ANCHOR", "GroupRegretLoss"]
 ANCHOR = 0.1
 
 
-class GroupRegretLoss(LossModule):
+class GroupRegretLoss(GroupDistillLoss):
     r"""Expected regret of the policy at each root, with a cross-entropy anchor.
 
     Each row is one branch's first step: its action ``a``, its regret and its weight
@@ -46,8 +49,8 @@ class GroupRegretLoss(LossModule):
     over the roots of the minibatch (``sum w`` counts them).
 
     Args:
-        actor_network: the policy; its ``get_dist`` gives the distribution (its
-            parameters are used as they are, so the GRPO optimiser trains this term).
+        actor_network: the policy, as for
+            :class:`~torchrl_grpo.experimental.group_distill.GroupDistillLoss`.
 
     Keyword Args:
         coeff: the weight of the term (``> 0``).
@@ -76,35 +79,24 @@ class GroupRegretLoss(LossModule):
     """
 
     @dataclass
-    class _AcceptedKeys:
+    class _AcceptedKeys(GroupDistillLoss._AcceptedKeys):
         """Tensordict keys read by :class:`GroupRegretLoss`, set with ``set_keys``.
 
         Attributes:
             action: the row's action (its branch's first action).
-            regret: the row's regret (its group's best advantage less its own).
             target_weight: the row's weight in its group's hard target.
+            regret: the row's regret (its group's best advantage less its own).
         """
 
-        action: NestedKey = "action"
         regret: NestedKey = DISTILL_TARGET
-        target_weight: NestedKey = "distill_weight"
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
     out_keys = ["loss_distill", "distill_expected_regret"]
 
-    def __init__(self, actor_network: ProbabilisticTensorDictSequential, *, coeff: float) -> None:
-        if not (coeff > 0 and coeff < float("inf")):
-            raise ValueError(f"coeff must be a finite number > 0, got {coeff}")
-        super().__init__()
-        self.actor_network = actor_network
-        self.coeff = coeff
-
     @property
     def in_keys(self) -> list[NestedKey]:  # noqa: D102
-        keys = self.tensor_keys
-        own = [keys.action, keys.regret, keys.target_weight]
-        return list(dict.fromkeys([*self.actor_network.in_keys, *own]))
+        return list(dict.fromkeys([*super().in_keys, self.tensor_keys.regret]))
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """The loss over ``tensordict``'s rows (a flat batch)."""
