@@ -61,6 +61,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.branching.batched_search import highway_starts
 from torchrl_grpo.envs import TensorHighwayEnv
+from torchrl_grpo.experimental.regret_fit import ANCHOR
 from torchrl_grpo.modules.actors import DeterministicActor
 from torchrl_grpo.training import make_env
 from torchrl_grpo.training.checkpoint import load_checkpoint
@@ -187,7 +188,8 @@ def fit(
 
     ``loss``: ``best-set``, the cross-entropy to the uniform distribution over the tied
     best actions; or ``regret``, the expected regret of the network's distribution
-    (``sum_a pi(a) (max Q - Q(a))``) plus a tenth of that cross-entropy. The regret
+    (``sum_a pi(a) (max Q - Q(a))``) plus a tenth of that cross-entropy (``ANCHOR``, as
+    in the group fit ``algo.group_fit_loss=regret``). The regret
     weighs each state by what a wrong action costs there; alone it settles on one action
     everywhere, since the actions the network gives no probability get no gradient.
 
@@ -224,7 +226,7 @@ def fit(
             log_p = net(x[rows]).log_softmax(-1)
             value = -(target[rows] * log_p).sum(-1).mean()
             if loss == "regret":
-                value = (log_p.exp() * regret[rows]).sum(-1).mean() + 0.1 * value
+                value = (log_p.exp() * regret[rows]).sum(-1).mean() + ANCHOR * value
             optim.zero_grad()
             value.backward()
             optim.step()

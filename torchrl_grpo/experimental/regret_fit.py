@@ -46,7 +46,9 @@ class GroupRegretLoss(GroupDistillLoss):
     ``w`` in its group's hard target (``1 / |best set|`` for a best action, else 0). The
     loss is ``coeff * (sum pi(a|s) regret + ANCHOR * sum -w log pi(a|s)) / sum w``: per
     root, the expected regret of the policy over its actions plus the anchor, averaged
-    over the roots of the minibatch (``sum w`` counts them).
+    over the roots of the minibatch (``sum w`` counts them). A root weighting
+    (``algo.group_fit_weighting``) scales ``w``: it then weighs the anchor and the
+    average, not each root's expected regret.
 
     Args:
         actor_network: the policy, as for

@@ -146,7 +146,8 @@ def check_tensor_config(scenario: str, config: dict | None = None) -> dict:
         if full[key] != defaults[key]:
             refuse(key, f"only its default {defaults[key]!r} is simulated")
     # highway-env uses a configured features_range as given and fixes a missing one at the
-    # first observation, which the simulator models on the straight roads only.
+    # first observation: the simulator reads those fixed ranges on highway and merge roads,
+    # while roundabout-v0 and intersection-v0 must keep the ones their defaults give.
     ranged = scenario in ("roundabout-v0", "intersection-v0") or (
         "features_range" in full["observation"]
     )
