@@ -41,6 +41,7 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
+import torchrl_grpo.experimental  # noqa: F401  (runs of algo=grpo_lab load too)
 from torchrl_grpo.training import evaluate, load_checkpoint, load_run_policy, make_env
 from torchrl_grpo.training.baseline_cache import read_cached, write_cached
 from torchrl_grpo.training.config import typed_config
