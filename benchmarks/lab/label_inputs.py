@@ -61,8 +61,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl_grpo.branching import LookaheadPolicy
 from torchrl_grpo.branching.batched_search import highway_starts
 from torchrl_grpo.envs import TensorHighwayEnv
-from torchrl_grpo.experimental.regret_fit import ANCHOR
 from torchrl_grpo.modules.actors import DeterministicActor
+from torchrl_grpo.objectives.regret_fit import ANCHOR
 from torchrl_grpo.training import make_env
 from torchrl_grpo.training.checkpoint import load_checkpoint
 from torchrl_grpo.training.env_builder import make_layout

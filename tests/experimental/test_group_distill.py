@@ -54,7 +54,7 @@ def test_spreads_are_each_groups_best_minus_worst_in_any_row_order():
     assert spread.shape == (n_groups * n_actions, 1)
     torch.testing.assert_close(spread.squeeze(-1), expected[perm])
     assert bool((spread.squeeze(-1)[ids[perm] == 42] == 0).all())
-    with pytest.raises(ValueError, match="one advantage per row"):
+    with pytest.raises(ValueError, match="one value per row: 4 values"):
         group_spread(torch.zeros(4), torch.zeros(3))
 
 
@@ -100,7 +100,7 @@ def test_a_bad_temperature_is_refused(bad):
 
 
 def test_one_advantage_per_group_id():
-    with pytest.raises(ValueError, match="advantage has 4 values, group_id 2"):
+    with pytest.raises(ValueError, match="4 values .advantages. for 2 group ids"):
         group_softmax_target(torch.zeros(2, 2), torch.zeros(2), 1.0)
 
 

@@ -74,6 +74,52 @@ def test_a_scenario_sets_its_own_defaults_under_the_command_line(overrides, aver
 
 
 @pytest.mark.parametrize(
+    ("overrides", "kind"),
+    [
+        ([], "scene"),  # model=auto: the scenario's network
+        (["env=roundabout"], "scene"),
+        (["env=merge"], "mlp"),  # SCENARIO_NETWORKS
+        (["env=merge", "algo=ppo"], "mlp"),  # the same network for the baseline
+        (["env=merge", "model=scene"], "scene"),  # a chosen network wins
+        (["env=merge", "model=ego_attention"], "ego_attention"),
+    ],
+)
+def test_the_default_network_is_the_scenarios(overrides, kind):
+    assert with_fixed_settings(compose_config(overrides)).model.kind == kind
+
+
+def test_merge_alone_runs_the_recipe_measured_with_the_lab():
+    # The command of docs/results.md, section 5, before its settings were merge's own.
+    lab = [
+        "env=merge",
+        "model=mlp",
+        "algo=grpo_lab",
+        "rollout.horizon=30",
+        "algo.tail_policy=slower",
+        "algo.tail_learner_steps=0",
+        "model.crash_aversion=0",
+        "algo.group_fit_loss=regret",
+        "algo.group_fit_coeff=1",
+        "algo.replay_groups=32768",
+        "experiment.total_frames=1200000",
+    ]
+    measured = OmegaConf.to_container(with_fixed_settings(compose_config(lab)))
+    merge = OmegaConf.to_container(with_fixed_settings(compose_config(["env=merge"])))
+    assert measured["algo"].pop("name") == "grpo_lab"
+    assert merge["algo"].pop("name") == "grpo_branch"
+    assert merge == measured
+    assert merge["env"]["config"]["observation"]["features_range"]["x"] == [-400, 400]
+    # Episode groups sample their actions: nothing to fit, and the config says so.
+    with pytest.raises(ValueError, match="group_fit_loss=regret fits.*use algo=grpo_branch"):
+        check_config(
+            compose_config(["env=merge", "algo=grpo_episode", "algo.group_fit_loss=regret"])
+        )
+    # Its own settings give way to the command line's.
+    cfg = compose_config(["env=merge", "rollout.horizon=8", "algo.group_fit_loss=regression"])
+    assert (cfg.rollout.horizon, str(cfg.algo.group_fit_loss)) == (8, "regression")
+
+
+@pytest.mark.parametrize(
     ("overrides", "group_size", "tail_policy"),
     [
         ([], 5, "rule"),  # highway-fast-v0: the recipe's five meta-actions

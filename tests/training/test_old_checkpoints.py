@@ -105,6 +105,22 @@ def test_a_config_of_main_before_the_keys_retired_reads_as_todays_recipe():
     assert str(lab.algo.name) == "grpo_lab" and lab.rollout.stagger_trunks is False
 
 
+def test_a_config_of_main_before_the_group_fit_weight_retired_reads_as_todays_recipe():
+    # Before #42 grpo_branch had algo.group_fit_coeff and no algo.group_fit_loss.
+    old = to_container(compose_config(["env=merge"]))
+    old["algo"]["group_fit_coeff"] = 1.0
+    del old["algo"]["group_fit_loss"]
+    cfg = typed_config(old)
+    assert OmegaConf.get_type(cfg.algo).__name__ == "GRPOConfig"
+    assert cfg.algo.group_fit_loss == "regression" and "group_fit_coeff" not in cfg.algo
+    assert with_fixed_settings(cfg).algo.group_fit_coeff == 1.0
+    # Another weight is a grpo_lab run, which keeps it.
+    old["algo"]["group_fit_coeff"] = 0.5
+    lab = typed_config(old)
+    assert str(lab.algo.name) == "grpo_lab" and lab.algo.group_fit_coeff == 0.5
+    assert lab.algo.group_fit_loss == "regression"  # as it ran
+
+
 def test_a_retired_value_without_the_lab_is_refused_naming_the_key():
     # A fresh interpreter without torchrl_grpo.experimental imported.
     code = (

@@ -237,3 +237,24 @@ def test_the_losses_of_a_minibatch_run_the_network_once(tmp_path):
     runs.clear()
     stats = algo.optimise(batch)  # what training does: one run per minibatch
     assert len(runs) == stats["train/minibatches"] > 0
+
+
+def test_merges_recipe_fits_each_roots_expected_regret(tmp_path):
+    # env=merge alone: the regret fit over groups scored under always-SLOWER, as measured
+    # (docs/results.md, section 5); a shorter horizon and replay keep it small.
+    overrides = ["env=merge", "env.backend=tensor", "rollout.horizon=4", "algo.replay_groups=50"]
+    overrides += ["logger=csv", "experiment.total_frames=120"]
+    trainer = train_run(tmp_path, "merge", overrides)
+    assert type(trainer.algo.distill).__name__ == "GroupRegretLoss"
+    stored = trainer.algo.replay[:]
+    advantage = stored["advantage"].reshape(-1, 5)
+    regret = advantage.max(-1, keepdim=True).values - advantage
+    torch.testing.assert_close(stored["distill_target"].reshape(-1, 5), regret)
+    best = (regret == 0).float()
+    weight = best / best.sum(-1, keepdim=True)
+    torch.testing.assert_close(stored["distill_weight"].reshape(-1, 5), weight)
+    scalars = csv_scalars(tmp_path / "merge")
+    expected = scalars["train/distill_expected_regret"]
+    assert len(expected) == trainer.iteration and all(v >= 0 for v in expected)
+    # loss_distill = coeff (1) * (expected regret + ANCHOR * cross-entropy): never below it.
+    assert all(total >= v for total, v in zip(scalars["train/loss_distill"], expected, strict=True))

@@ -9,8 +9,6 @@ the core's extension points:
   favoured in the logits (a policy wrapper of ``make_policy``);
 * :mod:`~torchrl_grpo.experimental.group_distill`: ``algo.group_fit_loss=cross_entropy``
   and ``algo.group_fit_weighting=spread`` (a group fit and a weighting by name);
-* :mod:`~torchrl_grpo.experimental.regret_fit`: ``algo.group_fit_loss=regret``, the
-  expected regret of the policy at each root;
 * :mod:`~torchrl_grpo.experimental.lagging_tail`: ``algo.tail_sync_batches``;
 * :mod:`~torchrl_grpo.experimental.trunk_clock`: ``algo.trunk=greedy``,
   ``rollout.first_root_step``, ``rollout.full_horizon_roots``;
@@ -27,13 +25,11 @@ from torchrl_grpo.experimental.group_distill import GroupDistillLoss
 from torchrl_grpo.experimental.grpo_lab import GRPOLab, GRPOLabConfig
 from torchrl_grpo.experimental.neighbour_features import NeighbourMLP
 from torchrl_grpo.experimental.prior import PriorLogits
-from torchrl_grpo.experimental.regret_fit import GroupRegretLoss
 
 __all__ = [
     "GRPOLab",
     "GRPOLabConfig",
     "GroupDistillLoss",
-    "GroupRegretLoss",
     "NeighbourMLP",
     "PriorLogits",
 ]

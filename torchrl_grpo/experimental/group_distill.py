@@ -12,7 +12,8 @@ update, hardest where one action is much better than the others.
 ``algo.group_fit_weighting=spread``: importing this module registers them with the
 core's GRPO (:func:`~torchrl_grpo.training.algos.enumerated.register_group_fit`,
 :func:`~torchrl_grpo.training.algos.enumerated.register_group_fit_weighting`). The
-recipes fit each root by regression (:class:`~torchrl_grpo.objectives.AdvantageRegressionLoss`).
+recipes fit each root by regression (:class:`~torchrl_grpo.objectives.AdvantageRegressionLoss`)
+or by expected regret (:class:`~torchrl_grpo.objectives.GroupRegretLoss`).
 """
 
 from __future__ import annotations
@@ -22,37 +23,38 @@ from typing import Any, Literal
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
-from tensordict.nn import ProbabilisticTensorDictSequential
 from torch import nn
 from torchrl.objectives import LossModule
 
 from torchrl_grpo.branching.keys import GROUP_ID
+from torchrl_grpo.objectives.group_fit_loss import GroupFitLoss
+from torchrl_grpo.objectives.group_targets import group_best_set, group_reduce, group_regret
 from torchrl_grpo.objectives.loss_checks import check_finite, require
 from torchrl_grpo.training.algos.enumerated import (
     GroupFit,
     register_group_fit,
     register_group_fit_weighting,
 )
+from torchrl_grpo.training.algos.grpo_config import GroupFit as CoreGroupFit
 from torchrl_grpo.training.choices import choice_enum
 
 __all__ = [
     "GroupDistillLoss",
     "GroupFitLossName",
     "GroupFitWeightingName",
-    "group_regret",
     "group_softmax_target",
     "group_spread",
 ]
 
 #: What the group fit fits (``algo.group_fit_loss``): each root's softmax target by
-#: cross-entropy, its advantages by the policy's centred logits (the recipes'), or the
-#: expected regret of the policy's distribution (:mod:`~torchrl_grpo.experimental.regret_fit`).
-GroupFitLoss = Literal["cross_entropy", "regression", "regret"]
+#: cross-entropy, or one of the core's fits (its advantages by the policy's centred
+#: logits, the highway recipes'; the policy's expected regret, merge-v0's).
+LabGroupFit = Literal["cross_entropy", CoreGroupFit]
 #: Weight of each root in the group fit (``algo.group_fit_weighting``): the same for
 #: all (the recipes'), or its group's spread (best minus worst advantage).
 GroupFitWeighting = Literal["uniform", "spread"]
 GroupFitLossName: Any = choice_enum(
-    "GroupFitLossName", GroupFitLoss, "What the group fit fits.", module=__name__
+    "GroupFitLossName", LabGroupFit, "What the group fit fits.", module=__name__
 )
 GroupFitWeightingName: Any = choice_enum(
     "GroupFitWeightingName",
@@ -94,16 +96,11 @@ def group_softmax_target(
     """
     if not (temperature >= 0 and temperature < float("inf")):
         raise ValueError(f"temperature must be a finite number >= 0, got {temperature}")
-    flat, inverse, n_groups = _rows_by_group(advantage, group_id)
-    best = _group_extreme(flat, inverse, n_groups, "amax")
-    gap = flat - best[inverse]
     if temperature == 0:
-        score = (gap == 0).to(flat.dtype)
-    else:
-        # Shifted by the group's best: exp never overflows, the best row scores 1.
-        score = (gap / temperature).exp()
-    total = flat.new_zeros(n_groups).index_add(0, inverse, score)
-    return (score / total[inverse]).reshape(advantage.shape)
+        return group_best_set(advantage, group_id)
+    # Shifted by the group's best: exp never overflows, the best row scores 1.
+    score = (-group_regret(advantage, group_id) / temperature).exp()
+    return score / group_reduce(score, group_id, "sum")
 
 
 def group_spread(advantage: torch.Tensor, group_id: torch.Tensor) -> torch.Tensor:
@@ -129,60 +126,11 @@ def group_spread(advantage: torch.Tensor, group_id: torch.Tensor) -> torch.Tenso
         >>> group_spread(adv, torch.tensor([0, 0, 0, 1, 1]))
         tensor([4., 4., 4., 0., 0.])
     """
-    flat, inverse, n_groups = _rows_by_group(advantage, group_id)
-    best = _group_extreme(flat, inverse, n_groups, "amax")
-    worst = _group_extreme(flat, inverse, n_groups, "amin")
-    return (best - worst)[inverse].reshape(advantage.shape)
+    best = group_reduce(advantage, group_id, "amax")
+    return best - group_reduce(advantage, group_id, "amin")
 
 
-def group_regret(advantage: torch.Tensor, group_id: torch.Tensor) -> torch.Tensor:
-    """Each row's regret: its group's best advantage minus its own (``>= 0``).
-
-    Args:
-        advantage: one advantage per row, ``[N]`` or ``[N, 1]``.
-        group_id: the integer id of each row's root, ``[N]``.
-
-    Returns:
-        The regrets, shaped like ``advantage`` (0 for a group's best rows).
-
-    Raises:
-        ValueError: shapes that disagree.
-
-    Example:
-        >>> import torch
-        >>> adv = torch.tensor([0.0, 1.0, -3.0, 2.0, 2.0])
-        >>> group_regret(adv, torch.tensor([0, 0, 0, 1, 1]))
-        tensor([1., 0., 4., 0., 0.])
-    """
-    flat, inverse, n_groups = _rows_by_group(advantage, group_id)
-    best = _group_extreme(flat, inverse, n_groups, "amax")
-    return (best[inverse] - flat).reshape(advantage.shape)
-
-
-def _group_extreme(
-    flat: torch.Tensor, inverse: torch.Tensor, n_groups: int, reduce: str
-) -> torch.Tensor:
-    """Each group's largest (``"amax"``) or smallest (``"amin"``) advantage, ``[n_groups]``."""
-    start = -float("inf") if reduce == "amax" else float("inf")
-    return flat.new_full((n_groups,), start).scatter_reduce(0, inverse, flat, reduce=reduce)
-
-
-def _rows_by_group(
-    advantage: torch.Tensor, group_id: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, int]:
-    """The flat advantages, each row's dense group index, and the number of groups."""
-    flat = advantage.reshape(-1)
-    gid = group_id.reshape(-1).long()
-    if flat.shape != gid.shape:
-        raise ValueError(
-            f"one advantage per row: advantage has {flat.numel()} values, group_id {gid.numel()}"
-        )
-    _, inverse = torch.unique(gid, return_inverse=True)
-    n_groups = int(inverse.max()) + 1 if inverse.numel() else 0
-    return flat, inverse, n_groups
-
-
-class GroupDistillLoss(LossModule):
+class GroupDistillLoss(GroupFitLoss):
     r"""Cross-entropy from each root's group target to the policy: ``-sum_a q(a|s) log pi(a|s)``.
 
     Each row is one branch's first step and carries its weight ``q(a|s)`` in its
@@ -194,9 +142,8 @@ class GroupDistillLoss(LossModule):
     Use it beside :class:`~torchrl_grpo.objectives.GRPOLoss`.
 
     Args:
-        actor_network: the policy; its ``get_dist`` gives the distribution. Its
-            parameters are used as they are (not copied), so an optimiser over the
-            GRPO loss's parameters trains this term too.
+        actor_network: the policy, as for
+            :class:`~torchrl_grpo.objectives.group_fit_loss.GroupFitLoss`.
 
     Keyword Args:
         coeff: the weight of the term (``> 0``).
@@ -239,18 +186,6 @@ class GroupDistillLoss(LossModule):
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
     out_keys = ["loss_distill", "distill_cross_entropy"]
-
-    def __init__(self, actor_network: ProbabilisticTensorDictSequential, *, coeff: float) -> None:
-        if not (coeff > 0 and coeff < float("inf")):
-            raise ValueError(f"coeff must be a finite number > 0, got {coeff}")
-        super().__init__()
-        self.actor_network = actor_network
-        self.coeff = coeff
-
-    @property
-    def in_keys(self) -> list[NestedKey]:  # noqa: D102
-        keys = self.tensor_keys
-        return list(dict.fromkeys([*self.actor_network.in_keys, keys.action, keys.target_weight]))
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """The weighted cross-entropy of ``tensordict``'s rows (a flat batch)."""

@@ -109,6 +109,7 @@ class GRPOLabConfig(GRPOConfig):
     trunk: TrunkPolicyName = TrunkPolicyName["sample"]
     group_fit_temperature: float = 0.1
     group_fit_weighting: GroupFitWeightingName = GroupFitWeightingName["uniform"]
+    group_fit_coeff: float = 0.0
     group_fit_loss: GroupFitLossName = GroupFitLossName["cross_entropy"]
     crash_head_coeff: float = 1.0
     crash_label: CrashLabelName = CrashLabelName["branch"]

@@ -1,10 +1,12 @@
 """Critic-free objectives: group-relative advantages, GRPOLoss, KL estimators, reference sync.
 
-Also the regression of enumerated groups' action comparisons
-(``AdvantageRegressionLoss``), the loss of a crash head (``CrashHeadLoss``), and the
-distillation of trained teachers into one policy (``TeacherDistillLoss``, and
-``TeacherCrashLoss`` for their crash heads). What the losses share (the crash labels and
-tail survival of ``survival.py``, the ``Literal`` choices) is imported from its module.
+Also the group fits of enumerated groups' action comparisons: the regression of the
+advantages (``AdvantageRegressionLoss``) and the policy's expected regret at each root
+(``GroupRegretLoss``, with the per-root targets of ``group_targets.py``). And the loss of
+a crash head (``CrashHeadLoss``) and the distillation of trained teachers into one policy
+(``TeacherDistillLoss``, and ``TeacherCrashLoss`` for their crash heads). What the
+losses share (the crash labels and tail survival of ``survival.py``, the ``Literal``
+choices) is imported from its module.
 """
 
 from torchrl_grpo.objectives.advantage import GroupRelativeAdvantage
@@ -14,12 +16,14 @@ from torchrl_grpo.objectives.grpo_loss import GRPOLoss
 from torchrl_grpo.objectives.kl import kl_estimate
 from torchrl_grpo.objectives.reference import ReferenceSync
 from torchrl_grpo.objectives.regression import AdvantageRegressionLoss
+from torchrl_grpo.objectives.regret_fit import GroupRegretLoss
 from torchrl_grpo.objectives.teacher_losses import TeacherCrashLoss, TeacherDistillLoss
 
 __all__ = [
     "AdvantageRegressionLoss",
     "CrashHeadLoss",
     "GRPOLoss",
+    "GroupRegretLoss",
     "GroupRelativeAdvantage",
     "HorizonBootstrap",
     "ReferenceSync",

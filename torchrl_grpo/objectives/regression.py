@@ -20,14 +20,14 @@ from dataclasses import dataclass
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 from tensordict.nn import ProbabilisticTensorDictSequential
-from torchrl.objectives import LossModule
 
+from torchrl_grpo.objectives.group_fit_loss import GroupFitLoss
 from torchrl_grpo.objectives.loss_checks import check_finite, require
 
 __all__ = ["AdvantageRegressionLoss"]
 
 
-class AdvantageRegressionLoss(LossModule):
+class AdvantageRegressionLoss(GroupFitLoss):
     r"""Weighted squared error of ``tau * (l_a - mean_b l_b)`` to each row's advantage.
 
     Each row is one branch's first step: its root's observation, the action ``a`` it
@@ -94,21 +94,10 @@ class AdvantageRegressionLoss(LossModule):
     def __init__(
         self, actor_network: ProbabilisticTensorDictSequential, *, coeff: float, temperature: float
     ) -> None:
-        if not (coeff > 0 and coeff < float("inf")):
-            raise ValueError(f"coeff must be a finite number > 0, got {coeff}")
         if not (temperature > 0 and temperature < float("inf")):
             raise ValueError(f"temperature must be a finite number > 0, got {temperature}")
-        super().__init__()
-        self.actor_network = actor_network
-        self.coeff = coeff
+        super().__init__(actor_network, coeff=coeff)
         self.temperature = temperature
-
-    @property
-    def in_keys(self) -> list[NestedKey]:  # noqa: D102
-        keys = self.tensor_keys
-        return list(
-            dict.fromkeys([*self.actor_network.in_keys, keys.action, keys.target, keys.weight])
-        )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """The weighted squared error of ``tensordict``'s rows (a flat batch)."""

@@ -51,7 +51,13 @@ from torchrl_grpo.training.group_schemas import (
     StepRolloutConfig,
 )
 from torchrl_grpo.training.resolvers import CONF_DIR, register_resolvers
-from torchrl_grpo.training.retired_keys import SHARED_FIXED, LabRequired, migrate, with_fixed
+from torchrl_grpo.training.retired_keys import (
+    SHARED_FIXED,
+    LabRequired,
+    migrate,
+    with_fixed,
+    written_before_retirement,
+)
 
 __all__ = [
     "CONF_DIR",
@@ -361,6 +367,9 @@ def _migrated(container: Mapping[str, Any], algorithm: type[Algorithm]) -> dict[
                 f"{err} (python -c 'import torchrl_grpo.experimental' registers it; "
                 "scripts/train.py and scripts/evaluate.py import it)"
             ) from None
+        if not written_before_retirement(container, keys):
+            # Its missing keys held the values its variant fixes, not the lab's defaults.
+            container = with_fixed(container, fixed)
         relabelled = {**container, "algo": {**container["algo"], "name": "grpo_lab"}}
         relabelled["algo"].setdefault("roots", "reset" if name == "grpo_episode" else "trunk")
         keys = {group: _keys(schema) for group, schema in _schemas(lab, relabelled).items()}

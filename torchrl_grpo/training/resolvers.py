@@ -15,7 +15,20 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-__all__ = ["CONF_DIR", "config_choices", "env_name", "register_resolvers", "run_dir"]
+__all__ = [
+    "CONF_DIR",
+    "SCENARIO_NETWORKS",
+    "config_choices",
+    "env_name",
+    "register_resolvers",
+    "run_dir",
+    "scenario_network",
+]
+
+#: The network of ``model=auto`` (the default) per scenario where it is not ``scene``:
+#: merge-v0's recipe reads the Kinematics table itself, whose ego x tells how far the
+#: merge is (docs/results.md, section 5). Both kinds share one schema.
+SCENARIO_NETWORKS = {"merge-v0": "mlp"}
 
 #: The config folder of a source checkout (``conf/`` beside the package).
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
@@ -77,8 +90,20 @@ def env_name(scenario: str) -> str:
     return re.sub(r"-v\d+$", "", str(scenario)).replace("-", "_")
 
 
+def scenario_network(scenario: str) -> str:
+    """The network kind ``model=auto`` gives a scenario: :data:`SCENARIO_NETWORKS`, else ``scene``.
+
+    Example:
+        >>> scenario_network("merge-v0"), scenario_network("highway-fast-v0")
+        ('mlp', 'scene')
+    """
+    return SCENARIO_NETWORKS.get(str(scenario), "scene")
+
+
 def register_resolvers() -> None:
-    """Register ``run_dir``, ``env_name`` and ``config_choices`` with OmegaConf (idempotent).
+    """Register the resolvers of ``conf/`` with OmegaConf (idempotent).
+
+    ``run_dir``, ``env_name``, ``config_choices`` and ``scenario_network``.
 
     Example:
         >>> register_resolvers()
@@ -87,7 +112,12 @@ def register_resolvers() -> None:
         >>> cfg.dir
         'runs/y'
     """
-    resolvers = (("run_dir", run_dir), ("env_name", env_name), ("config_choices", config_choices))
+    resolvers = (
+        ("run_dir", run_dir),
+        ("env_name", env_name),
+        ("config_choices", config_choices),
+        ("scenario_network", scenario_network),
+    )
     for name, resolver in resolvers:
         if not OmegaConf.has_resolver(name):
             OmegaConf.register_new_resolver(name, resolver)

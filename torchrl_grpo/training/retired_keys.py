@@ -26,6 +26,7 @@ from typing import Any
 
 __all__ = [
     "DROPPED",
+    "LATER_RETIRED",
     "OLD_DEFAULTS",
     "RENAMED",
     "SHARED_FIXED",
@@ -33,6 +34,7 @@ __all__ = [
     "migrate",
     "renamed",
     "with_fixed",
+    "written_before_retirement",
 ]
 
 #: The value every run now uses, for keys no algorithm's schema has.
@@ -86,6 +88,11 @@ OLD_DEFAULTS: dict[str, dict[str, Any]] = {
         "first_root_step": 0,
     },
 }
+
+#: Keys retired after the others (#42: the group fit's weight, which each GRPO variant
+#: now fixes): a config holding only these was written with today's other keys, and
+#: :data:`OLD_DEFAULTS` does not apply to it.
+LATER_RETIRED: dict[str, frozenset[str]] = {"algo": frozenset({"group_fit_coeff"})}
 
 #: Keys renamed: ``{group: {old: new}}``.
 RENAMED: dict[str, dict[str, str]] = {
@@ -174,8 +181,7 @@ def migrate(
             continue
         node = out[group] = renamed(group, node)
         group_fixed = fixed.get(group, {})
-        # A config that holds none of a group's retired keys was written with today's.
-        defaults = OLD_DEFAULTS.get(group, {}) if node.keys() - keys else {}
+        defaults = OLD_DEFAULTS.get(group, {}) if _holds_retired(group, node, keys) else {}
         for key in sorted(set(node) | set(defaults)):
             if key in keys:
                 continue
@@ -185,6 +191,32 @@ def migrate(
     if differing:
         raise LabRequired(", ".join(differing) + ": a key of algo=grpo_lab")
     return out
+
+
+def written_before_retirement(
+    container: Mapping[str, Any], schema_keys: Mapping[str, frozenset[str]]
+) -> bool:
+    """Whether ``container`` was written before the keys retired (it holds one of them).
+
+    Its missing keys then meant :data:`OLD_DEFAULTS`' values; a config written after
+    meant the values its algorithm fixes. Only :data:`LATER_RETIRED` keys do not count.
+
+    Example:
+        >>> keys = {"algo": frozenset({"name"})}
+        >>> written_before_retirement({"algo": {"name": "grpo_branch", "roots": "trunk"}}, keys)
+        True
+        >>> written_before_retirement({"algo": {"name": "grpo_branch", "group_fit_coeff": 1}}, keys)
+        False
+    """
+    return any(
+        isinstance(container.get(group), Mapping) and _holds_retired(group, container[group], keys)
+        for group, keys in schema_keys.items()
+    )
+
+
+def _holds_retired(group: str, node: Mapping[str, Any], keys: frozenset[str]) -> bool:
+    # A config that holds none of a group's retired keys was written with today's.
+    return bool(node.keys() - keys - LATER_RETIRED.get(group, frozenset()))
 
 
 def _differs(value: Any, fixed: Any) -> bool:

@@ -7,11 +7,13 @@ each action's term can be weighed by the probability the policy gives it
 (:func:`policy_weighted`), or fitted per root (:func:`distill_targets`, the group fit of
 ``algo.group_fit_coeff``).
 
-The recipes' group fit is the regression of each root's centred logits on its actions'
-advantages (``algo.group_fit_loss=regression``, every root weighed alike). Other fits and
-weightings are registered by name (:func:`register_group_fit`,
-:func:`register_group_fit_weighting`): ``torchrl_grpo.experimental``, which the core never
-imports, adds the cross-entropy fit and the spread weighting of ``algo=grpo_lab``.
+The highway recipes' group fit is the regression of each root's centred logits on its
+actions' advantages (``algo.group_fit_loss=regression``); merge-v0's is the policy's
+expected regret at each root (``regret``, :class:`~torchrl_grpo.objectives.GroupRegretLoss`).
+Every root weighs alike. Other fits and weightings are registered by name
+(:func:`register_group_fit`, :func:`register_group_fit_weighting`):
+``torchrl_grpo.experimental``, which the core never imports, adds the cross-entropy fit
+and the spread weighting of ``algo=grpo_lab``.
 """
 
 from __future__ import annotations
@@ -28,7 +30,9 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.objectives import LossModule
 
 from torchrl_grpo.branching.keys import GROUP_ID
+from torchrl_grpo.objectives.group_targets import group_best_set, group_regret
 from torchrl_grpo.objectives.regression import AdvantageRegressionLoss
+from torchrl_grpo.objectives.regret_fit import GroupRegretLoss
 from torchrl_grpo.training.choices import choice_enum
 
 __all__ = [
@@ -57,8 +61,9 @@ DISTILL_WEIGHT = "distill_weight"
 #: Whether each trained step's branch ended in a crash (the env terminated it): the label
 #: of a crash head (``model.crash_head``).
 BRANCH_CRASHED = "branch_crashed"
-#: Each trained step's advantage as its group gave it, the target of
-#: ``algo.group_fit_loss=regression`` (the surrogate's advantage may be reweighted).
+#: Each trained step's target as its group gave it: its advantage for
+#: ``algo.group_fit_loss=regression`` (the surrogate's advantage may be reweighted), its
+#: regret for ``regret``.
 DISTILL_TARGET = "distill_target"
 
 #: Weight of each enumerated first action in the objective (``algo.action_weights``):
@@ -102,9 +107,22 @@ def _regression_loss(policy: nn.Module, coeff: float, temperature: float) -> Los
     return AdvantageRegressionLoss(policy, coeff=coeff, temperature=temperature)
 
 
+def _regret_targets(data: TensorDictBase, temperature: float) -> torch.Tensor:
+    # The temperature plays no part: the regret is in return units. The weight is the
+    # row's share of its group's best set, the anchor's hard target.
+    advantage, group_id = data.get("advantage"), data.get(GROUP_ID)
+    data.set(DISTILL_TARGET, group_regret(advantage, group_id))
+    return group_best_set(advantage, group_id)
+
+
+def _regret_loss(policy: nn.Module, coeff: float, temperature: float) -> LossModule:
+    return GroupRegretLoss(policy, coeff=coeff)
+
+
 #: The group fits by ``algo.group_fit_loss`` (:func:`register_group_fit` adds one).
 GROUP_FITS: dict[str, GroupFit] = {
     "regression": GroupFit(_regression_targets, _regression_loss),
+    "regret": GroupFit(_regret_targets, _regret_loss),
 }
 #: The root weightings by ``algo.group_fit_weighting`` other than ``uniform`` (every root
 #: alike): ``(advantage, group_id) -> factor`` on each row's weight
@@ -249,7 +267,7 @@ def check_distill(algo: DictConfig) -> None:
         raise ValueError(f"algo.group_fit_coeff must be a finite number >= 0, got {coeff}")
     if not 0 <= tau < float("inf"):
         raise ValueError(f"algo.group_fit_temperature must be a finite number >= 0, got {tau}")
-    if str(algo.get("group_fit_loss", "cross_entropy")) == "regression" and tau == 0:
+    if str(algo.get("group_fit_loss", "regression")) == "regression" and tau == 0:
         raise ValueError(
             "algo.group_fit_loss=regression reads the logits as advantages / "
             "algo.group_fit_temperature: set a temperature > 0 (e.g. 0.1)"
@@ -329,8 +347,9 @@ def check_replay_targets(saved: DictConfig, algo: DictConfig, source: str = "") 
             f"config has algo.group_fit_coeff={coeff}: resume with the run's algo.group_fit_coeff "
             "(0 or > 0)"
         )
-    saved_loss = str(saved.get("group_fit_loss", "cross_entropy"))
-    loss = str(algo.get("group_fit_loss", "cross_entropy"))
+    # A checkpoint of grpo_branch from before the key fitted by regression.
+    saved_loss = str(saved.get("group_fit_loss", "regression"))
+    loss = str(algo.get("group_fit_loss", "regression"))
     if saved_on and saved_loss != loss:
         raise ValueError(
             f"resume={source} replays steps stored with algo.group_fit_loss={saved_loss} "

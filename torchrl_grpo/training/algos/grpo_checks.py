@@ -59,6 +59,11 @@ def check_grpo_config(cfg: DictConfig) -> None:
                 "algo.first_action=enumerate and a scripted algo.tail_policy (e.g. rule)"
             )
     check_distill(algo)
+    if str(algo.name) == "grpo_episode" and str(algo.group_fit_loss) != "regression":
+        raise ValueError(
+            f"algo.group_fit_loss={algo.group_fit_loss} fits each root's enumerated actions, "
+            "which algo=grpo_episode's groups do not try: use algo=grpo_branch"
+        )
     first_action = str(algo.first_action)
     if str(algo.action_weights) != "uniform" and first_action != "enumerate":
         raise ValueError(

@@ -23,6 +23,7 @@ __all__ = [
     "GRPOConfig",
     "GRPOName",
     "GRPOVariant",
+    "GroupFitName",
     "TailPolicyName",
 ]
 
@@ -32,6 +33,10 @@ GRPOVariant = Literal["grpo_branch", "grpo_episode"]
 #: Who acts on greedy-tail branches after their explored steps (``algo.tail_policy``):
 #: the learner, or a scripted base policy whose ``Q(s, a)`` the groups then score.
 TailPolicy = Literal["learner", BasePolicyName]
+#: What the group fit fits (``algo.group_fit_loss``): each action's advantage by the
+#: policy's centred logits, or the policy's expected regret at each root
+#: (:data:`~torchrl_grpo.training.algos.enumerated.GROUP_FITS`).
+GroupFit = Literal["regression", "regret"]
 
 
 def _choices(name: str, choices: Any, doc: str) -> Any:
@@ -40,6 +45,7 @@ def _choices(name: str, choices: Any, doc: str) -> Any:
 
 GRPOName = _choices("GRPOName", GRPOVariant, "The GRPO variant.")
 TailPolicyName = _choices("TailPolicyName", TailPolicy, "Who acts on greedy-tail branches.")
+GroupFitName = _choices("GroupFitName", GroupFit, "What the group fit fits.")
 
 
 @dataclass
@@ -67,7 +73,7 @@ class GRPOConfig(AlgoConfig):
     tail_policy: TailPolicyName = TailPolicyName["learner"]
     tail_learner_steps: int = 0
     replay_groups: int | None = None
-    group_fit_coeff: float = 0.0
+    group_fit_loss: GroupFitName = GroupFitName["regression"]
 
 
 # The values each variant runs with for the settings GRPOConfig does not make keys:
@@ -81,13 +87,16 @@ FIXED_SETTINGS: dict[str, dict[str, dict[str, Any]]] = {
             "explore_steps": 1,
             "first_action": "enumerate",
             "action_weights": "policy",
+            "group_fit_coeff": 1.0,
             "group_fit_temperature": 1.0,
+            # A key since #42; what a config written before it ran.
             "group_fit_loss": "regression",
         },
         "rollout": {**OLD_DEFAULTS["rollout"], "live_trunks": True, "stagger_trunks": True},
     },
     "grpo_episode": {
-        "algo": {**OLD_DEFAULTS["algo"], "roots": "reset"},
+        # No enumerated groups: nothing to fit.
+        "algo": {**OLD_DEFAULTS["algo"], "roots": "reset", "group_fit_coeff": 0.0},
         "rollout": OLD_DEFAULTS["rollout"],
     },
 }

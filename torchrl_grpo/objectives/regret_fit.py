@@ -1,58 +1,52 @@
-"""The group fit by expected regret: ``algo.group_fit_loss=regret`` (``algo=grpo_lab``).
+"""The group fit by expected regret (``algo.group_fit_loss=regret``, merge-v0's recipe).
 
 A group that tries every first action from one root and then follows a fixed policy
-scores each action: its regret is the group's best advantage less the action's. The
-expected regret of the policy at the root, ``sum_a pi(a|s) regret(a)``, weighs the
-root by what a wrong action costs there: a crash's regret counts as much as the crash
-costs, a tie nothing. Alone it settles on one action everywhere, since an action the
-policy gives no probability gets no gradient; a tenth of the cross-entropy to the
-group's best actions (:data:`ANCHOR`) keeps every best action within reach.
+scores each action: its regret is the group's best advantage less the action's
+(:func:`~torchrl_grpo.objectives.group_targets.group_regret`). The expected regret of
+the policy at the root, ``sum_a pi(a|s) regret(a)``, weighs the root by what a wrong
+action costs there: a crash's regret counts as much as the crash costs, a tie nothing.
+Alone it settles on one action everywhere, since an action the policy gives no
+probability gets no gradient; a tenth of the cross-entropy to the group's best actions
+(:data:`ANCHOR`) keeps every best action within reach.
 
-On merge-v0 a network fitted offline this way to the search's labels beats
-always-SLOWER where the cross-entropy alone does not (``benchmarks/lab/label_inputs.py
---loss regret``, docs/results.md, section 5). Importing this module registers the fit
-with the core's GRPO (:func:`~torchrl_grpo.training.algos.enumerated.register_group_fit`).
+On merge-v0 the cross-entropy to the best set alone takes the search's speed and not
+its caution (twice always-SLOWER's crashes), and this fit beats always-SLOWER
+(docs/results.md, section 5). The highway recipes regress the advantages instead
+(:class:`~torchrl_grpo.objectives.AdvantageRegressionLoss`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
-from torch import nn
-from torchrl.objectives import LossModule
 
-from torchrl_grpo.branching.keys import GROUP_ID
-from torchrl_grpo.experimental.group_distill import (
-    GroupDistillLoss,
-    group_regret,
-    group_softmax_target,
-)
+from torchrl_grpo.objectives.group_fit_loss import GroupFitLoss
 from torchrl_grpo.objectives.loss_checks import check_finite, require
-from torchrl_grpo.training.algos.enumerated import DISTILL_TARGET, GroupFit, register_group_fit
 
 __all__ = ["ANCHOR", "GroupRegretLoss"]
 
 #: Weight of the cross-entropy to the group's best actions beside the expected regret
-#: (the offline fit's, ``label_inputs.fit``).
+#: (also the offline fit's, ``benchmarks/lab/label_inputs.py --loss regret``).
 ANCHOR = 0.1
 
 
-class GroupRegretLoss(GroupDistillLoss):
+class GroupRegretLoss(GroupFitLoss):
     r"""Expected regret of the policy at each root, with a cross-entropy anchor.
 
     Each row is one branch's first step: its action ``a``, its regret and its weight
-    ``w`` in its group's hard target (``1 / |best set|`` for a best action, else 0). The
-    loss is ``coeff * (sum pi(a|s) regret + ANCHOR * sum -w log pi(a|s)) / sum w``: per
-    root, the expected regret of the policy over its actions plus the anchor, averaged
-    over the roots of the minibatch (``sum w`` counts them). A root weighting
-    (``algo.group_fit_weighting``) scales ``w``: it then weighs the anchor and the
-    average, not each root's expected regret.
+    ``w`` in its group's hard target (``1 / |best set|`` for a best action, else 0;
+    :func:`~torchrl_grpo.objectives.group_targets.group_best_set`). The loss is
+    ``coeff * (sum pi(a|s) regret + ANCHOR * sum -w log pi(a|s)) / sum w``: per root,
+    the expected regret of the policy over its actions plus the anchor, averaged over
+    the roots of the minibatch (``sum w`` counts them). A root weighting (the lab's
+    ``algo.group_fit_weighting``) scales ``w``: it then weighs the anchor and the
+    average, not each root's expected regret. Use it beside
+    :class:`~torchrl_grpo.objectives.GRPOLoss`.
 
     Args:
         actor_network: the policy, as for
-            :class:`~torchrl_grpo.experimental.group_distill.GroupDistillLoss`.
+            :class:`~torchrl_grpo.objectives.group_fit_loss.GroupFitLoss`.
 
     Keyword Args:
         coeff: the weight of the term (``> 0``).
@@ -64,6 +58,7 @@ class GroupRegretLoss(GroupDistillLoss):
     ``coeff`` and the anchor).
 
     Example:
+        >>> import torch
         >>> from tensordict.nn import TensorDictModule
         >>> from torchrl.modules import ProbabilisticActor
         >>> net = TensorDictModule(torch.nn.Linear(3, 2), ["observation"], ["logits"])
@@ -81,7 +76,7 @@ class GroupRegretLoss(GroupDistillLoss):
     """
 
     @dataclass
-    class _AcceptedKeys(GroupDistillLoss._AcceptedKeys):
+    class _AcceptedKeys:
         """Tensordict keys read by :class:`GroupRegretLoss`, set with ``set_keys``.
 
         Attributes:
@@ -90,15 +85,13 @@ class GroupRegretLoss(GroupDistillLoss):
             regret: the row's regret (its group's best advantage less its own).
         """
 
-        regret: NestedKey = DISTILL_TARGET
+        action: NestedKey = "action"
+        target_weight: NestedKey = "distill_weight"
+        regret: NestedKey = "distill_target"
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
     out_keys = ["loss_distill", "distill_expected_regret"]
-
-    @property
-    def in_keys(self) -> list[NestedKey]:  # noqa: D102
-        return list(dict.fromkeys([*super().in_keys, self.tensor_keys.regret]))
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """The loss over ``tensordict``'s rows (a flat batch)."""
@@ -107,7 +100,8 @@ class GroupRegretLoss(GroupDistillLoss):
         regret = require(tensordict, keys.regret, "regret").reshape(-1)
         action = require(tensordict, keys.action, "action")
         log_prob = self.actor_network.get_dist(tensordict).log_prob(action).reshape(-1)
-        check_finite({repr(keys.regret): regret, "the policy's log-prob": log_prob})
+        named = {repr(keys.target_weight): weight, repr(keys.regret): regret}
+        check_finite({**named, "the policy's log-prob": log_prob})
         # A minibatch may hold none of its groups' best rows: then it counts one root.
         roots = weight.sum().clamp_min(1.0)
         expected = (log_prob.exp() * regret).sum() / roots
@@ -117,17 +111,3 @@ class GroupRegretLoss(GroupDistillLoss):
             distill_expected_regret=expected.detach(),
             batch_size=[],
         )
-
-
-def _regret_targets(data: TensorDictBase, temperature: float) -> torch.Tensor:
-    # The temperature plays no part: the regret is in return units.
-    advantage, group_id = data.get("advantage"), data.get(GROUP_ID)
-    data.set(DISTILL_TARGET, group_regret(advantage, group_id))
-    return group_softmax_target(advantage, group_id, 0.0)
-
-
-def _regret_loss(policy: nn.Module, coeff: float, temperature: float) -> LossModule:
-    return GroupRegretLoss(policy, coeff=coeff)
-
-
-register_group_fit("regret", GroupFit(_regret_targets, _regret_loss))
