@@ -137,7 +137,7 @@ def init_policy(path: str, policy: ProbabilisticActor, cfg: DictConfig) -> None:
     ckpt = load_checkpoint(path)
     saved = OmegaConf.create(ckpt["config"])
     check_same_env(f"init_from={path}", saved.env, cfg.env)
-    current = OmegaConf.to_container(cfg.model, enum_to_str=True)
+    current = OmegaConf.to_container(cfg.model, resolve=True, enum_to_str=True)
     changed = model_changes(ckpt["config"]["model"], current, free=FREE_MODEL_KEYS)
     if changed:
         raise ValueError(
