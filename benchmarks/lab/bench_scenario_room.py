@@ -13,10 +13,13 @@ leaves out what happens after it (merge-v0 pays the slowest car for the most ste
 ``--dtypes float64 float32`` also plans in float32, training's dtype, beside the default
 float64 (highway-env's: :data:`~torchrl_grpo.training.search_eval.PLAN_DTYPE`), on the
 same episodes; a row names its dtype where it is not that default. ``--checkpoints``
-adds trained runs (their greedy policies) to the table, and ``--on tensor`` plays every
-row on the tensor simulator from highway-env's starts (as
+adds trained runs (their greedy policies) to the table, and ``--crash-margins`` drives
+each of them once per crash margin (``model.crash_margin``: the greedy choice never takes
+an action the run's crash head finds likelier to crash than SLOWER by more than it;
+``none``: no margin; :class:`~torchrl_grpo.modules.CrashHead`). ``--on tensor`` plays
+every row on the tensor simulator from highway-env's starts (as
 :func:`~torchrl_grpo.training.transfer.evaluate_on_tensor` does: seconds a policy, where
-highway-env takes minutes).
+highway-env takes minutes), in the first of ``--dtypes``.
 
 Printed in one run, one row per policy: return ± standard error, crash rate, mean
 speed, the paired difference to always-SLOWER with the verdict of
@@ -26,6 +29,9 @@ add up to it, and the others' 5th percentile).
 
     python benchmarks/lab/bench_scenario_room.py --scenario roundabout-v0 --bases slower idle \\
         --horizons 11 --episodes 1000 --seed 40000 [--dtypes float64 float32]
+    python benchmarks/lab/bench_scenario_room.py --scenario roundabout-v0 --bases slower \
+        --horizons --on tensor --dtypes float64 --episodes 1000 --seed 60000 \
+        --checkpoints <runs' last.pt> --crash-margins none 0.001 0.003 0.01
 """
 
 from __future__ import annotations
@@ -40,6 +46,8 @@ import torch
 from omegaconf import OmegaConf
 
 import torchrl_grpo.experimental  # noqa: F401  (runs of algo=grpo_lab load too)
+from torchrl_grpo.modules import CrashHead
+from torchrl_grpo.modules.scripted.actions import SLOWER
 from torchrl_grpo.training import evaluate, load_run_policy, make_env
 from torchrl_grpo.training.checkpoint import load_checkpoint
 from torchrl_grpo.training.env_builder import make_layout
@@ -62,6 +70,16 @@ TABLE_HEADER = (
     "| of it: always-SLOWER's crashed episodes / the others (their 5th percentile) "
     "| minutes |\n|---|---|---|---|---|---|---|"
 )
+
+
+def with_margin(policy: torch.nn.Module, margin: str) -> torch.nn.Module:
+    """``policy`` with its crash heads' margin set to ``margin`` (``"none"``: no margin)."""
+    heads = [m for m in policy.modules() if isinstance(m, CrashHead)]
+    if not heads:
+        raise SystemExit("--crash-margins needs runs with a crash head (model.crash_head=true)")
+    for head in heads:
+        head.set_margin(None if margin == "none" else float(margin), SLOWER)
+    return policy
 
 
 def table_row(res: EvalResult, slower: EvalResult, seconds: float) -> str:
@@ -113,6 +131,12 @@ def main() -> None:
         "--checkpoints", nargs="*", default=[], help="trained runs' last.pt, driven greedily"
     )
     p.add_argument(
+        "--crash-margins",
+        nargs="*",
+        default=[],
+        help="drive each checkpoint with each of these model.crash_margin (none: no margin)",
+    )
+    p.add_argument(
         "--on",
         default="highway",
         choices=["highway", "tensor"],
@@ -135,7 +159,7 @@ def main() -> None:
     def play(policy, name: str) -> EvalResult:  # noqa: ANN001 (a policy module)
         if args.on == "tensor":
             return evaluate_on_tensor(
-                env_cfg, policy, episodes=args.episodes, seed=args.seed, name=name
+                env_cfg, policy, episodes=args.episodes, seed=args.seed, name=name, dtype=dtypes[0]
             )
         return evaluate(env, policy, name=name, **kw)[0]
 
@@ -166,9 +190,12 @@ def main() -> None:
                 results.append((res, time.perf_counter() - start))
                 log.info("%s done", name)
     for path in args.checkpoints:
-        start = time.perf_counter()
-        policy = load_run_policy(path, env_cfg, env)
-        results.append((play(policy, str(Path(path).parent.name)), time.perf_counter() - start))
+        policy, run = load_run_policy(path, env_cfg, env), str(Path(path).parent.name)
+        for margin in args.crash_margins or [None]:
+            start = time.perf_counter()
+            name = run if margin is None else f"{run}, crash_margin={margin}"
+            driven = policy if margin is None else with_margin(policy, margin)
+            results.append((play(driven, name), time.perf_counter() - start))
     slower = next(res for res, _ in results if res.name == BASELINE_LABELS["slower"])
     where = "highway-env" if args.on == "highway" else "tensor-simulator"
     print(  # noqa: T201 (the benchmark's output)

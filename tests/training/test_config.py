@@ -62,7 +62,7 @@ def test_every_group_option_composes(group, option):
     [
         ([], 3.0),  # highway-fast-v0: the recipe's crash aversion
         (["env=merge"], 0.0),  # conf/model/scenario/merge_grpo_branch.yaml
-        (["env=roundabout"], 3.0),  # no file: the recipe's
+        (["env=roundabout"], 3.0),  # its file keeps the recipe's aversion
         (["env=merge", "model.crash_aversion=2"], 2.0),  # the command line still wins
         (["env=merge", "model=mlp"], 0.0),  # for every network kind
     ],
@@ -74,10 +74,23 @@ def test_a_scenario_sets_its_own_defaults_under_the_command_line(overrides, aver
 
 
 @pytest.mark.parametrize(
+    ("overrides", "margin"),
+    [
+        ([], None),
+        (["env=roundabout"], 0.003),  # conf/model/scenario/roundabout_grpo_branch.yaml
+        (["env=roundabout", "model.crash_margin=null"], None),
+        (["env=roundabout", "model=scene"], 0.003),
+    ],
+)
+def test_roundabout_bars_the_greedy_actions_riskier_than_slower(overrides, margin):
+    assert compose_config(overrides).model.crash_margin == margin
+
+
+@pytest.mark.parametrize(
     ("overrides", "kind"),
     [
         ([], "scene"),  # model=auto: the scenario's network
-        (["env=roundabout"], "scene"),
+        (["env=roundabout"], "mlp"),
         (["env=merge"], "mlp"),  # SCENARIO_NETWORKS
         (["env=merge", "algo=ppo"], "mlp"),  # the same network for the baseline
         (["env=merge", "model=scene"], "scene"),  # a chosen network wins
@@ -117,6 +130,34 @@ def test_merge_alone_runs_the_recipe_measured_with_the_lab():
     # Its own settings give way to the command line's.
     cfg = compose_config(["env=merge", "rollout.horizon=8", "algo.group_fit_loss=regression"])
     assert (cfg.rollout.horizon, str(cfg.algo.group_fit_loss)) == (8, "regression")
+
+
+def test_roundabout_alone_runs_the_recipe_measured_before_its_defaults():
+    # The command of docs/results.md, section 5, that trained the runs the margin was
+    # chosen on; the margin changes only the greedy choice.
+    probe = [
+        "env=roundabout",
+        "model=mlp",
+        "rollout.horizon=11",
+        "algo.tail_policy=slower",
+        "algo.tail_learner_steps=0",
+        "algo.group_fit_loss=regret",
+        "algo.replay_groups=32768",
+        "experiment.total_frames=600000",
+        "model.crash_margin=0.003",
+    ]
+    assert compose_config(probe) == compose_config(["env=roundabout"])
+    # docs/results.md's override that undoes them gives the highway recipe's config.
+    undone = "model=scene rollout.horizon=8 algo.tail_policy=rule algo.tail_learner_steps=7 "
+    undone += "algo.group_fit_loss=regression algo.replay_groups=4096 model.crash_margin=null "
+    highway = OmegaConf.to_container(
+        compose_config(["env=highway_fast", "experiment.total_frames=600000"]), resolve=True
+    )
+    before = OmegaConf.to_container(
+        compose_config(["env=roundabout", *undone.split()]), resolve=True
+    )
+    for group in ("model", "algo", "rollout", "experiment"):
+        assert before[group] == highway[group], group
 
 
 @pytest.mark.parametrize(

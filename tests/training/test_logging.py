@@ -63,7 +63,6 @@ def test_each_iteration_is_one_wandb_row_keyed_by_frames(tmp_path, monkeypatch):
         [
             *TINY,
             "logger=wandb",
-            "logger.video=true",
             "experiment.eval_every=1",
             "experiment.final_eval_episodes=1",
             "experiment.total_frames=100",

@@ -70,7 +70,7 @@ def test_an_old_config_validates_against_todays_schemas(run):
     # Keys added since take defaults that keep the old behaviour: no crash head, one network.
     added = {key: model[key] for key in model.keys() - old.keys()}
     lab = {} if run == "ppo" else {"ensemble": 1, "bagging": False}
-    assert added == {"crash_head": False, "crash_aversion": 0.0, **lab}
+    assert added == {"crash_head": False, "crash_aversion": 0.0, "crash_margin": None, **lab}
     if run == "grpo_continuation":
         assert ckpt["config"]["algo"]["roots"] == "continuation"
         assert str(cfg.algo.roots) == "continue"

@@ -19,7 +19,6 @@ _MAIN_JOB = [
     "experiment.eval_every=0",
     "experiment.total_frames=100",
     "logger=csv",
-    "logger.video=false",
 ]
 
 

@@ -25,6 +25,8 @@ from torchrl.modules import (
     ValueOperator,
 )
 
+from torchrl_grpo.modules.crash_head import acting_greedily
+
 __all__ = [
     "ContinuousDistribution",
     "DeterministicActor",
@@ -227,6 +229,10 @@ class DeterministicActor(TensorDictModuleBase):
         self.out_keys = list(policy.out_keys)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Calls the wrapped policy under the fixed exploration type."""
-        with set_exploration_type(self.exploration_type):
+        """Calls the wrapped policy under the fixed exploration type, acting greedily.
+
+        Inside :func:`~torchrl_grpo.modules.crash_head.acting_greedily`: a crash head
+        with a margin bars the actions riskier than SLOWER.
+        """
+        with set_exploration_type(self.exploration_type), acting_greedily():
             return self.policy(tensordict)

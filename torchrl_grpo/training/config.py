@@ -73,6 +73,7 @@ __all__ = [
     "PPOConfig",
     "RolloutConfig",
     "check_config",
+    "records_video",
     "register_configs",
     "to_container",
     "typed_config",
@@ -119,24 +120,35 @@ class OptimConfig:
 
 @dataclass
 class LoggerConfig:
-    """``logger`` group: TorchRL logger backend and media.
+    """``logger`` group: TorchRL logger backend.
 
     ``wandb`` runs offline (a folder to ``wandb sync`` later), ``wandb_online`` streams;
     wandb reads the project, group and tags from ``WANDB_PROJECT`` (``torchrl_grpo``
-    when unset), ``WANDB_RUN_GROUP`` and ``WANDB_TAGS``.
+    when unset), ``WANDB_RUN_GROUP`` and ``WANDB_TAGS``. Every backend but ``none``
+    records the final evaluation's first episode (a GIF in the run folder, and a video
+    in wandb).
 
     Example:
         >>> import tempfile
         >>> from torchrl_grpo.training.logging_builder import make_logger
         >>> cfg = OmegaConf.structured(LoggerConfig(backend="csv"))
-        >>> print(cfg.backend, cfg.video)
+        >>> print(cfg.backend, records_video(cfg))
         csv True
         >>> type(make_logger(cfg, tempfile.mkdtemp(), "demo", {})).__name__
         'CSVLogger'
     """
 
     backend: LoggerBackend = LoggerBackend.wandb
-    video: bool = True
+
+
+def records_video(logger_cfg: DictConfig) -> bool:
+    """Whether a run with this ``logger`` config records an evaluation episode.
+
+    Example:
+        >>> records_video(OmegaConf.create({"backend": "none"}))
+        False
+    """
+    return str(logger_cfg.backend) != LoggerBackend.none.value
 
 
 @dataclass

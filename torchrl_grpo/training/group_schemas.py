@@ -53,6 +53,7 @@ class ModelConfig:
     kind: ModelKind = ModelKind.mlp
     crash_head: bool = False
     crash_aversion: float = 0.0
+    crash_margin: float | None = None
 
 
 @dataclass

@@ -32,6 +32,7 @@ from torchrl_grpo.training.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
+from torchrl_grpo.training.config import records_video
 from torchrl_grpo.training.env_builder import make_env, tensor_covers
 from torchrl_grpo.training.eval_episodes import eval_workers
 from torchrl_grpo.training.evaluation import evaluate
@@ -219,7 +220,7 @@ class EvaluationHook(Hook):
     ``final_eval_episodes`` episodes from ``final_eval_seed`` (a disjoint seed set) of
     the policy and of every baseline of ``experiment.baselines``, the baselines from
     their cache (:func:`~torchrl_grpo.training.evaluate_baselines`; ``results.md``,
-    ``results.json``), the first episode as a GIF (with ``logger.video``), and the
+    ``results.json``), the first episode as a GIF (with a ``logger`` other than ``none``), and the
     learning curve (:func:`~torchrl_grpo.training.run_plots.plot_run_curve`: the evaluation
     history, the final evaluation as a star, the baselines on the periodic seeds as
     lines, cached like the final ones). Where the tensor simulator covers the env,
@@ -306,7 +307,9 @@ class EvaluationHook(Hook):
         video = None
         if episodes > 0:
             seed = int(exp.final_eval_seed)
-            metrics, trained, video = self.evaluate(trainer, episodes, seed, bool(cfg.logger.video))
+            metrics, trained, video = self.evaluate(
+                trainer, episodes, seed, records_video(cfg.logger)
+            )
             trained.name = f"{cfg.algo.name} (trained)"
             final = {f"eval/final_{k[5:]}": v for k, v in metrics.items()}
             # One row: the final evaluation's metrics and its video.

@@ -17,6 +17,7 @@ from torchrl_grpo.modules.networks import NetworkKind, make_network
 from torchrl_grpo.modules.scene_features import DEFAULT_TARGET_SPEEDS, FeatureMLP, SceneMLP
 from torchrl_grpo.modules.scripted.actions import (
     LONGITUDINAL_ACTIONS,
+    META_ACTIONS,
     ConstantActionPolicy,
     ScriptedPolicy,
 )
@@ -202,7 +203,8 @@ def make_policy(model_cfg: DictConfig, env: EnvBase) -> ProbabilisticActor:
 
     With ``model.crash_head``, the network has a second output per action, the logit of
     its crash probability (:class:`~torchrl_grpo.modules.CrashHead`), which
-    ``model.crash_aversion`` weighs into the logits. With ``model.ensemble=K > 1``, the
+    ``model.crash_aversion`` weighs into the logits and by which ``model.crash_margin``
+    bars the actions riskier than SLOWER. With ``model.ensemble=K > 1``, the
     policy is ``K`` such networks (:class:`~torchrl_grpo.modules.PolicyEnsemble`) that
     act with their mean logits. The wrappers of :data:`POLICY_WRAPPERS` then wrap the
     network (``torchrl_grpo.experimental``'s ``model.prior``).
@@ -232,10 +234,31 @@ def make_policy(model_cfg: DictConfig, env: EnvBase) -> ProbabilisticActor:
 
 def _member(model_cfg: DictConfig, env: EnvBase, n_actions: int) -> nn.Module:
     """One logits network of the policy, with its crash head when ``model.crash_head``."""
-    if model_cfg.get("crash_head", False):
-        net = make_net(model_cfg, env, 2 * n_actions)
-        return CrashHead(net, n_actions, float(model_cfg.crash_aversion))
-    return make_net(model_cfg, env, n_actions)
+    margin = model_cfg.get("crash_margin")
+    if not model_cfg.get("crash_head", False):
+        if margin is not None:
+            raise ValueError(
+                f"model.crash_margin={margin} bars actions by the crash head's "
+                "probabilities; it needs model.crash_head=true"
+            )
+        return make_net(model_cfg, env, n_actions)
+    net = make_net(model_cfg, env, 2 * n_actions)
+    aversion = float(model_cfg.crash_aversion)
+    if margin is None:
+        return CrashHead(net, n_actions, aversion)
+    return CrashHead(net, n_actions, aversion, margin=float(margin), fallback=_slower(n_actions))
+
+
+def _slower(n_actions: int) -> int:
+    """SLOWER's index in highway-env's DiscreteMetaAction: 5 actions, or 3 longitudinal."""
+    if n_actions == len(LONGITUDINAL_ACTIONS):
+        return LONGITUDINAL_ACTIONS["slower"]
+    if n_actions == len(META_ACTIONS):
+        return META_ACTIONS["SLOWER"]
+    raise ValueError(
+        f"model.crash_margin keeps SLOWER allowed, an action of highway-env's "
+        f"DiscreteMetaAction (5 actions, or 3 longitudinal); this env has {n_actions}"
+    )
 
 
 def make_base_policy(name: str, env: EnvBase, key: str) -> ScriptedPolicy:

@@ -26,7 +26,7 @@ log = logging.getLogger(__name__)
 #: ``model`` keys that may differ from the saved run's under ``init_from``: they weigh
 #: or train the same parameters (a crash head's weight on the logits, a prior's bonus,
 #: which data an ensemble's members fit).
-FREE_MODEL_KEYS = frozenset({"crash_aversion", "prior_weight", "bagging"})
+FREE_MODEL_KEYS = frozenset({"crash_aversion", "crash_margin", "prior_weight", "bagging"})
 
 
 def check_same_env(role: str, saved_env: DictConfig, env_cfg: DictConfig) -> None:

@@ -48,7 +48,7 @@ SHARED_FIXED: dict[str, dict[str, Any]] = {
 DROPPED: dict[str, frozenset[str]] = {
     "env": frozenset({"name"}),
     "experiment": frozenset({"name", "transfer_gap", "progress_bar", "plot_every"}),
-    "logger": frozenset({"mode", "project", "group", "tags", "group_plots"}),
+    "logger": frozenset({"mode", "project", "group", "tags", "group_plots", "video"}),
 }
 
 #: What a config written before the keys retired meant by leaving one out: the old

@@ -125,6 +125,8 @@ def tensor_episodes(
     td = highway_starts(env, range(seed, seed + episodes))
     if isinstance(policy, TensorDictModuleBase) and hasattr(policy, "get_dist"):
         policy = DeterministicActor(policy)
+        if dtype != torch.float32:
+            policy = _Float32Observation(policy)
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         data = env.rollout(
             max_steps, policy, tensordict=td, auto_reset=False, break_when_any_done=False
@@ -133,6 +135,22 @@ def tensor_episodes(
     # A row counts up to its first done; later steps belong to no episode.
     before = torch.cumsum(done.long(), 1) - done.long() == 0
     return data, before
+
+
+class _Float32Observation(TensorDictModuleBase):
+    """A learned policy fed float32 observations, as highway-env's wrapper gives them.
+
+    In a float64 simulator the observation is float64, and a float32 network refuses it.
+    """
+
+    def __init__(self, policy: TensorDictModuleBase) -> None:
+        super().__init__()
+        self.policy = policy
+        self.in_keys, self.out_keys = list(policy.in_keys), list(policy.out_keys)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:  # noqa: D102
+        seen = tensordict.clone(False).set("observation", tensordict["observation"].float())
+        return tensordict.update(self.policy(seen).exclude("observation"))
 
 
 def paired_gap(highway: EvalResult, tensor: EvalResult) -> dict[str, float]:
