@@ -19,24 +19,14 @@ from torchrl_grpo.training.group_schemas import MLPModelConfig
 from torchrl_grpo.training.model_builder import make_policy
 
 
-class _Table(nn.Module):
-    """Row ``i`` of the observation picks row ``i`` of a parameter table."""
-
-    def __init__(self, table: torch.Tensor) -> None:
-        super().__init__()
-        self.table = nn.Parameter(table)
-
-    def forward(self, state: torch.Tensor) -> torch.Tensor:
-        return self.table[state]
-
-
 def _logit(p: float) -> float:
     return math.log(p / (1 - p))
 
 
 def _head(logits: list[float], risks: list[float], **kw) -> CrashHead:
     table = torch.tensor([logits + [_logit(p) for p in risks]], dtype=torch.float64)
-    return CrashHead(_Table(table), len(logits), **kw)
+    # Observation i picks row i of the table: the network's outputs, set by hand.
+    return CrashHead(nn.Embedding.from_pretrained(table, freeze=False), len(logits), **kw)
 
 
 def _greedy(head: CrashHead) -> torch.Tensor:
@@ -79,7 +69,7 @@ def test_barred_logits_train_nothing_and_the_head_only_through_its_own_loss():
     _greedy(head).sum().backward()
     # Allowed logits carry the gradient; the barred one and every crash logit get none
     # (the floor is detached).
-    assert head.net.table.grad.tolist() == [[1.0, 0.0, 1.0, 0.0, 0.0, 0.0]]
+    assert head.net.weight.grad.tolist() == [[1.0, 0.0, 1.0, 0.0, 0.0, 0.0]]
 
 
 def test_bad_margins_and_fallbacks_are_named():
