@@ -26,6 +26,7 @@ from torchrl_grpo.training import (
 from torchrl_grpo.training import baselines as baselines_module
 from torchrl_grpo.training.config import check_config
 from torchrl_grpo.training.env_builder import make_layout, make_rollout_env
+from torchrl_grpo.training.group_schemas import MLPModelConfig
 from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
 
 TENSOR = ["env.backend=tensor", "env.num_envs=32"]
@@ -145,6 +146,16 @@ def test_the_transfer_gap_is_zero_for_a_scripted_policy_and_pairs_the_episodes()
     # where the float32 simulator needs 1e-4).
     exact = evaluate_on_tensor(cfg, rule, episodes=4, seed=300, dtype=torch.float64)
     _assert_same_episodes(exact, highway, atol=1e-6)
+
+
+def test_a_network_drives_the_float64_simulator_on_float32_observations_as_on_highway_env():
+    torch.manual_seed(0)
+    cfg = OmegaConf.create({"scenario": "highway-fast-v0", "config": {}, "max_episode_steps": 15})
+    env = make_env(cfg)
+    policy = make_policy(OmegaConf.structured(MLPModelConfig), env)  # float32 weights
+    highway, _ = evaluate(env, policy, episodes=4, seed=300, max_steps=15)
+    exact = evaluate_on_tensor(cfg, policy, episodes=4, seed=300, dtype=torch.float64)
+    _assert_same_episodes(exact, highway, atol=1e-5)  # returns: sums of float32 rewards
 
 
 def test_the_transfer_gap_needs_a_config_the_simulator_covers():
