@@ -49,6 +49,11 @@ def test_the_margin_applies_after_the_aversion():
     # The fallback is never barred, however risky; action 0 is safer, so it stays too.
     expected = [1.0 + 2 * math.log(0.5), 3.0 + 2 * math.log(0.25)]
     torch.testing.assert_close(_greedy(head), torch.tensor([expected], dtype=torch.float64))
+    # A barred action sits BARRED below the lowest logit after the aversion.
+    barred = _head([1.0, 3.0, 0.0], [0.1, 0.5, 0.1], aversion=2.0, margin=0.1, fallback=0)
+    low = 2 * math.log(0.9)
+    expected = [1.0 + low, low - BARRED, low]
+    torch.testing.assert_close(_greedy(barred), torch.tensor([expected], dtype=torch.float64))
     # A margin of 0 keeps exactly the actions no riskier than the fallback.
     strict = _head([4.0, 1.0, 2.0], [0.2, 0.1, 0.1 + 1e-6], margin=0.0, fallback=1)
     assert _greedy(strict)[0].argmax() == 1
