@@ -47,12 +47,12 @@ from omegaconf import OmegaConf
 
 import torchrl_grpo.experimental  # noqa: F401  (runs of algo=grpo_lab load too)
 from torchrl_grpo.modules import CrashHead
-from torchrl_grpo.modules.scripted.actions import SLOWER
 from torchrl_grpo.training import evaluate, load_run_policy, make_env
 from torchrl_grpo.training.checkpoint import load_checkpoint
 from torchrl_grpo.training.env_builder import make_layout
 from torchrl_grpo.training.eval_episodes import eval_workers
 from torchrl_grpo.training.evaluation import BASELINE_LABELS, baseline_policy
+from torchrl_grpo.training.model_builder import slower_action
 from torchrl_grpo.training.results import EvalResult, paired_difference
 from torchrl_grpo.training.search_eval import PLAN_DTYPE, evaluate_search
 from torchrl_grpo.training.transfer import evaluate_on_tensor
@@ -78,7 +78,8 @@ def with_margin(policy: torch.nn.Module, margin: str) -> torch.nn.Module:
     if not heads:
         raise SystemExit("--crash-margins needs runs with a crash head (model.crash_head=true)")
     for head in heads:
-        head.set_margin(None if margin == "none" else float(margin), SLOWER)
+        margin_value = None if margin == "none" else float(margin)
+        head.set_margin(margin_value, slower_action(head.n_actions))
     return policy
 
 

@@ -34,6 +34,7 @@ __all__ = [
     "make_value",
     "register_network_kind",
     "register_policy_wrapper",
+    "slower_action",
 ]
 
 #: The core's networks of ``model.kind``: one of
@@ -246,11 +247,20 @@ def _member(model_cfg: DictConfig, env: EnvBase, n_actions: int) -> nn.Module:
     aversion = float(model_cfg.crash_aversion)
     if margin is None:
         return CrashHead(net, n_actions, aversion)
-    return CrashHead(net, n_actions, aversion, margin=float(margin), fallback=_slower(n_actions))
+    return CrashHead(
+        net, n_actions, aversion, margin=float(margin), fallback=slower_action(n_actions)
+    )
 
 
-def _slower(n_actions: int) -> int:
-    """SLOWER's index in highway-env's DiscreteMetaAction: 5 actions, or 3 longitudinal."""
+def slower_action(n_actions: int) -> int:
+    """SLOWER's index in highway-env's DiscreteMetaAction: 5 actions, or 3 longitudinal.
+
+    The action a crash margin always allows (``model.crash_margin``).
+
+    Example:
+        >>> slower_action(5), slower_action(3)  # intersection-v0's SLOWER, IDLE, FASTER
+        (4, 0)
+    """
     if n_actions == len(LONGITUDINAL_ACTIONS):
         return LONGITUDINAL_ACTIONS["slower"]
     if n_actions == len(META_ACTIONS):
