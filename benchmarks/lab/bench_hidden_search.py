@@ -5,22 +5,25 @@ crash in 1,000 highway-env episodes (docs/results.md, section 5), but it plans f
 simulator's whole state. Two things in that state no observation shows: each other
 driver's IDM exponent (``delta``, drawn from U(3.5, 4.5) at reset) and its destination
 (one of the three exits, drawn uniformly). A network that drives from the observation
-can at best act as a search that does not know them. This script plays that search:
+knows no more than a search that does not know them. This script plays that search:
 at every decision it copies the state ``--copies`` times, redraws the hidden variables
 of every vehicle but the ego from the reset's distribution (``--redraw``: ``delta``,
-``route``, ``both``, or ``none`` for the plain search), scores each action's branch
-(the action, then always-IDLE to the episode's end) in every copy as its return less
-``--crash-penalty`` if the branch crashes, and plays the action whose ``--aggregate``
-(``mean``: what a risk-neutral learner's target averages; ``min``: the worst copy) over
-the copies is highest. A destination is redrawn only for a vehicle on a road from which
-every exit can be reached; on an exit road it is already known.
+``route``, ``both``, or ``none`` for the plain search), scores each action's branch (the
+action, then the base policy of ``--bases`` to the episode's end: always-IDLE, or
+always-SLOWER, whose branch says whether braking after the action still avoids a crash)
+in every copy as its return less ``--crash-penalty`` if the branch crashes, and plays
+the action whose ``--aggregate`` (``mean``: what a risk-neutral learner's target
+averages; ``min``: the worst copy) over the copies is highest. A destination is redrawn
+only for a vehicle on a road from which every exit can be reached; on an exit road it is
+already known.
 
 The episodes are the tensor simulator's in float64 from highway-env's starts of
 ``--seed, --seed + 1, ...`` (the tensor simulator follows highway-env to 1e-9 there:
 docs/sim.md), paired against always-SLOWER on the same starts. One row per setting:
 
     python benchmarks/lab/bench_hidden_search.py --episodes 500 --seed 40000 --copies 8 \\
-        --redraw none route both [--aggregate mean min] [--crash-penalty 0 5]
+        --redraw none route both [--aggregate mean min] [--crash-penalty 0 5] \\
+        [--bases idle slower]
 """
 
 from __future__ import annotations
@@ -112,6 +115,8 @@ def redraw_hidden(
 class RedrawnSearch(LookaheadPolicy):
     """The lookahead planner, scoring each action over copies with redrawn hidden state.
 
+    Each branch is the action, then the scripted ``base`` policy (``"idle"``, ``"slower"``).
+
     ``returns`` gives ``[N, n_actions]``: per action, the ``aggregate`` over ``copies``
     redraws of its branch return less ``crash_penalty`` where the branch crashes. Its
     env needs ``N * copies * n_actions`` rows.
@@ -127,8 +132,9 @@ class RedrawnSearch(LookaheadPolicy):
         aggregate: str,
         crash_penalty: float,
         seed: int,
+        base: str = "idle",
     ) -> None:
-        super().__init__(env, make_scripted_policy("idle"), horizon)
+        super().__init__(env, make_scripted_policy(base), horizon)
         if aggregate not in ("mean", "min"):
             raise ValueError(f"aggregate must be 'mean' or 'min', got {aggregate!r}")
         self.copies, self.redraw, self.aggregate = int(copies), redraw, aggregate
@@ -168,6 +174,10 @@ def main() -> None:
     p.add_argument("--redraw", nargs="+", choices=REDRAWS, default=["none", "route", "both"])
     p.add_argument("--aggregate", nargs="+", choices=("mean", "min"), default=["mean"])
     p.add_argument("--crash-penalty", nargs="+", type=float, default=[0.0])
+    p.add_argument(
+        "--bases", nargs="+", choices=("idle", "slower"), default=["idle"],
+        help="the branches' policy after their first action",
+    )  # fmt: skip
     args = p.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     seeds = list(range(args.seed, args.seed + args.episodes))
@@ -178,17 +188,19 @@ def main() -> None:
         name="always-SLOWER", dtype=torch.float64,
     )  # fmt: skip
     rows = [table_row(slower, slower, time.perf_counter() - start)]
-    settings = itertools.product(args.redraw, args.aggregate, args.crash_penalty)
-    for redraw, aggregate, penalty in settings:
+    settings = itertools.product(args.bases, args.redraw, args.aggregate, args.crash_penalty)
+    for base, redraw, aggregate, penalty in settings:
         # The plain search needs one copy: every copy would be the same state.
         copies = 1 if redraw == "none" else args.copies
         rows_needed = args.episodes * copies * 5
         env = TensorHighwayEnv(SCENARIO, num_envs=rows_needed, dtype=torch.float64)
         planner = RedrawnSearch(
             env, HORIZON, copies=copies, redraw=redraw, aggregate=aggregate,
-            crash_penalty=penalty, seed=args.seed,
+            crash_penalty=penalty, seed=args.seed, base=base,
         )  # fmt: skip
         name = f"redraw {redraw}, {copies} copies, {aggregate}, crash penalty {penalty:g}"
+        if base != "idle":
+            name = f"over always-{base.upper()}, {name}"
         start = time.perf_counter()
         res = play(planner, seeds, name)
         rows.append(table_row(res, slower, time.perf_counter() - start))

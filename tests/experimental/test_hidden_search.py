@@ -127,19 +127,20 @@ def test_a_route_encoded_as_the_redraw_does_drives_as_the_original(worlds):
         assert torch.equal(futures[0][key], futures[1][key]), key
 
 
-def test_without_a_redraw_it_is_the_plain_search_and_the_penalty_counts_crashes(worlds):
+@pytest.mark.parametrize("base", ["idle", "slower"])
+def test_without_a_redraw_it_is_the_plain_search_and_the_penalty_counts_crashes(worlds, base):
     env, td = worlds
     n = 8
     roots = td[:n]
     plain = LookaheadPolicy(
-        TensorHighwayEnv(bench.SCENARIO, num_envs=5 * n), make_scripted_policy("idle"), 11
+        TensorHighwayEnv(bench.SCENARIO, num_envs=5 * n), make_scripted_policy(base), 11
     )
     data = plain.branches(roots)
     crashed = data.get(("next", "crashed")).reshape(data.get(MASK).shape) & data.get(MASK)
     expected = branch_returns(data) - 5.0 * crashed.any(-1).double()
     search = bench.RedrawnSearch(
         TensorHighwayEnv(bench.SCENARIO, num_envs=5 * n * 2), 11, copies=2, redraw="none",
-        aggregate="min", crash_penalty=5.0, seed=0,
+        aggregate="min", crash_penalty=5.0, seed=0, base=base,
     )  # fmt: skip
     assert torch.equal(search.returns(roots), expected)
     assert crashed.any(), "no branch crashed: the penalty went untested"
