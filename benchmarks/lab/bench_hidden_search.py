@@ -48,6 +48,7 @@ from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.modules import make_scripted_policy
 from torchrl_grpo.sim.roundabout_params import RoundaboutParams
 from torchrl_grpo.sim.roundabout_reset import route_paths
+from torchrl_grpo.training.evaluation import BASELINE_LABELS
 from torchrl_grpo.training.results import EvalResult
 from torchrl_grpo.training.search_eval import searched_result
 from torchrl_grpo.training.transfer import evaluate_on_tensor
@@ -200,7 +201,7 @@ def main() -> None:
         )  # fmt: skip
         name = f"redraw {redraw}, {copies} copies, {aggregate}, crash penalty {penalty:g}"
         if base != "idle":
-            name = f"over always-{base.upper()}, {name}"
+            name = f"over {BASELINE_LABELS[base]}, {name}"
         start = time.perf_counter()
         res = play(planner, seeds, name)
         rows.append(table_row(res, slower, time.perf_counter() - start))

@@ -77,8 +77,8 @@ def with_margin(policy: torch.nn.Module, margin: str) -> torch.nn.Module:
     heads = [m for m in policy.modules() if isinstance(m, CrashHead)]
     if not heads:
         raise SystemExit("--crash-margins needs runs with a crash head (model.crash_head=true)")
+    margin_value = None if margin == "none" else float(margin)
     for head in heads:
-        margin_value = None if margin == "none" else float(margin)
         head.set_margin(margin_value, slower_action(head.n_actions))
     return policy
 
