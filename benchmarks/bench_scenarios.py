@@ -21,9 +21,10 @@ training evaluates on 10000.. and 20000..). Printed, in one run:
   episodes, each paired against the policy it searches over: what the scenario allows a
   policy that looks ahead, and how far the learner trails it.
 
-Each policy's episodes are kept in ``--out`` (one JSON file per policy, run folder and
-seed set; runs trained with config overrides, such as another observation, in a folder of
-that config's own), so an interrupted run picks up where it stopped.
+Each policy's episodes are kept in ``--out`` (one JSON file per policy, run and seed set,
+the run named by its folder and a digest of its checkpoint; runs trained with config
+overrides, such as another observation, in a folder of that config's own), so an
+interrupted run picks up where it stopped.
 
     python benchmarks/bench_scenarios.py --grpo runs/merge_grpo_s0 runs/merge_grpo_s1 \\
         runs/merge_grpo_s2 --ppo runs/merge_ppo_s0 runs/merge_ppo_s1 runs/merge_ppo_s2 \\
@@ -55,8 +56,8 @@ from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
 
 def _cached(out: Path, name: str, source: str, seed: int, episodes: int, run) -> EvalResult:
     # One file per policy and seed set: a rerun after an interruption skips what is done.
-    # A trained policy's file names its run folder too (``source``): two runs of the same
-    # algorithm and seed (another config) must not share results.
+    # A trained policy's file names its run too (``source``, :func:`run_key`): two runs of
+    # the same algorithm and seed (another config) must not share results.
     key = f"{name} {source}" if source else name
     path = out / f"{key.replace(' ', '_')}_{seed}_{episodes}.json"
     result = read_cached(path)
@@ -65,6 +66,16 @@ def _cached(out: Path, name: str, source: str, seed: int, episodes: int, run) ->
         result.name = name
         write_cached(path, result)
     return result
+
+
+def run_key(run: Path) -> str:
+    """What names a trained run's cached results: its folder and a digest of its checkpoint.
+
+    The folder alone is not enough: two runs of the same name in other places (a rerun
+    with more frames, a copy with another margin) would share one run's episodes.
+    """
+    digest = hashlib.sha1((run / "last.pt").read_bytes()).hexdigest()[:10]
+    return f"{run.name}_{digest}"
 
 
 def _row(res: EvalResult, tensor: EvalResult | None) -> str:
@@ -181,11 +192,12 @@ def main() -> None:
             seed = int(typed_config(load_checkpoint(run / "last.pt")["config"]).seed)
             policy = load_run_policy(str(run / "last.pt"), env_cfg, env)
             name = f"{algo} seed {seed}"
-            res = run_policy(name, run.name, policy)
+            key = run_key(run)
+            res = run_policy(name, key, policy)
             trained[algo].append(res)
-            rows.append((res, run_tensor(name, run.name, policy)))
+            rows.append((res, run_tensor(name, key, policy)))
             if algo == "grpo" and args.search_horizon > 0:
-                searched.append((res, run_search(name, run.name, policy)))
+                searched.append((res, run_search(name, key, policy)))
     if args.search_horizon > 0:
         slower = baseline_policy("slower", layout, n_actions)
         over_slower = run_search(BASELINE_LABELS["slower"], "", slower)
