@@ -222,6 +222,47 @@ def test_learner_steps_in_a_branch_rollout_then_the_scripted_tail():
     assert (out["action"][:, 2:][tail] == SLOWER).all()
 
 
+def test_learner_branches_leave_the_later_branches_to_the_scripted_tail():
+    # Every action twice: branches 0..n-1 follow the learner for 2 steps, n..2n-1 brake.
+    env, actor = _env_actor("highway-fast-v0")
+    roots = reset_roots(env, 1, seed=0)
+    policy = GreedyTail(
+        actor,
+        explore_steps=1,
+        first_action="enumerate",
+        tail_policy=ConstantActionPolicy("SLOWER"),
+        learner_steps=2,
+        learner_branches=N_ACTIONS,
+    )
+    out = branch_rollout(env, policy, roots, group_size=2 * N_ACTIONS, horizon=4)[0]
+    env.close()
+    assert out["action"][:, 0].tolist() == 2 * list(range(N_ACTIONS))
+    learner = out[:N_ACTIONS, 1][out["mask"][:N_ACTIONS, 1]]
+    greedy = actor.module[0](learner.select("observation").clone())["logits"].argmax(-1)
+    assert torch.equal(learner["action"], greedy)
+    assert not (greedy == SLOWER).all()  # the control: the learner would not brake everywhere
+    base = out["mask"][N_ACTIONS:, 1:]
+    assert (out["action"][N_ACTIONS:, 1:][base] == SLOWER).all()
+    # Identical first actions from one root: until the learner acts, the halves agree.
+    assert torch.equal(out["observation"][:N_ACTIONS, 1], out["observation"][N_ACTIONS:, 1])
+
+
+def test_learner_branches_need_enumerated_first_actions_and_learner_steps():
+    actor = _actor()
+    with pytest.raises(ValueError, match="learner_branches=5 splits"):
+        GreedyTail(
+            actor, explore_steps=1, tail_policy=_actor(1), learner_steps=2, learner_branches=5
+        )
+    with pytest.raises(ValueError, match="learner_steps >= 1, got 'enumerate' and 0"):
+        GreedyTail(
+            actor,
+            explore_steps=1,
+            first_action="enumerate",
+            tail_policy=_actor(1),
+            learner_branches=5,
+        )
+
+
 def test_learner_steps_need_a_tail_policy_and_a_non_negative_int():
     actor = _actor()
     with pytest.raises(ValueError, match="only with a tail_policy"):

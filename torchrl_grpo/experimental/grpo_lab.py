@@ -21,12 +21,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+import torch
 from omegaconf import MISSING, DictConfig, OmegaConf
+from tensordict import TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import ProbabilisticActor
 
+from torchrl_grpo.experimental.crash_head_tail import base_tail_crashes, check_crash_head_tail
 from torchrl_grpo.experimental.group_distill import GroupFitLossName, GroupFitWeightingName
 from torchrl_grpo.experimental.lagging_tail import check_tail_sync, lagging_copy
 from torchrl_grpo.experimental.neighbour_features import NeighboursKind
@@ -55,6 +58,7 @@ from torchrl_grpo.training.choices import (
     choice_enum,
 )
 from torchrl_grpo.training.group_schemas import GroupRolloutConfig, ModelConfig
+from torchrl_grpo.training.metrics import PhaseTimer
 from torchrl_grpo.training.model_builder import ModelArchitecture
 
 __all__ = ["GRPOLab", "GRPOLabConfig", "GRPOLabModelConfig", "GRPOLabRolloutConfig"]
@@ -113,6 +117,7 @@ class GRPOLabConfig(GRPOConfig):
     group_fit_loss: GroupFitLossName = GroupFitLossName["cross_entropy"]
     crash_head_coeff: float = 1.0
     crash_label: CrashLabelName = CrashLabelName["branch"]
+    crash_head_tail: bool = False
     max_minibatches: int | None = None
 
 
@@ -157,6 +162,12 @@ class GRPOLab(GRPO):
     config_name = "base_grpo_lab"
     rollout_config_class = GRPOLabRolloutConfig
 
+    def __init__(self, cfg: DictConfig, policy: ProbabilisticActor, env: EnvBase) -> None:
+        super().__init__(cfg, policy, env)
+        check_crash_head_tail(self.cfg.algo, self.crash_head is not None, int(env.action_spec.n))
+        #: With ``algo.crash_head_tail``, the crash labels of the batch being updated.
+        self._base_crashes: torch.Tensor | None = None
+
     @classmethod
     def fixed_settings(cls, name: str) -> dict[str, dict[str, Any]]:
         """None: the lab's schemas have every setting."""
@@ -170,6 +181,7 @@ class GRPOLab(GRPO):
         check_trunk_bounds(cfg.algo, cfg.get("rollout"))
         if "model" in cfg and not OmegaConf.is_missing(cfg, "model"):
             check_prior(cfg.model)
+            check_crash_head_tail(cfg.algo, bool(cfg.model.get("crash_head", False)), None)
 
     @classmethod
     def make_tail_policy(
@@ -189,6 +201,39 @@ class GRPOLab(GRPO):
     def trunk_exploration(cls, algo_cfg: DictConfig) -> ExplorationType:
         """How the policy acts on trunks: ``algo.trunk``."""
         return trunk_exploration(algo_cfg)
+
+    @classmethod
+    def learner_branches(cls, algo_cfg: DictConfig) -> int | None:
+        """GRPO's, or with ``algo.crash_head_tail`` the first half of each group."""
+        if algo_cfg.get("crash_head_tail", False):
+            return int(algo_cfg.group_size) // 2
+        return super().learner_branches(algo_cfg)
+
+    @classmethod
+    def trained_branches(cls, algo_cfg: DictConfig) -> int:
+        """GRPO's, or with ``algo.crash_head_tail`` the learner's half of each group."""
+        return cls.learner_branches(algo_cfg) or super().trained_branches(algo_cfg)
+
+    def batch_metrics(self, batch: TensorDictBase) -> dict[str, float]:
+        """GRPO's, or with ``algo.crash_head_tail`` of the learner's half of each group."""
+        half = self.learner_branches(self.cfg.algo)
+        return super().batch_metrics(batch if half is None else batch[:, :half])
+
+    def update(self, batch: TensorDictBase, timer: PhaseTimer) -> dict[str, float]:
+        """GRPO's update; with ``algo.crash_head_tail``, of the learner's half of each group."""
+        if not self.cfg.algo.crash_head_tail:
+            return super().update(batch, timer)
+        learner, self._base_crashes = base_tail_crashes(batch)
+        try:
+            return super().update(learner, timer)
+        finally:
+            self._base_crashes = None
+
+    def crash_targets(self, batch: TensorDictBase) -> torch.Tensor:
+        """GRPO's labels, or with ``algo.crash_head_tail`` the base tail's crashes."""
+        if self._base_crashes is not None:
+            return self._base_crashes
+        return super().crash_targets(batch)
 
     def after_batch(self, iteration: int) -> None:
         """Copy the policy into the lagging tail policy every ``algo.tail_sync_batches``."""

@@ -72,6 +72,11 @@ class GreedyTail(TensorDictModuleBase):
             scores each action followed by what the learner does next, so an action
             that is safe only because the base policy would react on the next step
             (and the learner would not) scores as what it is for the learner.
+        learner_branches: with ``learner_steps``, only the branches below this index
+            take them; the others follow ``tail_policy`` right after their explored
+            steps (``None``: every branch). With ``first_action="enumerate"`` and
+            ``2 n`` branches, a group then scores every action twice: followed by the
+            learner, and followed by the base policy alone.
 
     Example:
         >>> import torch
@@ -100,6 +105,7 @@ class GreedyTail(TensorDictModuleBase):
         first_action: FirstAction = "sample",
         tail_policy: TensorDictModuleBase | None = None,
         learner_steps: int = 0,
+        learner_branches: int | None = None,
     ) -> None:
         super().__init__()
         if isinstance(explore_steps, bool) or not isinstance(explore_steps, int):
@@ -120,8 +126,16 @@ class GreedyTail(TensorDictModuleBase):
                 f"learner_steps={learner_steps}: must be >= 0, and > 0 only with a "
                 "tail_policy (without one the policy acts on the whole tail already)"
             )
+        if learner_branches is not None and (first_action != "enumerate" or learner_steps < 1):
+            raise ValueError(
+                f"learner_branches={learner_branches} splits the branches of enumerated first "
+                "actions between the learner's steps and the tail policy's: it needs "
+                f"first_action='enumerate' and learner_steps >= 1, got {first_action!r} and "
+                f"{learner_steps}"
+            )
         self.policy = policy
         self.learner_steps = learner_steps
+        self.learner_branches = learner_branches
         self.explore_steps = explore_steps
         self.first_action = first_action
         self.tail_policy = tail_policy
@@ -167,6 +181,8 @@ class GreedyTail(TensorDictModuleBase):
             return tensordict.update(sampled).set(EXPLORED, explored)
         with set_exploration_type(ExplorationType.DETERMINISTIC):
             own = ~explored & (t < self.explore_steps + self.learner_steps)
+            if self.learner_branches is not None:
+                own = own & (tensordict.get(_BRANCH).reshape(t.shape) < self.learner_branches)
             tail_keys = getattr(self.tail_policy, "out_keys", None)
             if tail_keys is not None and bool((own | explored).all()):
                 # The learner acts on every greedy row (a branch's horizon ends within its

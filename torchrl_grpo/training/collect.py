@@ -56,6 +56,7 @@ def make_collector(
     trunk_max_steps: int | None = None,
     trunk_min_steps: int = 0,
     trunk_exploration: ExplorationType = ExplorationType.RANDOM,
+    learner_branches: int | None = None,
 ) -> BaseCollector:
     """The collector of ``cfg.algo.name`` over ``env`` (which it owns and closes).
 
@@ -71,7 +72,9 @@ def make_collector(
     episode step, ``trunk_min_steps`` starts their decision points at that step (the
     experimental ``rollout.full_horizon_roots`` and ``rollout.first_root_step``), and the
     trunks act with ``trunk_exploration`` (the policy samples; the experimental
-    ``algo.trunk=greedy`` acts deterministically).
+    ``algo.trunk=greedy`` acts deterministically). ``learner_branches``: only the
+    branches below it take ``algo.tail_learner_steps``
+    (:class:`~torchrl_grpo.modules.GreedyTail`'s; ``None``: every branch).
 
     Example:
         >>> from omegaconf import OmegaConf
@@ -99,6 +102,7 @@ def make_collector(
                 first_action=first_action,
                 tail_policy=tail_policy,
                 learner_steps=int(algo.get("tail_learner_steps", 0)),
+                learner_branches=learner_branches,
             )
         # A scripted base tail scores actions; the trunks still follow the learner, so
         # that its decision points are the states the learner visits (as in DAgger).

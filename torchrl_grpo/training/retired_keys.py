@@ -79,6 +79,7 @@ OLD_DEFAULTS: dict[str, dict[str, Any]] = {
         "group_fit_loss": "cross_entropy",
         "crash_head_coeff": 1.0,
         "crash_label": "branch",
+        "crash_head_tail": False,
         "max_minibatches": None,
     },
     "rollout": {

@@ -180,8 +180,10 @@ def _unknown(key: str, value: str, known: list[str]) -> ValueError:
     )
 
 
-def make_replay(algo: DictConfig) -> ReplayBuffer | None:
+def make_replay(algo: DictConfig, branches: int | None = None) -> ReplayBuffer | None:
     """The FIFO buffer of the trained steps of ``algo.replay_groups`` groups, or ``None``.
+
+    ``branches``: the trained branches of a group (:func:`replay_rows`).
 
     Example:
         >>> from omegaconf import OmegaConf
@@ -189,12 +191,15 @@ def make_replay(algo: DictConfig) -> ReplayBuffer | None:
         >>> make_replay(cfg).storage.max_size
         50
     """
-    rows = replay_rows(algo)
+    rows = replay_rows(algo, branches)
     return None if rows is None else ReplayBuffer(storage=LazyTensorStorage(rows), batch_size=None)
 
 
-def replay_rows(algo: DictConfig) -> int | None:
+def replay_rows(algo: DictConfig, branches: int | None = None) -> int | None:
     """Trained steps the replay holds: one per explored step of each of the groups' branches.
+
+    ``branches``: how many of a group's branches are trained (``None``: all of
+    ``algo.group_size``).
 
     Example:
         >>> from omegaconf import OmegaConf
@@ -205,7 +210,8 @@ def replay_rows(algo: DictConfig) -> int | None:
     groups = algo.get("replay_groups")
     if groups is None:
         return None
-    return int(groups) * int(algo.group_size) * int(algo.explore_steps)
+    trained = int(algo.group_size) if branches is None else int(branches)
+    return int(groups) * trained * int(algo.explore_steps)
 
 
 def policy_weighted(data: TensorDictBase, n_actions: int) -> TensorDictBase:

@@ -104,7 +104,7 @@ class GRPO(Algorithm):
         ).set_keys(train_reward=TRAIN_REWARD)
         self.ref_sync = self.make_reference_sync(algo, self.loss)
         self.tail_policy = self.make_tail_policy(algo, policy, env)
-        self.replay = make_replay(algo)
+        self.replay = make_replay(algo, self.trained_branches(algo))
         self.distill = make_group_fit_loss(algo, policy)
         head = self.trained_head
         self.crash_head = (
@@ -200,7 +200,18 @@ class GRPO(Algorithm):
             trunk_max_steps=max_steps,
             trunk_min_steps=min_steps,
             trunk_exploration=self.trunk_exploration(cfg.algo),
+            learner_branches=self.learner_branches(cfg.algo),
         )
+
+    @classmethod
+    def learner_branches(cls, algo_cfg: DictConfig) -> int | None:
+        """The branches of a group that take ``algo.tail_learner_steps``: all (``None``)."""
+        return None
+
+    @classmethod
+    def trained_branches(cls, algo_cfg: DictConfig) -> int:
+        """How many of a group's branches the update trains on: all of them."""
+        return int(algo_cfg.group_size)
 
     @classmethod
     def trunk_schedule(cls, rollout: DictConfig, step_limit: int) -> tuple[int, int, int | None]:
@@ -224,8 +235,7 @@ class GRPO(Algorithm):
             self.bootstrap(batch)
             self.advantage(batch)
             if self.crash_head is not None:
-                label = crash_labels(batch, self.bootstrap, self.tail_survival)
-                batch.set(BRANCH_CRASHED, label)
+                batch.set(BRANCH_CRASHED, self.crash_targets(batch))
             data = batch.select(*_TRAINED_KEYS, EXPLORED, BRANCH_CRASHED, strict=False)
             data = data.reshape(-1)
             train = data.get(MASK)
@@ -263,6 +273,10 @@ class GRPO(Algorithm):
         with timer("update"):
             stats.update(self.optimise(data))
         return stats
+
+    def crash_targets(self, batch: TensorDictBase) -> torch.Tensor:
+        """``[R, G, T]``: what the crash head learns of each branch (:func:`crash_labels`)."""
+        return crash_labels(batch, self.bootstrap, self.tail_survival)
 
     def replayed(self, data: TensorDictBase) -> TensorDictBase:
         """This batch's trained steps plus the replayed ones, log-probs of the current policy.
@@ -330,7 +344,7 @@ class GRPO(Algorithm):
                 OmegaConf.create(renamed("algo", checkpoint["config"]["algo"]))
             )
             check_replay_targets(saved_algo, self.cfg.algo, source)
-            saved = replay_rows(saved_algo)
+            saved = replay_rows(saved_algo, self.trained_branches(saved_algo))
             if saved != self.replay.storage.max_size:
                 # A loaded storage keeps its saved size: the first write past it would fail.
                 raise ValueError(
