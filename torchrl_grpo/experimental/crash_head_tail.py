@@ -27,7 +27,11 @@ from tensordict import TensorDictBase
 from torchrl_grpo.branching.keys import MASK
 from torchrl_grpo.training.algos.enumerated import branch_crashed
 
-__all__ = ["base_tail_crashes", "check_crash_head_tail"]
+__all__ = ["BASE_TAIL_CRASHED", "base_tail_crashes", "check_crash_head_tail"]
+
+#: On the learner's half of the groups being updated: whether the branch of the same root
+#: and first action that followed the base tail crashed (the crash head's label).
+BASE_TAIL_CRASHED = "base_tail_crashed"
 
 
 def check_crash_head_tail(algo: DictConfig, has_head: bool, n_actions: int | None) -> None:

@@ -29,7 +29,11 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import ProbabilisticActor
 
-from torchrl_grpo.experimental.crash_head_tail import base_tail_crashes, check_crash_head_tail
+from torchrl_grpo.experimental.crash_head_tail import (
+    BASE_TAIL_CRASHED,
+    base_tail_crashes,
+    check_crash_head_tail,
+)
 from torchrl_grpo.experimental.group_distill import GroupFitLossName, GroupFitWeightingName
 from torchrl_grpo.experimental.lagging_tail import check_tail_sync, lagging_copy
 from torchrl_grpo.experimental.neighbour_features import NeighboursKind
@@ -165,8 +169,6 @@ class GRPOLab(GRPO):
     def __init__(self, cfg: DictConfig, policy: ProbabilisticActor, env: EnvBase) -> None:
         super().__init__(cfg, policy, env)
         check_crash_head_tail(self.cfg.algo, self.crash_head is not None, int(env.action_spec.n))
-        #: With ``algo.crash_head_tail``, the crash labels of the batch being updated.
-        self._base_crashes: torch.Tensor | None = None
 
     @classmethod
     def fixed_settings(cls, name: str) -> dict[str, dict[str, Any]]:
@@ -223,16 +225,13 @@ class GRPOLab(GRPO):
         """GRPO's update; with ``algo.crash_head_tail``, of the learner's half of each group."""
         if not self.cfg.algo.crash_head_tail:
             return super().update(batch, timer)
-        learner, self._base_crashes = base_tail_crashes(batch)
-        try:
-            return super().update(learner, timer)
-        finally:
-            self._base_crashes = None
+        learner, labels = base_tail_crashes(batch)
+        return super().update(learner.set(BASE_TAIL_CRASHED, labels), timer)
 
     def crash_targets(self, batch: TensorDictBase) -> torch.Tensor:
         """GRPO's labels, or with ``algo.crash_head_tail`` the base tail's crashes."""
-        if self._base_crashes is not None:
-            return self._base_crashes
+        if self.cfg.algo.crash_head_tail:
+            return batch.get(BASE_TAIL_CRASHED)
         return super().crash_targets(batch)
 
     def after_batch(self, iteration: int) -> None:
