@@ -1,7 +1,7 @@
 """What the observation leaves to a search on roundabout-v0: plans from redrawn hidden state.
 
 The search over always-IDLE to the episode's end drives roundabout-v0 at 10.86 with no
-crash in 1,000 highway-env episodes (docs/results.md, section 5), but it plans from the
+crash in 1,000 highway-env episodes (docs/lab/scenarios.md), but it plans from the
 simulator's whole state. Two things in that state no observation shows: each other
 driver's IDM exponent (``delta``, drawn from U(3.5, 4.5) at reset) and its destination
 (one of the three exits, drawn uniformly). A network that drives from the observation

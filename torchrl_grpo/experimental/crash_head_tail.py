@@ -6,7 +6,7 @@ learner". The crash margin (``model.crash_margin``) compares an action with SLOW
 under that head, and SLOWER followed by the learner is not always-SLOWER: the bound of
 the performance-difference lemma (at most ``margin`` more crashes per step than
 always-SLOWER) holds only when the head's tail is the base policy itself
-(docs/results.md, section 5, "At 2.4M frames").
+(docs/lab/scenarios.md, "At 2.4M frames").
 
 With this key each group holds every action twice (``algo.group_size`` = 2 x the
 actions): the first half's branches follow the learner for ``tail_learner_steps`` and

@@ -22,7 +22,7 @@ per step than always-``fallback`` from the same states (the performance-differen
 lemma, with the crash as the cost), whatever its logits prefer. Sampling and the losses,
 which train, see every action: barred while training, the policy stops in states where
 the head is unsure, and the head never learns the states it would have reached
-(docs/results.md, section 5). Not the exploration type: TorchRL's losses run under
+(docs/lab/scenarios.md). Not the exploration type: TorchRL's losses run under
 ``DETERMINISTIC`` too.
 """
 

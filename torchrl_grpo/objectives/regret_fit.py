@@ -11,7 +11,7 @@ probability gets no gradient; a tenth of the cross-entropy to the group's best a
 
 On merge-v0 the cross-entropy to the best set alone takes the search's speed and not
 its caution (twice always-SLOWER's crashes), and this fit beats always-SLOWER
-(docs/results.md, section 5). The highway recipes regress the advantages instead
+(docs/lab/scenarios.md). The highway recipes regress the advantages instead
 (:class:`~torchrl_grpo.objectives.AdvantageRegressionLoss`).
 """
 

@@ -43,7 +43,7 @@ EpisodesOn = Literal["highway", "tensor"]
 #: and the tensor simulator in float64 follows it to 1e-9 (docs/sim.md, parity): a
 #: float32 planner's branches drift from the episode it drives, most on the roundabout's
 #: ring, where the search over always-SLOWER crashed in 27 of 1,000 highway-env episodes
-#: planning in float32 and in none in float64 (docs/results.md, section 5). On the tensor
+#: planning in float32 and in none in float64 (docs/lab/scenarios.md). On the tensor
 #: simulator the planner takes the episodes' own dtype, training's float32.
 PLAN_DTYPE: dict[str, torch.dtype] = {"highway": torch.float64, "tensor": torch.float32}
 
