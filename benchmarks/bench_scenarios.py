@@ -13,13 +13,19 @@ training evaluates on 10000.. and 20000..). Printed, in one run:
   whose actions are longitudinal only: always-IDLE) and PPO of that seed
   ("beats": a mean return higher by more than two standard errors of the per-episode
   difference, and a crash rate no higher);
-* each run's training minutes and frames;
-* with ``--search-horizon H``, the test-time search over always-SLOWER and over each GRPO
-  run (every action tried, then ``H - 1`` greedy steps of that policy, on the tensor
-  simulator from the highway-env state:
-  :func:`~torchrl_grpo.training.search_eval.evaluate_search`), on the same highway-env
-  episodes, each paired against the policy it searches over: what the scenario allows a
-  policy that looks ahead, and how far the learner trails it.
+* each run's training minutes and frames.
+
+``--crash-margin m`` drives the GRPO runs at the crash margin ``m`` (``none``: without
+one) instead of their own ``model.crash_margin``: the margin acts only on the greedy
+choice (:func:`~torchrl_grpo.training.model_builder.set_crash_margin`), so one training
+run can be driven at the margin chosen on other episodes.
+
+With ``--search-horizon H``, also the test-time search over always-SLOWER and over each
+GRPO run (every action tried, then ``H - 1`` greedy steps of that policy, on the tensor
+simulator from the highway-env state:
+:func:`~torchrl_grpo.training.search_eval.evaluate_search`), on the same highway-env
+episodes, each paired against the policy it searches over: what the scenario allows a
+policy that looks ahead, and how far the learner trails it.
 
 Each policy's episodes are kept in ``--out`` (one JSON file per policy, run and seed set,
 the run named by its folder and a digest of its checkpoint; runs trained with config
@@ -28,7 +34,7 @@ interrupted run picks up where it stopped.
 
     python benchmarks/bench_scenarios.py --grpo runs/merge_grpo_s0 runs/merge_grpo_s1 \\
         runs/merge_grpo_s2 --ppo runs/merge_ppo_s0 runs/merge_ppo_s1 runs/merge_ppo_s2 \\
-        --episodes 1000 --seed 40000 [--search-horizon 8]
+        --episodes 1000 --seed 40000 [--search-horizon 8] [--crash-margin 0.01]
 """
 
 from __future__ import annotations
@@ -49,6 +55,7 @@ from torchrl_grpo.training.config import typed_config
 from torchrl_grpo.training.env_builder import make_layout
 from torchrl_grpo.training.eval_episodes import eval_workers
 from torchrl_grpo.training.evaluation import BASELINE_LABELS, baseline_policy
+from torchrl_grpo.training.model_builder import set_crash_margin
 from torchrl_grpo.training.results import EvalResult, compare_paired, paired_difference
 from torchrl_grpo.training.search_eval import evaluate_search
 from torchrl_grpo.training.transfer import evaluate_on_tensor, paired_gap
@@ -76,6 +83,19 @@ def run_key(run: Path) -> str:
     """
     digest = hashlib.sha1((run / "last.pt").read_bytes()).hexdigest()[:10]
     return f"{run.name}_{digest}"
+
+
+def parse_margin(text: str) -> float | None:
+    """``--crash-margin``'s value: a probability in ``[0, 1]``, or ``none``."""
+    if text == "none":
+        return None
+    try:
+        margin = float(text)
+    except ValueError:
+        margin = float("nan")
+    if not 0 <= margin <= 1:
+        raise argparse.ArgumentTypeError(f"a probability in [0, 1] or 'none', got {text!r}")
+    return margin
 
 
 def _row(res: EvalResult, tensor: EvalResult | None) -> str:
@@ -123,6 +143,13 @@ def main() -> None:
         type=int,
         default=0,
         help="> 0: also the test-time search over always-SLOWER and each GRPO run, this many steps",
+    )
+    p.add_argument(
+        "--crash-margin",
+        type=parse_margin,
+        default=argparse.SUPPRESS,
+        help="drive the GRPO runs at this model.crash_margin ('none': without one); "
+        "default: each run's own",
     )
     args = p.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -193,6 +220,13 @@ def main() -> None:
             policy = load_run_policy(str(run / "last.pt"), env_cfg, env)
             name = f"{algo} seed {seed}"
             key = run_key(run)
+            if algo == "grpo" and hasattr(args, "crash_margin"):
+                try:
+                    set_crash_margin(policy, args.crash_margin)
+                except ValueError as err:
+                    raise SystemExit(f"--crash-margin: {run}: {err}") from err
+                name += f", crash_margin={args.crash_margin}"
+                key += f"_margin_{args.crash_margin}"
             res = run_policy(name, key, policy)
             trained[algo].append(res)
             rows.append((res, run_tensor(name, key, policy)))

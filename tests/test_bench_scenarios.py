@@ -1,7 +1,10 @@
-"""benchmarks/bench_scenarios.py keeps each run's episodes under a key of that run alone."""
+"""benchmarks/bench_scenarios.py: each run's episodes under a key of that run alone, and --crash-margin."""
 
+import argparse
 import sys
 from pathlib import Path
+
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
@@ -22,3 +25,11 @@ def test_runs_of_one_folder_name_elsewhere_keep_their_own_results(tmp_path):
     assert bench_scenarios.run_key(first) != bench_scenarios.run_key(second)
     assert bench_scenarios.run_key(first) == bench_scenarios.run_key(copy)
     assert bench_scenarios.run_key(first).startswith("grpo_s0_")
+
+
+def test_crash_margin_flag_takes_a_probability_or_none():
+    assert bench_scenarios.parse_margin("none") is None
+    assert bench_scenarios.parse_margin("0.01") == 0.01
+    for bad in ("2", "-0.1", "nan", "tight"):
+        with pytest.raises(argparse.ArgumentTypeError, match=f"got '{bad}'"):
+            bench_scenarios.parse_margin(bad)

@@ -46,13 +46,12 @@ import torch
 from omegaconf import OmegaConf
 
 import torchrl_grpo.experimental  # noqa: F401  (runs of algo=grpo_lab load too)
-from torchrl_grpo.modules import CrashHead
 from torchrl_grpo.training import evaluate, load_run_policy, make_env
 from torchrl_grpo.training.checkpoint import load_checkpoint
 from torchrl_grpo.training.env_builder import make_layout
 from torchrl_grpo.training.eval_episodes import eval_workers
 from torchrl_grpo.training.evaluation import BASELINE_LABELS, baseline_policy
-from torchrl_grpo.training.model_builder import slower_action
+from torchrl_grpo.training.model_builder import set_crash_margin
 from torchrl_grpo.training.results import EvalResult, paired_difference
 from torchrl_grpo.training.search_eval import PLAN_DTYPE, evaluate_search
 from torchrl_grpo.training.transfer import evaluate_on_tensor
@@ -74,13 +73,10 @@ TABLE_HEADER = (
 
 def with_margin(policy: torch.nn.Module, margin: str) -> torch.nn.Module:
     """``policy`` with its crash heads' margin set to ``margin`` (``"none"``: no margin)."""
-    heads = [m for m in policy.modules() if isinstance(m, CrashHead)]
-    if not heads:
-        raise SystemExit("--crash-margins needs runs with a crash head (model.crash_head=true)")
-    margin_value = None if margin == "none" else float(margin)
-    for head in heads:
-        head.set_margin(margin_value, slower_action(head.n_actions))
-    return policy
+    try:
+        return set_crash_margin(policy, None if margin == "none" else float(margin))
+    except ValueError as err:
+        raise SystemExit(f"--crash-margins: {err}") from err
 
 
 def table_row(res: EvalResult, slower: EvalResult, seconds: float) -> str:

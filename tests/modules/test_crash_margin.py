@@ -16,7 +16,7 @@ from torchrl_grpo.modules.actors import DeterministicActor
 from torchrl_grpo.modules.crash_head import BARRED, acting_greedily
 from torchrl_grpo.modules.scripted.actions import SLOWER
 from torchrl_grpo.training.group_schemas import MLPModelConfig
-from torchrl_grpo.training.model_builder import make_policy
+from torchrl_grpo.training.model_builder import make_policy, set_crash_margin
 
 
 def _logit(p: float) -> float:
@@ -111,3 +111,30 @@ def test_model_crash_margin_keeps_slower_and_needs_the_crash_head():
     cfg.crash_head = False
     with pytest.raises(ValueError, match="model.crash_margin=0.01 .* needs model.crash_head=true"):
         make_policy(cfg, env)
+
+
+def test_set_crash_margin_drives_a_built_policy_as_if_trained_with_that_margin():
+    # A trained run driven at another margin (bench_scenarios.py --crash-margin) acts as
+    # the same weights built with model.crash_margin would, and None lifts the bar.
+    torch.manual_seed(0)
+    env = HighwayEnv(seed=0)
+    fields = OmegaConf.to_container(OmegaConf.structured(MLPModelConfig))
+    cfg = OmegaConf.create({**fields, "crash_head": True, "ensemble": 2})  # model=lab's key
+    plain, state = make_policy(cfg, env), env.reset()
+    cfg.crash_margin = 0.01
+    barred = make_policy(cfg, env)
+    barred.load_state_dict(plain.state_dict())
+    set_crash_margin(plain, 0.01)
+    heads = [m for m in plain.modules() if isinstance(m, CrashHead)]
+    assert [(h.margin, h.fallback) for h in heads] == [(0.01, SLOWER)] * 2
+    with acting_greedily():
+        assert torch.equal(plain(state.clone())["logits"], barred(state.clone())["logits"])
+        set_crash_margin(plain, None)
+        assert all(h.margin is None for h in heads)
+        lifted = plain(state.clone())["logits"]
+    assert torch.equal(lifted, barred(state.clone())["logits"])  # sampling sees every action
+    with pytest.raises(ValueError, match="margin must be a probability in \\[0, 1\\], got 2"):
+        set_crash_margin(plain, 2.0)
+    cfg.crash_head, cfg.crash_margin = False, None
+    with pytest.raises(ValueError, match="this policy has none .*model.crash_head=true"):
+        set_crash_margin(make_policy(cfg, env), 0.01)

@@ -34,6 +34,7 @@ __all__ = [
     "make_value",
     "register_network_kind",
     "register_policy_wrapper",
+    "set_crash_margin",
     "slower_action",
 ]
 
@@ -269,6 +270,46 @@ def slower_action(n_actions: int) -> int:
         f"model.crash_margin keeps SLOWER allowed, an action of highway-env's "
         f"DiscreteMetaAction (5 actions, or 3 longitudinal); this env has {n_actions}"
     )
+
+
+def set_crash_margin(policy: nn.Module, margin: float | None) -> nn.Module:
+    """Set ``model.crash_margin`` on a built policy's crash heads (None: no margin).
+
+    The margin acts only on the greedy choice, so a trained run can be driven at another
+    margin without training again: what ``benchmarks/bench_scenarios.py --crash-margin``
+    does to a run's saved policy.
+
+    Args:
+        policy: a policy of :func:`make_policy` with ``model.crash_head=true`` (every
+            member of an ensemble gets the margin).
+        margin: how much likelier to crash than SLOWER an action may be and still be the
+            greedy choice, in ``[0, 1]``; None: any action may be.
+
+    Returns:
+        ``policy``, changed in place.
+
+    Raises:
+        ValueError: the policy has no crash head, or the margin is not in ``[0, 1]``.
+
+    Example:
+        >>> from omegaconf import OmegaConf
+        >>> from torchrl_grpo.training.group_schemas import MLPModelConfig
+        >>> from torchrl_grpo.envs import HighwayEnv
+        >>> cfg = OmegaConf.structured(MLPModelConfig(crash_head=True))
+        >>> policy = set_crash_margin(make_policy(cfg, HighwayEnv(seed=0)), 0.01)
+        >>> [m.margin for m in policy.modules() if isinstance(m, CrashHead)]
+        [0.01]
+    """
+    heads = [m for m in policy.modules() if isinstance(m, CrashHead)]
+    if not heads:
+        raise ValueError(
+            f"a crash margin of {margin} bars actions by the crash head's probabilities; "
+            "this policy has none (train it with model.crash_head=true)"
+        )
+    for head in heads:
+        fallback = None if margin is None else slower_action(head.n_actions)
+        head.set_margin(margin, fallback)
+    return policy
 
 
 def make_base_policy(name: str, env: EnvBase, key: str) -> ScriptedPolicy:
