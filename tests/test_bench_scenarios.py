@@ -1,4 +1,4 @@
-"""benchmarks/bench_scenarios.py: each run's episodes under a key of that run alone, and --crash-margin."""
+"""benchmarks/bench_scenarios.py: results keyed by run alone, and the --crash-margin flag."""
 
 import argparse
 import sys
