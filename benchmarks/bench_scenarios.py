@@ -225,8 +225,8 @@ def main() -> None:
                     set_crash_margin(policy, args.crash_margin)
                 except ValueError as err:
                     raise SystemExit(f"--crash-margin: {run}: {err}") from err
+                # The name, part of the cached file's, keeps two margins' episodes apart.
                 name += f", crash_margin={args.crash_margin}"
-                key += f"_margin_{args.crash_margin}"
             res = run_policy(name, key, policy)
             trained[algo].append(res)
             rows.append((res, run_tensor(name, key, policy)))
