@@ -4,8 +4,8 @@ Usage: ``python benchmarks/bench_parity.py [--scenario highway-fast-v0 | highway
 merge-v0 | roundabout-v0 | intersection-v0] [--worlds 2000] [--episodes 500] [--fresh 1000]
 [--native]``
 
-``--native``: the same ladder for the C++ step (``TensorHighwayEnv(native=True)``, the
-highway scenarios).
+``--native``: the same ladder for the C++ step (``TensorHighwayEnv(native=True)``:
+highway-v0, highway-fast-v0, roundabout-v0).
 
 Float64 on CPU, worlds moved through the bridge. Rungs (issue #17):
 

@@ -12,7 +12,7 @@ import warnings
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from torchrl_grpo.envs import HIGHWAY_SCENARIOS
+from torchrl_grpo.envs import HIGHWAY_SCENARIOS, TensorHighwayEnv
 from torchrl_grpo.envs.core.bits import FLOAT_BITS
 
 # highway-env flags its older scenario versions as out of date on every gym.make.
@@ -193,3 +193,38 @@ def visited_states(scenario: str, n_actions: int, episodes: int = 3, steps: int 
                 states.append(env.get_state())
                 break
     return torch.stack(states)
+
+
+def replayed_twice(env, steps: int, seed: int = 0) -> list:
+    """Two plays of the same random actions from one restored root: (outputs, final state).
+
+    The batched env's ``step_and_maybe_reset`` runs ``steps`` steps (episodes end and
+    rows reset) from ``env.get_state()`` twice; a deterministic step gives equal plays.
+    """
+    batch = env.batch_size[0]
+    g = torch.Generator().manual_seed(seed)
+    actions = [torch.randint(0, 5, (batch,), generator=g) for _ in range(steps)]
+    root = env.get_state()
+    plays = []
+    for _ in range(2):
+        td = env.reset(TensorDict(state=root, batch_size=[batch]), set_state=True)
+        play = []
+        for action in actions:
+            td.set("action", action)
+            out, td = env.step_and_maybe_reset(td)
+            play.append(out["next"].exclude("state"))
+        plays.append((torch.stack(play), env.get_state()))
+    return plays
+
+
+def stepped_states(scenario: str, dtype, steps: int, batch: int = 32) -> list:
+    """The tensor step's states after each of ``steps`` random steps (finished rows reset)."""
+    env = TensorHighwayEnv(scenario, num_envs=batch, seed=5, dtype=dtype)
+    g = torch.Generator().manual_seed(2)
+    td = env.reset()
+    states = []
+    for _ in range(steps):
+        td.set("action", torch.randint(0, 5, (batch,), generator=g))
+        _, td = env.step_and_maybe_reset(td)
+        states.append(env.get_state())
+    return states

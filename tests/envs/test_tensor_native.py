@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from env_helpers import replayed_twice, stepped_states
 from parity_helpers import recording_policies, reference_policies
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
@@ -69,26 +70,13 @@ def test_ladder_a_b_on_highway_v0_all_pairs_collisions():
     assert one_step(env, states).agreement >= 0.995
 
 
-def _states(dtype, scenario="highway-fast-v0", batch=32, steps=25):
-    """States after ``steps`` random steps of the tensor step (lane changes among them)."""
-    env = TensorHighwayEnv(scenario, num_envs=batch, seed=5, dtype=dtype)
-    g = torch.Generator().manual_seed(2)
-    td = env.reset()
-    states = []
-    for _ in range(steps):
-        td.set("action", torch.randint(0, 5, (batch,), generator=g))
-        _, td = env.step_and_maybe_reset(td)
-        states.append(env.get_state())
-    return states
-
-
 @pytest.mark.parametrize("scenario", ["highway-fast-v0", "highway-v0"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_one_step_agrees_with_the_tensor_step(dtype, scenario):
     # float32: an ulp or two (positions reach 1 km on highway-v0: an ulp is 1.2e-4 there).
     rtol, atol = {torch.float32: (1e-6, 1e-4), torch.float64: (0, 1e-11)}[dtype]
     # highway-v0's tensor step is 3 times as long (15 substeps, 51 vehicles): fewer steps.
-    states = _states(dtype, scenario, steps=25 if scenario == "highway-fast-v0" else 10)
+    states = stepped_states(scenario, dtype, steps=25 if scenario == "highway-fast-v0" else 10)
     batch = states[0].shape[0]
     action = TensorDict(action=torch.arange(batch) % 5, batch_size=[batch])
     envs = [
@@ -106,21 +94,9 @@ def test_one_step_agrees_with_the_tensor_step(dtype, scenario):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_a_restore_replays_the_same_bits(dtype):
-    batch = 16
-    env = TensorHighwayEnv(num_envs=batch, seed=3, dtype=dtype, native=True)
-    td = env.reset()
-    g = torch.Generator().manual_seed(0)
-    actions = [torch.randint(0, 5, (batch,), generator=g) for _ in range(40)]
-    root = env.get_state()
-    plays = []
-    for _ in range(2):
-        td = env.reset(TensorDict(state=root, batch_size=[batch]), set_state=True)
-        play = []
-        for action in actions:  # 40 steps: episodes end and rows reset
-            td.set("action", action)
-            out, td = env.step_and_maybe_reset(td)
-            play.append(out["next"].exclude("state"))
-        plays.append((torch.stack(play), env.get_state()))
+    env = TensorHighwayEnv(num_envs=16, seed=3, dtype=dtype, native=True)
+    env.reset()
+    plays = replayed_twice(env, 40)  # 40 steps: episodes end and rows reset
     torch.testing.assert_close(plays[0], plays[1], rtol=0, atol=0)
 
 
@@ -144,8 +120,8 @@ def test_the_input_world_is_left_as_it_was():
 
 
 def test_other_scenarios_are_refused_and_the_env_steps_on():
-    env = TensorHighwayEnv("merge-v0", num_envs=2, seed=0)
-    with pytest.raises(ValueError, match="merge-v0"):
+    env = TensorHighwayEnv("intersection-v0", num_envs=2, seed=0)
+    with pytest.raises(ValueError, match="intersection-v0"):
         env.native()
     assert env.rollout(2)["next", "reward"].shape == (2, 2, 1)
     with pytest.raises(ValueError, match="on the CPU"):

@@ -4,17 +4,19 @@
 
 namespace highway {
 
-// utils.are_polygons_intersecting on the rectangles of vehicles a and b, a's swept by
-// the pair's relative displacement over dt: (intersecting, will intersect, translation).
+// utils.are_polygons_intersecting on the rectangles of vehicles a and b (b of size
+// b_length x b_width: an obstacle's may differ), a's swept by the pair's relative
+// displacement over dt: (intersecting, will intersect, translation).
 template <class T>
 void separating_axes(const Params& p, const World<T>& w, int a, int b, bool& hit, bool& will,
-                     T& tx, T& ty) {
-  const T hl = T(p.length / 2), hw = T(p.width / 2), dt = T(p.dt);
-  const T px[4] = {-hl, -hl, hl, hl}, py[4] = {-hw, hw, hw, -hw};
+                     T& tx, T& ty, double b_length, double b_width) {
+  const T dt = T(p.dt);
+  const T hl[2] = {T(p.length / 2), T(b_length / 2)}, hw[2] = {T(p.width / 2), T(b_width / 2)};
   T cx[2][4], cy[2][4], c[2], s[2];
   const int cars[2] = {a, b};
   for (int k = 0; k < 2; ++k) {
     int v = cars[k];
+    const T px[4] = {-hl[k], -hl[k], hl[k], hl[k]}, py[4] = {-hw[k], hw[k], hw[k], -hw[k]};
     c[k] = std::cos(w.h[v]), s[k] = std::sin(w.h[v]);
     for (int q = 0; q < 4; ++q) {
       cx[k][q] = (c[k] * px[q] + (-s[k]) * py[q]) + w.x[v];
@@ -76,7 +78,7 @@ void collide(const Params& p, World<T>& w) {
       if (!w.present[j] || (all && !w.checks[i] && !w.checks[j]) || !near(p, w, i, j)) continue;
       bool hit, will;
       T tx, ty;
-      separating_axes(p, w, i, j, hit, will, tx, ty);
+      separating_axes(p, w, i, j, hit, will, tx, ty, p.length, p.width);
       if (hit) w.crashed[i] = w.crashed[j] = true;
       if (will) {
         w.impact[i] = w.impact[j] = true;

@@ -10,10 +10,6 @@
 // functions round differently. Worlds are split over `threads` threads.
 //
 // Built and loaded by torchrl_grpo/sim/native.py; no dependency beyond the C++ library.
-#include <atomic>
-#include <thread>
-#include <vector>
-
 #include "highway_collide.h"
 #include "highway_native.h"
 #include "highway_observe.h"
@@ -213,40 +209,10 @@ struct Model {
   }
 
   void move(World<T>& w) const {  // Vehicle.step(dt) of every row, padding included
-    const T dt = T(p.dt), top = T(p.max_speed), bottom = T(p.min_speed);
-    for (int i = 0; i < n; ++i) {
-      T steering = w.crashed[i] ? T(0) : w.steer[i];
-      T a = w.crashed[i] ? w.v[i] * T(-1) : w.acc[i];
-      if (w.v[i] > top)
-        a = std::min(a, (top - w.v[i]) * T(1));
-      else if (w.v[i] < bottom)
-        a = std::max(a, (bottom - w.v[i]) * T(1));
-      T beta = std::atan(std::tan(steering) * T(0.5));
-      T x = w.x[i] + (w.v[i] * std::cos(w.h[i] + beta)) * dt;
-      T y = w.y[i] + (w.v[i] * std::sin(w.h[i] + beta)) * dt;
-      if (w.impact[i]) x = x + w.ix[i], y = y + w.iy[i];
-      T h = w.h[i] + ((w.v[i] * std::sin(beta)) / T(p.length / 2)) * dt;
-      if (i > 0) w.timer[i] = w.timer[i] + dt;
-      w.x[i] = x, w.y[i] = y, w.h[i] = h;
-      w.v[i] = w.v[i] + a * dt;
-      w.steer[i] = steering, w.acc[i] = a;
-      w.ix[i] = w.iy[i] = T(0);
-      w.lane[i] = closest_lane(x, y, h);
-      w.crashed[i] = w.crashed[i] || w.impact[i];
-      w.impact[i] = false;
-    }
+    move_rows(w, T(p.dt), T(p.max_speed), T(p.min_speed), T(p.length / 2),
+              [this](T x, T y, T h, int64_t) { return closest_lane(x, y, h); });
   }
-
 };
-
-template <class T>
-World<T> rows_of(const Table& t, int64_t b, int n) {
-  auto f = [&](void* col) { return static_cast<T*>(col) + b * n; };
-  return {f(t.x), f(t.y), f(t.heading), f(t.speed), f(t.target_speed), f(t.steering),
-          f(t.acceleration), f(t.timer), f(t.delta), f(t.impact_x), f(t.impact_y),
-          t.lane + b * n, t.target_lane + b * n, t.crashed + b * n, t.impact + b * n,
-          t.check_collisions + b * n, t.present + b * n, n};
-}
 
 template <class T>
 void step_rows(const Params& p, const Table& t, int64_t lo, int64_t hi, int n, int frames,
@@ -288,25 +254,12 @@ using highway::Table;
 extern "C" int highway_step(const Params* p, const Table* t, int64_t batch, int64_t n,
                             int frames, void* obs, int is_double, int threads) {
   if (p->n_speeds < 1 || p->n_speeds > 16 || p->obs_features > 8 || n < 1) return 1;
-  // Threads take blocks of worlds as they free up, so that a thread on a core that
-  // another process shares does not hold the others back (a world's result does not
-  // depend on which thread steps it).
-  const int64_t block = 32;
-  std::atomic<int64_t> next{0};
-  auto run = [&]() {
-    for (int64_t lo; (lo = next.fetch_add(block)) < batch;) {
-      int64_t hi = std::min(batch, lo + block);
-      if (is_double)
-        highway::step_rows<double>(*p, *t, lo, hi, int(n), frames, obs);
-      else
-        highway::step_rows<float>(*p, *t, lo, hi, int(n), frames, obs);
-    }
-  };
-  int64_t workers = std::max<int64_t>(1, std::min<int64_t>(threads, (batch + block - 1) / block));
-  std::vector<std::thread> pool;
-  for (int64_t k = 1; k < workers; ++k) pool.emplace_back(run);
-  run();
-  for (auto& th : pool) th.join();
+  highway::for_blocks(batch, threads, [&](int64_t lo, int64_t hi) {
+    if (is_double)
+      highway::step_rows<double>(*p, *t, lo, hi, int(n), frames, obs);
+    else
+      highway::step_rows<float>(*p, *t, lo, hi, int(n), frames, obs);
+  });
   return 0;
 }
 

@@ -34,18 +34,14 @@ from __future__ import annotations
 
 import ctypes
 import functools
-import hashlib
 import logging
 import math
-import os
-import shutil
-import subprocess
-import tempfile
 from pathlib import Path
 
 import torch
 
 from torchrl_grpo.sim.control import speed_to_index
+from torchrl_grpo.sim.native_build import NativeBuildError, build_library
 from torchrl_grpo.sim.observation import FEATURES
 from torchrl_grpo.sim.params import HighwayParams
 from torchrl_grpo.sim.simulate import observe_world
@@ -61,12 +57,7 @@ SOURCES = (
     SOURCE,
     *(SOURCE.with_name(f"highway_{n}.h") for n in ("native", "collide", "observe", "reset")),
 )
-FLAGS = ("-O2", "-std=c++17", "-ffp-contract=off", "-fPIC", "-shared", "-pthread")
 MAX_SPEEDS = 16
-
-
-class NativeBuildError(RuntimeError):
-    """The C++ step could not be compiled (no compiler, or the compiler failed)."""
 
 
 class NativeParams(ctypes.Structure):
@@ -99,23 +90,13 @@ class NativeParams(ctypes.Structure):
     ]
 
 
-_COLUMNS = FLOAT_FIELDS + INT_FIELDS + BOOL_FIELDS + ("speed_index", "steps", "action")
+TABLE_COLUMNS = FLOAT_FIELDS + INT_FIELDS + BOOL_FIELDS + ("speed_index", "steps", "action")
 
 
 class NativeTable(ctypes.Structure):
     """Column pointers, in ``highway_native.cpp``'s ``Table`` order."""
 
-    _fields_ = [(name, ctypes.c_void_p) for name in _COLUMNS]
-
-
-def _cache_dir() -> Path:
-    root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "torchrl_grpo"
-    try:
-        root.mkdir(parents=True, exist_ok=True)
-    except OSError:  # a read-only home: the temporary directory instead
-        root = Path(tempfile.gettempdir()) / f"torchrl_grpo-{os.getuid()}"
-        root.mkdir(parents=True, exist_ok=True)
-    return root
+    _fields_ = [(name, ctypes.c_void_p) for name in TABLE_COLUMNS]
 
 
 @functools.cache
@@ -129,30 +110,7 @@ def load_library() -> ctypes.CDLL:
         >>> load_library().highway_step.restype
         <class 'ctypes.c_int'>
     """
-    source = b"".join(path.read_bytes() for path in SOURCES)
-    digest = hashlib.sha256(source + " ".join(FLAGS).encode()).hexdigest()[:16]
-    target = _cache_dir() / f"highway_native-{digest}.so"
-    if not target.exists():
-        asked = os.environ.get("CXX")
-        compiler = shutil.which(asked) if asked else shutil.which("c++") or shutil.which("g++")
-        if not compiler:
-            raise NativeBuildError(
-                f"the C++ highway step needs a C++ compiler: found none "
-                f"({'CXX=' + repr(asked) if asked else 'no c++ or g++ on PATH'}); "
-                "install g++ or step with tensors: "
-                "TensorHighwayEnv(..., native=False)"
-            )
-        # Built beside the target and renamed: concurrent builds (test workers) never
-        # load a half-written library.
-        with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
-            built = Path(tmp) / target.name
-            command = [compiler, *FLAGS, str(SOURCE), "-o", str(built)]
-            run = subprocess.run(command, capture_output=True, text=True)
-            if run.returncode != 0:
-                raise NativeBuildError(f"{' '.join(command)} failed:\n{run.stderr[-2000:]}")
-            os.replace(built, target)
-        logger.info("built %s", target)
-    library = ctypes.CDLL(str(target))
+    library = build_library(SOURCES)
     library.highway_reset.restype = ctypes.c_int
     pointer = ctypes.c_void_p
     library.highway_reset.argtypes = [
@@ -227,15 +185,16 @@ def _fresh_constants(values: NativeParams, params: HighwayParams) -> None:
     values.delta_lo, values.delta_span = low, high - low
 
 
-def _columns(world: World, clone: bool) -> dict[str, torch.Tensor]:
+def world_columns(world: World, clone: bool, routed: bool = False) -> dict[str, torch.Tensor]:
     """The contiguous columns the C++ code reads (and, cloned, writes), by ``Table`` name.
 
     Raises:
-        ValueError: a world off the CPU, or with routes (not a highway scenario).
+        ValueError: a world off the CPU, or with routes where ``routed`` is False (not a
+            highway scenario).
     """
     if world.vehicles.x.device.type != "cpu":
         raise ValueError(f"the C++ step runs on the CPU; the world is on {world.vehicles.x.device}")
-    if world.route is not None:
+    if world.route is not None and not routed:
         raise ValueError("the C++ step covers highway-v0 and highway-fast-v0 (no routes)")
     columns = {name: getattr(world.vehicles, name) for name in world.vehicles._fields}
     columns.update(speed_index=world.speed_index, steps=world.steps)
@@ -243,7 +202,7 @@ def _columns(world: World, clone: bool) -> dict[str, torch.Tensor]:
     return {k: t.contiguous().clone() if clone else t.contiguous() for k, t in columns.items()}
 
 
-def _with_columns(world: World, columns: dict[str, torch.Tensor], **words) -> World:
+def with_columns(world: World, columns: dict[str, torch.Tensor], **words) -> World:
     """``world`` holding the columns the C++ code wrote, and the given per-world words."""
     vehicles = world.vehicles._replace(**{k: columns[k] for k in world.vehicles._fields})
     return world._replace(
@@ -257,13 +216,13 @@ def _run(world: World, action: torch.Tensor | None, params: HighwayParams, threa
     v = world.vehicles
     batch, n = v.x.shape
     copy = frames > 0  # an observation alone writes nothing
-    columns = _columns(world, clone=copy)
+    columns = world_columns(world, clone=copy)
     if copy:
         columns["action"] = action.to(torch.int64).contiguous()
     obs = params.observation
     observation = v.x.new_empty(batch, obs.vehicles_count, len(obs.features))
     table = NativeTable(
-        *(columns[name].data_ptr() if name in columns else None for name in _COLUMNS)
+        *(columns[name].data_ptr() if name in columns else None for name in TABLE_COLUMNS)
     )
     status = library.highway_step(
         ctypes.byref(_native_params(params)), ctypes.byref(table), batch, n, frames,
@@ -273,7 +232,7 @@ def _run(world: World, action: torch.Tensor | None, params: HighwayParams, threa
     if status != 0:
         raise ValueError(f"the C++ step refused its input (status {status})")
     if copy:
-        world = _with_columns(world, columns, time=world.time + params.time.step_time)
+        world = with_columns(world, columns, time=world.time + params.time.step_time)
     return world, observe_world(world, params, observation=observation)
 
 
@@ -356,12 +315,12 @@ def native_fresh(
     """
     v = world.vehicles
     batch, n = v.x.shape
-    columns = _columns(world, clone=True)
+    columns = world_columns(world, clone=True)
     key, counter = world.rng_key.contiguous(), world.rng_counter.contiguous().clone()
     time = world.time.contiguous().clone()
     words, seeds = words.contiguous().clone(), seeds.contiguous().clone()
     rows = rows.to(torch.bool).contiguous()
-    table = NativeTable(*(columns[k].data_ptr() if k in columns else None for k in _COLUMNS))
+    table = NativeTable(*(columns[k].data_ptr() if k in columns else None for k in TABLE_COLUMNS))
     status = load_library().highway_reset(
         ctypes.byref(_native_params(params)), ctypes.byref(table), batch, n,
         *(t.data_ptr() for t in (rows, key, counter, time, words, seeds)),
@@ -369,4 +328,4 @@ def native_fresh(
     )  # fmt: skip
     if status != 0:
         raise ValueError(f"the C++ reset refused its input (status {status})")
-    return _with_columns(world, columns, time=time, rng_counter=counter), words, seeds
+    return with_columns(world, columns, time=time, rng_counter=counter), words, seeds

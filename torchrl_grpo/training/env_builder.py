@@ -11,12 +11,12 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl.envs import EnvBase
 
 from torchrl_grpo.branching.branch_env import Backend, make_branch_env
-from torchrl_grpo.envs.highway.step_modes import NATIVE_SCENARIOS
+from torchrl_grpo.envs.highway.step_modes import NATIVE_SCENARIOS, load_native
 from torchrl_grpo.envs.highway.tensor_env import TensorHighwayEnv
 from torchrl_grpo.envs.highway.tensor_params import check_tensor_config
 from torchrl_grpo.envs.highway.wrapper import HighwayEnv
 from torchrl_grpo.modules.kinematics_table import KinematicsLayout
-from torchrl_grpo.sim.native import NativeBuildError, load_library
+from torchrl_grpo.sim.native_build import NativeBuildError
 
 __all__ = [
     "steps_natively",
@@ -39,7 +39,7 @@ __all__ = [
 RolloutBackend = Literal[Backend, "ray"]
 #: The simulator training runs on (``env.backend``): ``tensor`` (the batched simulator,
 #: :class:`~torchrl_grpo.envs.TensorHighwayEnv`, its tensor step), ``native`` (the same
-#: with its step in C++, ``native=True``: highway-v0 and highway-fast-v0 on a CPU),
+#: with its step in C++, ``native=True``: highway-v0, highway-fast-v0 and roundabout-v0 on a CPU),
 #: ``highway`` (highway-env itself, on ``rollout.backend`` workers), or ``auto``: the
 #: tensor simulator where it covers the scenario and config (its C++ step where it has
 #: one, on a CPU), highway-env elsewhere.
@@ -85,7 +85,7 @@ def env_backend(env_cfg: DictConfig) -> Literal["tensor", "highway"]:
 def steps_natively(env_cfg: DictConfig, device: str | torch.device = "cpu") -> bool:
     """Whether the tensor simulator steps in C++ (``TensorHighwayEnv(native=True)``).
 
-    ``env.backend=native`` always; ``auto`` for highway-v0 and highway-fast-v0 on a CPU,
+    ``env.backend=native`` always; ``auto`` for ``NATIVE_SCENARIOS`` on a CPU,
     unless the C++ step cannot be built here (no compiler: logged, the tensor step then).
     Call it where :func:`env_backend` chose the tensor simulator.
 
@@ -101,7 +101,7 @@ def steps_natively(env_cfg: DictConfig, device: str | torch.device = "cpu") -> b
     if env_cfg.scenario not in NATIVE_SCENARIOS or torch.device(device).type != "cpu":
         return False
     try:
-        load_library()
+        load_native(env_cfg.scenario)
     except NativeBuildError as err:
         log.warning("env.backend=auto: the tensor step, as the C++ one is unavailable (%s)", err)
         return False

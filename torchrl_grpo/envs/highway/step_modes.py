@@ -17,7 +17,8 @@ episodes, all pure functions of tensors:
   CUDA graphs; on a CPU 12 times the eager arithmetic, slower even compiled).
 - :func:`native_mode`: highway-v0 and highway-fast-v0 on a CPU with the
   substeps, the observation and the fresh episodes in C++
-  (:mod:`torchrl_grpo.sim.native`), worlds split over threads.
+  (:mod:`torchrl_grpo.sim.native`), merge-v0 and roundabout-v0 with their substeps in
+  C++ (:mod:`torchrl_grpo.sim.routed_native`), worlds split over threads.
 
 Compiled and C++ steps compute the eager step's model expression by expression, but
 round a few functions differently (1 to 2 ulp): they replay their own bits after a
@@ -38,13 +39,25 @@ from typing import Any, NamedTuple
 
 import torch
 
+from torchrl_grpo.envs.highway.tensor_models import tensor_model
 from torchrl_grpo.sim.native import load_library, native_fresh, native_observe, native_step
+from torchrl_grpo.sim.routed_native import load_routed_library, routed_step
 from torchrl_grpo.sim.simulate import compiled_stages, eager_stages, substep
 
-__all__ = ["NATIVE_SCENARIOS", "StepMode", "compiled_mode", "eager_mode", "native_mode"]
+__all__ = [
+    "NATIVE_SCENARIOS",
+    "ROUTED_NATIVE_SCENARIOS",
+    "StepMode",
+    "compiled_mode",
+    "eager_mode",
+    "load_native",
+    "native_mode",
+]
 
 #: The scenarios whose step has a C++ version.
-NATIVE_SCENARIOS = ("highway-v0", "highway-fast-v0")
+NATIVE_SCENARIOS = ("highway-v0", "highway-fast-v0", "merge-v0", "roundabout-v0")
+#: Those of them on road graphs, whose observation and resets stay the tensor path's.
+ROUTED_NATIVE_SCENARIOS = ("merge-v0", "roundabout-v0")
 
 
 class StepMode(NamedTuple):
@@ -125,10 +138,14 @@ def compiled_mode(
 def native_mode(
     scenario: str, params, device: torch.device, threads: int | None = None
 ) -> StepMode:
-    """The C++ step of a highway scenario on a CPU.
+    """The C++ step of a scenario of ``NATIVE_SCENARIOS`` on a CPU.
+
+    highway-v0 and highway-fast-v0 step, observe and draw fresh worlds in C++
+    (:mod:`torchrl_grpo.sim.native`); merge-v0 and roundabout-v0 step their substeps in
+    C++ (:mod:`torchrl_grpo.sim.routed_native`) and keep the tensor observation and resets.
 
     Args:
-        scenario: ``"highway-v0"`` or ``"highway-fast-v0"``.
+        scenario: one of ``NATIVE_SCENARIOS``.
         params: its constants.
         device: must be the CPU.
         threads: threads over the worlds (default: ``torch.get_num_threads()`` at each
@@ -155,10 +172,27 @@ def native_mode(
         )
     if device.type != "cpu":
         raise ValueError(f"the C++ step runs on the CPU, not on {device}")
-    load_library()  # builds now, so that a missing compiler is reported here
+    if scenario in ROUTED_NATIVE_SCENARIOS:
+        load_routed_library()  # builds now, so that a missing compiler is reported here
+        eager = eager_mode(tensor_model(scenario), params, device)
+        step = functools.partial(routed_step, params=params, threads=threads)
+        return eager._replace(name="native", step=step)
+    load_library()
     return StepMode(
         "native",
         functools.partial(native_step, params=params, threads=threads),
         functools.partial(native_observe, params=params, threads=threads),
         functools.partial(native_fresh, params=params),
     )
+
+
+def load_native(scenario: str) -> None:
+    """Build (or load) the C++ step of ``scenario``, raising where it cannot be built.
+
+    Raises:
+        NativeBuildError: no C++ compiler, or it failed.
+
+    Example:
+        >>> load_native("roundabout-v0")
+    """
+    (load_routed_library if scenario in ROUTED_NATIVE_SCENARIOS else load_library)()

@@ -74,8 +74,8 @@ class TensorHighwayEnv(EnvBase):
             :class:`~torchrl_grpo.envs.InvalidActionError` naming rows and values (the env
             is left unchanged). One comparison a step, read back (a sync on a GPU).
         categorical_action_encoding: integer actions (``False``: one-hot).
-        native: step highway-v0 and highway-fast-v0 in C++ on the CPU (:meth:`native`),
-            the fastest step there (docs/sim.md, "Speed").
+        native: step highway-v0, highway-fast-v0 or roundabout-v0 in C++ on the CPU
+            (:meth:`native`), the fastest step there (docs/sim.md, "Speed").
 
     Example:
         >>> from torchrl.envs.utils import check_env_specs
@@ -173,10 +173,10 @@ class TensorHighwayEnv(EnvBase):
         return self
 
     def native(self, threads: int | None = None) -> TensorHighwayEnv:
-        """Step in C++ (highway scenarios, CPU): substeps, observation, fresh episodes; ``self``.
+        """Step in C++ on the CPU (highway-v0, highway-fast-v0, roundabout-v0); ``self``.
 
-        A loop per world, split over ``threads`` (default ``torch.get_num_threads()``),
-        the fastest step on a CPU; see :mod:`torchrl_grpo.sim.native`.
+        A loop per world over ``threads`` (default ``torch.get_num_threads()``), the fastest
+        step on a CPU: see :mod:`torchrl_grpo.sim.native`, :mod:`~torchrl_grpo.sim.routed_native`.
 
         Raises:
             ValueError: another scenario, or a GPU (the env is left as it was).
