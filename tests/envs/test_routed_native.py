@@ -149,6 +149,9 @@ def test_errors_name_the_problem_and_the_env_steps_on():
         routed_step(merge_world, torch.zeros(2, dtype=torch.int64), params)
     with pytest.raises(ValueError, match="on the CPU"):
         native_mode(SCENARIO, params, torch.device("cuda"))
+    many = {"action": {"type": "DiscreteMetaAction", "target_speeds": list(range(20))}}
+    with pytest.raises(ValueError, match="1 to 16 target speeds, got 20"):
+        TensorHighwayEnv(SCENARIO, many, num_envs=2, native=True)
     env = TensorHighwayEnv("intersection-v0", num_envs=2, seed=0)
     with pytest.raises(ValueError, match="intersection-v0"):
         env.native()

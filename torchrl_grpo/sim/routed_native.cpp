@@ -4,9 +4,9 @@
 //
 // A loop per world and per vehicle, in road order: each IDM vehicle follows the road
 // (its route, on the roundabout), runs MOBIL (with the route rule while a route's head
-// leg names a lane), scans for aborts (reading the targets decided before
-// it and the old ones after it, as the tensor path's scan does), steers and brakes; then
-// every vehicle moves and takes its closest lane; then pairs collide. Each expression
+// leg names a lane), scans for aborts (reading the targets decided before it and the
+// old ones after it, as the tensor path's scan does), steers and brakes; then every
+// vehicle moves and takes its closest lane; then pairs collide. Each expression
 // keeps the tensor path's operation order and rounds its constants to T as it does
 // (a Python float over a tensor, `c / t`, is torch's reciprocal(t) * c), so float64
 // agrees with the tensor path to rounding. Worlds are split over `threads` threads.
@@ -26,9 +26,8 @@ struct RoutedModel {
   Params collision;  // the fields collide() reads
   Lanes<T> lanes;
   int n;
-  std::vector<T> cos_h, sin_h, s_own, r_own, s_in, r_in;
-
   int o;  // the obstacle's row (n: none), which never acts nor moves
+  std::vector<T> cos_h, sin_h, s_own, r_own, s_in, r_in;
 
   RoutedModel(const RoutedParams& params, int vehicles)
       : p(params), collision(), lanes(params), n(vehicles) {

@@ -50,7 +50,7 @@ from torchrl_grpo.sim.roundabout_output import observe_roundabout
 from torchrl_grpo.sim.roundabout_params import RoundaboutParams
 from torchrl_grpo.sim.state import World
 
-__all__ = ["load_routed_library", "routed_step"]
+__all__ = ["load_routed_library", "routed_road", "routed_step"]
 
 SOURCE = Path(__file__).with_name("routed_native.cpp")
 #: Every file of the C++ step (the library is rebuilt when any changes).
@@ -167,7 +167,18 @@ class _Road:
 
 
 @functools.lru_cache(maxsize=16)
-def _road(params: MergeParams | RoundaboutParams) -> _Road:
+def routed_road(params: MergeParams | RoundaboutParams) -> _Road:
+    """The constants and road tables the C++ step reads (cached per params).
+
+    Raises:
+        ValueError: more target speeds than the C++ step holds, or MOBIL's politeness
+            other than 0.
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> routed_road(tensor_params("merge-v0")).struct.obstacle_row  # the last of 6 rows
+        5
+    """
     return _Road(params)
 
 
@@ -213,7 +224,7 @@ def routed_step(
     heads = world.route_head.contiguous().clone() if routed else None
     table = NativeTable(*(columns[k].data_ptr() if k in columns else None for k in TABLE_COLUMNS))
     status = library.routed_step(
-        ctypes.byref(_road(params).struct), ctypes.byref(table),
+        ctypes.byref(routed_road(params).struct), ctypes.byref(table),
         legs.data_ptr() if routed else None, heads.data_ptr() if routed else None,
         batch, n, params.time.frames,
         int(world.vehicles.x.dtype == torch.float64), threads or torch.get_num_threads(),

@@ -39,7 +39,7 @@ __all__ = [
 RolloutBackend = Literal[Backend, "ray"]
 #: The simulator training runs on (``env.backend``): ``tensor`` (the batched simulator,
 #: :class:`~torchrl_grpo.envs.TensorHighwayEnv`, its tensor step), ``native`` (the same
-#: with its step in C++, ``native=True``: highway-v0, highway-fast-v0 and roundabout-v0 on a CPU),
+#: with its step in C++, ``native=True``: ``NATIVE_SCENARIOS`` on a CPU),
 #: ``highway`` (highway-env itself, on ``rollout.backend`` workers), or ``auto``: the
 #: tensor simulator where it covers the scenario and config (its C++ step where it has
 #: one, on a CPU), highway-env elsewhere.

@@ -41,7 +41,7 @@ import torch
 
 from torchrl_grpo.envs.highway.tensor_models import tensor_model
 from torchrl_grpo.sim.native import load_library, native_fresh, native_observe, native_step
-from torchrl_grpo.sim.routed_native import load_routed_library, routed_step
+from torchrl_grpo.sim.routed_native import load_routed_library, routed_road, routed_step
 from torchrl_grpo.sim.simulate import compiled_stages, eager_stages, substep
 
 __all__ = [
@@ -174,6 +174,7 @@ def native_mode(
         raise ValueError(f"the C++ step runs on the CPU, not on {device}")
     if scenario in ROUTED_NATIVE_SCENARIOS:
         load_routed_library()  # builds now, so that a missing compiler is reported here
+        routed_road(params)  # and a config the C++ step cannot hold
         eager = eager_mode(tensor_model(scenario), params, device)
         step = functools.partial(routed_step, params=params, threads=threads)
         return eager._replace(name="native", step=step)

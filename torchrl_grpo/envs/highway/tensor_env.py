@@ -74,8 +74,8 @@ class TensorHighwayEnv(EnvBase):
             :class:`~torchrl_grpo.envs.InvalidActionError` naming rows and values (the env
             is left unchanged). One comparison a step, read back (a sync on a GPU).
         categorical_action_encoding: integer actions (``False``: one-hot).
-        native: step highway-v0, highway-fast-v0 or roundabout-v0 in C++ on the CPU
-            (:meth:`native`), the fastest step there (docs/sim.md, "Speed").
+        native: step in C++ on the CPU (:meth:`native`: highway-v0, highway-fast-v0,
+            merge-v0, roundabout-v0), the fastest step there (docs/sim.md, "Speed").
 
     Example:
         >>> from torchrl.envs.utils import check_env_specs
@@ -173,7 +173,7 @@ class TensorHighwayEnv(EnvBase):
         return self
 
     def native(self, threads: int | None = None) -> TensorHighwayEnv:
-        """Step in C++ on the CPU (highway-v0, highway-fast-v0, roundabout-v0); ``self``.
+        """Step in C++ on the CPU (highway, highway-fast, merge, roundabout); ``self``.
 
         A loop per world over ``threads`` (default ``torch.get_num_threads()``), the fastest
         step on a CPU: see :mod:`torchrl_grpo.sim.native`, :mod:`~torchrl_grpo.sim.routed_native`.
