@@ -98,6 +98,18 @@ class NativeTable(ctypes.Structure):
 
     _fields_ = [(name, ctypes.c_void_p) for name in TABLE_COLUMNS]
 
+    @staticmethod
+    def of(columns: dict[str, torch.Tensor]) -> NativeTable:
+        """The pointers of ``columns`` (:func:`world_columns`), null where one is absent.
+
+        Example:
+            >>> NativeTable.of({}).x is None
+            True
+        """
+        return NativeTable(
+            *(columns[name].data_ptr() if name in columns else None for name in TABLE_COLUMNS)
+        )
+
 
 @functools.cache
 def load_library() -> ctypes.CDLL:
@@ -221,9 +233,7 @@ def _run(world: World, action: torch.Tensor | None, params: HighwayParams, threa
         columns["action"] = action.to(torch.int64).contiguous()
     obs = params.observation
     observation = v.x.new_empty(batch, obs.vehicles_count, len(obs.features))
-    table = NativeTable(
-        *(columns[name].data_ptr() if name in columns else None for name in TABLE_COLUMNS)
-    )
+    table = NativeTable.of(columns)
     status = library.highway_step(
         ctypes.byref(_native_params(params)), ctypes.byref(table), batch, n, frames,
         observation.data_ptr(), int(v.x.dtype == torch.float64),
@@ -320,7 +330,7 @@ def native_fresh(
     time = world.time.contiguous().clone()
     words, seeds = words.contiguous().clone(), seeds.contiguous().clone()
     rows = rows.to(torch.bool).contiguous()
-    table = NativeTable(*(columns[k].data_ptr() if k in columns else None for k in TABLE_COLUMNS))
+    table = NativeTable.of(columns)
     status = load_library().highway_reset(
         ctypes.byref(_native_params(params)), ctypes.byref(table), batch, n,
         *(t.data_ptr() for t in (rows, key, counter, time, words, seeds)),

@@ -27,11 +27,16 @@ struct RoutedModel {
   Lanes<T> lanes;
   int n;
   int o;  // the obstacle's row (n: none), which never acts nor moves
+  T obstacle_reach;  // a car's and the obstacle's mean diagonal, merge.py's prefilter
   std::vector<T> cos_h, sin_h, s_own, r_own, s_in, r_in;
 
   RoutedModel(const RoutedParams& params, int vehicles)
       : p(params), collision(), lanes(params), n(vehicles) {
     o = int(std::min<int64_t>(p.obstacle_row, n));
+    const double car = std::sqrt(p.length * p.length + p.width * p.width);
+    const double obstacle =
+        std::sqrt(p.obstacle_length * p.obstacle_length + p.obstacle_width * p.obstacle_width);
+    obstacle_reach = T((car + obstacle) / 2);
     collision.length = p.length, collision.width = p.width, collision.dt = p.dt;
     collision.others_check_collisions = p.others_check_collisions;
     for (auto* v : {&cos_h, &sin_h, &s_own, &r_own, &s_in, &r_in}) v->resize(n);
@@ -203,12 +208,9 @@ struct RoutedModel {
   // Each vehicle with merge's obstacle, after the pairs: a predicted overlap is the
   // vehicle's whole translation, replacing any other impact.
   void collide_obstacle(World<T>& w) const {
-    const double car = std::sqrt(p.length * p.length + p.width * p.width);
-    const double obstacle =
-        std::sqrt(p.obstacle_length * p.obstacle_length + p.obstacle_width * p.obstacle_width);
     for (int i = 0; i < o; ++i) {
       T dx = w.x[o] - w.x[i], dy = w.y[o] - w.y[i];
-      T reach = T((car + obstacle) / 2) + w.v[i] * T(p.dt);
+      T reach = obstacle_reach + w.v[i] * T(p.dt);
       if (std::sqrt(std::fma(dy, dy, dx * dx)) > reach || !(w.checks[i] || w.checks[o])) continue;
       bool hit, will;
       T tx, ty;

@@ -40,7 +40,6 @@ from torchrl_grpo.sim.merge_output import observe_merge
 from torchrl_grpo.sim.merge_params import MergeParams
 from torchrl_grpo.sim.native import (
     MAX_SPEEDS,
-    TABLE_COLUMNS,
     NativeTable,
     with_columns,
     world_columns,
@@ -222,7 +221,7 @@ def routed_step(
     columns["action"] = action.to(torch.int64).contiguous()
     legs = world.route.contiguous() if routed else None
     heads = world.route_head.contiguous().clone() if routed else None
-    table = NativeTable(*(columns[k].data_ptr() if k in columns else None for k in TABLE_COLUMNS))
+    table = NativeTable.of(columns)
     status = library.routed_step(
         ctypes.byref(routed_road(params).struct), ctypes.byref(table),
         legs.data_ptr() if routed else None, heads.data_ptr() if routed else None,

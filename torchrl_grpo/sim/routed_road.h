@@ -46,13 +46,16 @@ struct Lanes {
     return !round(lane) && p.geometry[lane * GEO_COLUMNS + AMPLITUDE] == 0;
   }
 
+  // A circular lane's lateral coordinate from the offset (cx, cy) to its centre.
+  T ring_r(T cx, T cy, int64_t l) const {
+    return g(l, TURN) * (g(l, RADIUS) - std::sqrt(std::fma(cy, cy, cx * cx)));
+  }
   void local(T x, T y, int64_t l, T& s, T& r) const {  // local_coordinates
     if (round(l)) {
       T cx = x - g(l, CENTER_X), cy = y - g(l, CENTER_Y), start = g(l, START_PHASE);
       T phi = start + wrap_to_pi(std::atan2(cy, cx) - start);
-      T rho = std::sqrt(std::fma(cy, cy, cx * cx));
       s = (g(l, TURN) * (phi - start)) * g(l, RADIUS);
-      r = g(l, TURN) * (g(l, RADIUS) - rho);
+      r = ring_r(cx, cy, l);
       return;
     }
     T dx = x - g(l, START_X), dy = y - g(l, START_Y);
@@ -112,11 +115,8 @@ struct Lanes {
     T best_d = distance_with_heading(x, y, h, hint);
     for (int64_t l = 0; l < p.lanes; ++l) {
       if (l == hint) continue;
-      if (round(l)) {
-        T cx = x - g(l, CENTER_X), cy = y - g(l, CENTER_Y);
-        T r = g(l, TURN) * (g(l, RADIUS) - std::sqrt(std::fma(cy, cy, cx * cx)));
-        if (std::fabs(r) > best_d) continue;
-      }
+      if (round(l) && std::fabs(ring_r(x - g(l, CENTER_X), y - g(l, CENTER_Y), l)) > best_d)
+        continue;
       T d = distance_with_heading(x, y, h, l);
       if (d < best_d || (d == best_d && l < best)) best = l, best_d = d;
     }
