@@ -10,6 +10,8 @@ ill-conditioned worlds (a nearly stopped ego steering by its clip).
 
 from __future__ import annotations
 
+import logging
+
 import pytest
 import torch
 from env_helpers import replayed_twice, stepped_states
@@ -163,3 +165,16 @@ def test_training_steps_merge_and_the_roundabout_in_cpp_by_default():
     assert steps_natively(cfg) and steps_natively(OmegaConf.merge(cfg, {"scenario": "merge-v0"}))
     assert not steps_natively(OmegaConf.merge(cfg, {"scenario": "intersection-v0"}))
     assert not steps_natively(OmegaConf.merge(cfg, {"backend": "tensor"}))
+
+
+@pytest.mark.parametrize("scenario", ["highway-fast-v0", SCENARIO])
+def test_a_config_the_cpp_step_cannot_hold_steps_with_tensors_under_auto(scenario, caplog):
+    many = {"action": {"type": "DiscreteMetaAction", "target_speeds": list(range(20))}}
+    cfg = OmegaConf.create({"backend": "auto", "scenario": scenario, "config": many})
+    with caplog.at_level(logging.INFO, logger="torchrl_grpo.training.env_builder"):
+        assert not steps_natively(cfg)
+    assert (
+        "cannot hold this config (the C++ step takes 1 to 16 target speeds, got 20)" in caplog.text
+    )
+    with pytest.raises(ValueError, match="1 to 16 target speeds, got 20"):
+        TensorHighwayEnv(scenario, many, num_envs=2, native=True)  # refused when built

@@ -144,7 +144,12 @@ def load_library() -> ctypes.CDLL:
 
 
 @functools.lru_cache(maxsize=32)
-def _native_params(params: HighwayParams) -> NativeParams:
+def native_params(params: HighwayParams) -> NativeParams:
+    """The C++ step's constants for ``params`` (cached).
+
+    Raises:
+        ValueError: a config the C++ step cannot hold, such as more than 16 target speeds.
+    """
     speeds = params.control.target_speeds
     if not 1 <= len(speeds) <= MAX_SPEEDS:
         raise ValueError(f"the C++ step takes 1 to {MAX_SPEEDS} target speeds, got {len(speeds)}")
@@ -235,7 +240,7 @@ def _run(world: World, action: torch.Tensor | None, params: HighwayParams, threa
     observation = v.x.new_empty(batch, obs.vehicles_count, len(obs.features))
     table = NativeTable.of(columns)
     status = library.highway_step(
-        ctypes.byref(_native_params(params)), ctypes.byref(table), batch, n, frames,
+        ctypes.byref(native_params(params)), ctypes.byref(table), batch, n, frames,
         observation.data_ptr(), int(v.x.dtype == torch.float64),
         threads or torch.get_num_threads(),
     )  # fmt: skip
@@ -332,7 +337,7 @@ def native_fresh(
     rows = rows.to(torch.bool).contiguous()
     table = NativeTable.of(columns)
     status = load_library().highway_reset(
-        ctypes.byref(_native_params(params)), ctypes.byref(table), batch, n,
+        ctypes.byref(native_params(params)), ctypes.byref(table), batch, n,
         *(t.data_ptr() for t in (rows, key, counter, time, words, seeds)),
         int(v.x.dtype == torch.float64),
     )  # fmt: skip

@@ -13,7 +13,7 @@ from torchrl.envs import EnvBase
 from torchrl_grpo.branching.branch_env import Backend, make_branch_env
 from torchrl_grpo.envs.highway.step_modes import NATIVE_SCENARIOS, load_native
 from torchrl_grpo.envs.highway.tensor_env import TensorHighwayEnv
-from torchrl_grpo.envs.highway.tensor_params import check_tensor_config
+from torchrl_grpo.envs.highway.tensor_params import check_tensor_config, tensor_params
 from torchrl_grpo.envs.highway.wrapper import HighwayEnv
 from torchrl_grpo.modules.kinematics_table import KinematicsLayout
 from torchrl_grpo.sim.native_build import NativeBuildError
@@ -85,8 +85,9 @@ def env_backend(env_cfg: DictConfig) -> Literal["tensor", "highway"]:
 def steps_natively(env_cfg: DictConfig, device: str | torch.device = "cpu") -> bool:
     """Whether the tensor simulator steps in C++ (``TensorHighwayEnv(native=True)``).
 
-    ``env.backend=native`` always; ``auto`` for ``NATIVE_SCENARIOS`` on a CPU,
-    unless the C++ step cannot be built here (no compiler: logged, the tensor step then).
+    ``env.backend=native`` always; ``auto`` for ``NATIVE_SCENARIOS`` on a CPU, unless the
+    C++ step cannot be built here (no compiler) or cannot hold the config (such as more
+    than 16 target speeds): logged, and the tensor step then.
     Call it where :func:`env_backend` chose the tensor simulator.
 
     Example:
@@ -101,9 +102,14 @@ def steps_natively(env_cfg: DictConfig, device: str | torch.device = "cpu") -> b
     if env_cfg.scenario not in NATIVE_SCENARIOS or torch.device(device).type != "cpu":
         return False
     try:
-        load_native(env_cfg.scenario)
+        load_native(env_cfg.scenario, tensor_params(env_cfg.scenario, env_overrides(env_cfg)))
     except NativeBuildError as err:
         log.warning("env.backend=auto: the tensor step, as the C++ one is unavailable (%s)", err)
+        return False
+    except ValueError as err:
+        log.info(
+            "env.backend=auto: the tensor step, as the C++ one cannot hold this config (%s)", err
+        )
         return False
     return True
 

@@ -40,7 +40,13 @@ from typing import Any, NamedTuple
 import torch
 
 from torchrl_grpo.envs.highway.tensor_models import tensor_model
-from torchrl_grpo.sim.native import load_library, native_fresh, native_observe, native_step
+from torchrl_grpo.sim.native import (
+    load_library,
+    native_fresh,
+    native_observe,
+    native_params,
+    native_step,
+)
 from torchrl_grpo.sim.routed_native import load_routed_library, routed_road, routed_step
 from torchrl_grpo.sim.simulate import compiled_stages, eager_stages, substep
 
@@ -155,7 +161,8 @@ def native_mode(
         The mode.
 
     Raises:
-        ValueError: another scenario, or a GPU.
+        ValueError: another scenario, a GPU, or a config the C++ step cannot hold
+            (:func:`load_native`).
         NativeBuildError: no C++ compiler (:func:`torchrl_grpo.sim.native.load_library`).
 
     Example:
@@ -172,13 +179,11 @@ def native_mode(
         )
     if device.type != "cpu":
         raise ValueError(f"the C++ step runs on the CPU, not on {device}")
+    load_native(scenario, params)  # a missing compiler or a config it cannot hold: here
     if scenario in ROUTED_NATIVE_SCENARIOS:
-        load_routed_library()  # builds now, so that a missing compiler is reported here
-        routed_road(params)  # and a config the C++ step cannot hold
         eager = eager_mode(tensor_model(scenario), params, device)
         step = functools.partial(routed_step, params=params, threads=threads)
         return eager._replace(name="native", step=step)
-    load_library()
     return StepMode(
         "native",
         functools.partial(native_step, params=params, threads=threads),
@@ -187,13 +192,24 @@ def native_mode(
     )
 
 
-def load_native(scenario: str) -> None:
-    """Build (or load) the C++ step of ``scenario``, raising where it cannot be built.
+def load_native(scenario: str, params=None) -> None:
+    """Build (or load) the C++ step of ``scenario``, and check that it can hold ``params``.
+
+    Args:
+        scenario: one of ``NATIVE_SCENARIOS``.
+        params: its constants (:func:`~torchrl_grpo.envs.tensor_params`); ``None``: only
+            build.
 
     Raises:
         NativeBuildError: no C++ compiler, or it failed.
+        ValueError: ``params`` hold a config the C++ step cannot, such as more than 16
+            target speeds.
 
     Example:
-        >>> load_native("roundabout-v0")
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> load_native("roundabout-v0", tensor_params("roundabout-v0"))
     """
-    (load_routed_library if scenario in ROUTED_NATIVE_SCENARIOS else load_library)()
+    routed = scenario in ROUTED_NATIVE_SCENARIOS
+    (load_routed_library if routed else load_library)()
+    if params is not None:
+        (routed_road if routed else native_params)(params)
