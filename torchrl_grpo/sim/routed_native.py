@@ -55,7 +55,10 @@ SOURCE = Path(__file__).with_name("routed_native.cpp")
 #: Every file of the C++ step (the library is rebuilt when any changes).
 SOURCES = (
     SOURCE,
-    *(SOURCE.with_name(n) for n in ("routed_road.h", "highway_native.h", "highway_collide.h")),
+    *(
+        SOURCE.with_name(n)
+        for n in ("routed_road.h", "highway_native.h", "highway_collide.h", "pcg64.h")
+    ),
 )
 _SCALARS = (
     "frames dt length width max_speed min_speed acc_max comfort_acc_max comfort_acc_min "
@@ -95,6 +98,11 @@ def load_routed_library() -> ctypes.CDLL:
     library.routed_step.argtypes = [
         ctypes.POINTER(RoutedParams), ctypes.POINTER(NativeTable), ctypes.c_void_p,
         ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int, ctypes.c_int, ctypes.c_int,
+    ]  # fmt: skip
+    library.merge_draws.restype = None
+    library.merge_draws.argtypes = [
+        ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_void_p,
+        ctypes.c_void_p,
     ]  # fmt: skip
     return library
 

@@ -39,6 +39,7 @@ from typing import Any, NamedTuple
 
 import torch
 
+from torchrl_grpo.envs.highway.merge_bridge import native_merge_draws
 from torchrl_grpo.envs.highway.tensor_models import tensor_model
 from torchrl_grpo.sim.native import (
     load_library,
@@ -148,7 +149,8 @@ def native_mode(
 
     highway-v0 and highway-fast-v0 step, observe and draw fresh worlds in C++
     (:mod:`torchrl_grpo.sim.native`); merge-v0 and roundabout-v0 step their substeps in
-    C++ (:mod:`torchrl_grpo.sim.routed_native`) and keep the tensor observation and resets.
+    C++ (:mod:`torchrl_grpo.sim.routed_native`) and keep the tensor observation and resets
+    (merge-v0's reset draws replayed in C++: :func:`.merge_bridge.native_merge_draws`).
 
     Args:
         scenario: one of ``NATIVE_SCENARIOS``.
@@ -183,6 +185,9 @@ def native_mode(
     if scenario in ROUTED_NATIVE_SCENARIOS:
         eager = eager_mode(tensor_model(scenario), params, device)
         step = functools.partial(routed_step, params=params, threads=threads)
+        if scenario == "merge-v0":  # its reset draws replayed in C++ too, bit for bit
+            fresh = functools.partial(eager.fresh, replay=native_merge_draws)
+            return eager._replace(name="native", step=step, fresh=fresh)
         return eager._replace(name="native", step=step)
     return StepMode(
         "native",

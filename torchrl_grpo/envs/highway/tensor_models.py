@@ -96,8 +96,9 @@ def _highway_fresh(world: World, rows, words, seeds, params):
     return world, words, torch.where(rows, -1, seeds)
 
 
-def _merge_fresh(world: World, rows, words, seeds, params):
-    draws, words = merge_draws(words, rows)
+def _merge_fresh(world: World, rows, words, seeds, params, replay=merge_draws):
+    # replay: numpy's (merge_draws) or the C++ step's (native_merge_draws), the same bits.
+    draws, words = replay(words, rows)
     return reset_merge(world, rows, draws, params), words, seeds
 
 
