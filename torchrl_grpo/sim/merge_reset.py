@@ -59,11 +59,16 @@ def reset_merge(
     v = world.vehicles
     t = params.traffic
     device = v.x.device
-    batch, n = v.x.shape
+    n = v.x.shape[1]
     if draws.dtype != torch.float64:
         # A float32 draw would move every car by up to 4e-6 m: not highway-env's world.
         raise ValueError(f"merge reset draws must be float64, got {draws.dtype}")
-    draws = draws.to(device)
+    # Only the reset rows are built (a few of a batch each step), then put in place.
+    reset = rows.to(device).nonzero().squeeze(-1)
+    if reset.numel() == 0:
+        return world
+    draws = draws.to(device)[reset]
+    batch = reset.numel()
     geo = params.road.lanes
     f64 = dict(dtype=torch.float64, device=device)
 
@@ -105,13 +110,14 @@ def reset_merge(
         lane=lane, target_lane=lane.clone(), crashed=flags, impact=flags,
         check_collisions=torch.ones_like(flags), present=torch.ones_like(flags),
     )  # fmt: skip
-    column = rows.unsqueeze(-1)
     table = Vehicles(
-        *(torch.where(column, new.to(old.dtype), old) for new, old in zip(fresh, v, strict=True))
+        *(old.index_put((reset,), new.to(old.dtype)) for new, old in zip(fresh, v, strict=True))
     )
     return world._replace(
         vehicles=table,
-        speed_index=torch.where(rows, index, world.speed_index),
-        time=torch.where(rows, torch.zeros_like(world.time), world.time),
-        steps=torch.where(rows, torch.zeros_like(world.steps), world.steps),
+        speed_index=world.speed_index.index_put((reset,), index.to(world.speed_index.dtype)),
+        time=world.time.index_put((reset,), torch.zeros((), dtype=world.time.dtype, device=device)),
+        steps=world.steps.index_put(
+            (reset,), torch.zeros((), dtype=world.steps.dtype, device=device)
+        ),
     )
