@@ -29,6 +29,7 @@ import torch
 
 from torchrl_grpo.sim import lanes as L
 from torchrl_grpo.sim.control import speed_to_index
+from torchrl_grpo.sim.fresh_rows import put_rows
 from torchrl_grpo.sim.merge_params import MergeParams
 from torchrl_grpo.sim.state import Vehicles, World
 
@@ -110,14 +111,4 @@ def reset_merge(
         lane=lane, target_lane=lane.clone(), crashed=flags, impact=flags,
         check_collisions=torch.ones_like(flags), present=torch.ones_like(flags),
     )  # fmt: skip
-    table = Vehicles(
-        *(old.index_put((reset,), new.to(old.dtype)) for new, old in zip(fresh, v, strict=True))
-    )
-    return world._replace(
-        vehicles=table,
-        speed_index=world.speed_index.index_put((reset,), index.to(world.speed_index.dtype)),
-        time=world.time.index_put((reset,), torch.zeros((), dtype=world.time.dtype, device=device)),
-        steps=world.steps.index_put(
-            (reset,), torch.zeros((), dtype=world.steps.dtype, device=device)
-        ),
-    )
+    return put_rows(world, reset, fresh, index)

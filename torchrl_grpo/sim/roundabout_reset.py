@@ -33,6 +33,7 @@ import torch
 
 from torchrl_grpo.sim import lanes as L
 from torchrl_grpo.sim.control import speed_to_index
+from torchrl_grpo.sim.fresh_rows import put_rows
 from torchrl_grpo.sim.roundabout_params import RoundaboutParams
 from torchrl_grpo.sim.state import Vehicles, World
 
@@ -82,10 +83,15 @@ def reset_roundabout(
     """
     v, t = world.vehicles, params.traffic
     device = v.x.device
-    batch, n = v.x.shape
+    n = v.x.shape[1]
     if draws.dtype != torch.float64:
         raise ValueError(f"roundabout reset draws must be float64, got {draws.dtype}")
-    draws = draws.to(device)
+    # Only the reset rows are built (a few of a batch each step), then put in place.
+    reset = rows.to(device).nonzero().squeeze(-1)
+    if reset.numel() == 0:
+        return world
+    draws = draws.to(device)[reset]
+    batch = reset.numel()
     geo = params.road.lanes
     f64 = dict(dtype=torch.float64, device=device)
     full = functools.partial(torch.full, (batch,), **f64)
@@ -121,15 +127,4 @@ def reset_roundabout(
             torch.arange(n, device=device) == 0),
         present=torch.ones_like(flags),
     )  # fmt: skip
-    column = rows.unsqueeze(-1)
-    table = Vehicles(
-        *(torch.where(column, new.to(old.dtype), old) for new, old in zip(fresh, v, strict=True))
-    )
-    return world._replace(
-        vehicles=table,
-        speed_index=torch.where(rows, index, world.speed_index),
-        time=torch.where(rows, torch.zeros_like(world.time), world.time),
-        steps=torch.where(rows, torch.zeros_like(world.steps), world.steps),
-        route=torch.where(column.unsqueeze(-1), route, world.route),
-        route_head=torch.where(column, torch.zeros_like(lane), world.route_head),
-    )
+    return put_rows(world, reset, fresh, index, route=route, route_head=torch.zeros_like(lane))
