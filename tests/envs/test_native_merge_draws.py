@@ -44,6 +44,8 @@ def test_corrupted_words_are_refused_by_row_as_numpys_replay_refuses_them():
     with pytest.raises(StateCorruptedError, match="highway.rng of row 2: the PCG64 increment"):
         merge_draws(words, rows)
     native_merge_draws(words, torch.tensor([True, True, False, True]))  # row 2 not reset
+    with pytest.raises(ValueError, match=r"\[B, 10\] with \[B\] rows, got \(4, 9\)"):
+        native_merge_draws(words[:, :9], rows)
 
 
 def test_the_cpp_step_resets_merge_worlds_as_the_tensor_step_does():

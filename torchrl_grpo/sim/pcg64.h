@@ -60,7 +60,7 @@ struct Pcg64 {
 
   double next_double() { return double(next64() >> 11) * (1.0 / 9007199254740992.0); }
 
-  // Generator.integers(n) for 1 <= n <= 2^32 (Lemire's method on 32-bit draws).
+  // Generator.integers(n) for 1 <= n < 2^32 (Lemire's method on 32-bit draws).
   int64_t integers(uint32_t n) {
     if (n == 1) return 0;
     uint64_t m = uint64_t(next32()) * n;

@@ -115,11 +115,15 @@ def native_merge_draws(
     """
     host = words.detach().to("cpu", torch.int64).contiguous()
     reset = rows.detach().to("cpu", torch.bool).contiguous()
+    if host.dim() != 2 or host.shape[-1] != RNG_WORDS or reset.shape != host.shape[:1]:
+        raise ValueError(
+            f"generator words are [B, {RNG_WORDS}] with [B] rows, got {tuple(host.shape)} "
+            f"and {tuple(reset.shape)}"
+        )
+    # What decode_rng refuses, checked at once; its message for the first such row.
     bad = ((host < 0) | (host >= 2**32)).any(-1) | (host[:, 4] % 2 == 0) | (host[:, 8] > 1)
     for row in (bad & reset).nonzero().flatten()[:1].tolist():
         decode_rng(host[row].numpy(), f"highway.rng of row {row}")  # raises, naming it
-    if host.shape[-1] != RNG_WORDS:
-        raise ValueError(f"generator words are [B, {RNG_WORDS}], got {tuple(host.shape)}")
     draws = torch.zeros(host.shape[0], DRAWS, dtype=torch.float64)
     after = torch.empty_like(host)
     load_routed_library().merge_draws(
