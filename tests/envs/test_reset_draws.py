@@ -1,4 +1,8 @@
-"""merge-v0's reset draws in C++ (sim/pcg64.h) against numpy's Generator, bit for bit."""
+"""The reset draws replayed from highway-env's generator words, against numpy's own calls.
+
+merge-v0's in C++ (sim/pcg64.h), roundabout-v0's destination drawn as ``integers``
+where highway-env calls ``choice``: each bit for bit.
+"""
 
 from __future__ import annotations
 
@@ -9,6 +13,8 @@ import torch
 from torchrl_grpo.envs import StateCorruptedError, TensorHighwayEnv
 from torchrl_grpo.envs.core.gym_state import encode_rng, restore_rng, seeded_rng_words
 from torchrl_grpo.envs.highway.merge_bridge import merge_draws, native_merge_draws
+from torchrl_grpo.envs.highway.roundabout_bridge import roundabout_draws
+from torchrl_grpo.envs.highway.tensor_params import tensor_params
 
 
 def generator_words(count: int) -> torch.Tensor:
@@ -60,3 +66,23 @@ def test_the_cpp_step_resets_merge_worlds_as_the_tensor_step_does():
         b = tensor.step_and_maybe_reset(b.set("action", action))[1]
     assert ended >= 20
     assert torch.equal(native.get_state()["highway", "rng"], tensor.get_state()["highway", "rng"])
+
+
+def test_the_roundabouts_draws_are_those_of_highway_envs_choice():
+    params = tensor_params("roundabout-v0")
+    names = [params.road.destinations[d] for d in params.traffic.destinations]
+    low, high = params.idm.delta_range
+    words = generator_words(300)
+    draws, after = roundabout_draws(words, torch.ones(300, dtype=torch.bool), params)
+    generator = np.random.default_rng()
+    for row in range(300):
+        restore_rng(generator, words[row].numpy())
+        expected = []
+        for _ in range(4):  # RoundaboutEnv._make_vehicles' calls, choice as it makes it
+            expected += [generator.normal(), generator.normal()]
+            expected += [float(names.index(str(generator.choice(names))))]
+            expected += [generator.uniform(low=low, high=high)]
+        assert draws[row].tolist() == expected
+        state = np.zeros(10, dtype=np.int64)
+        encode_rng(generator, state)
+        assert after[row].tolist() == state.tolist()
