@@ -9,11 +9,12 @@ script tells apart on every crashed episode:
 * **the head was wrong**: at some step the action taken, followed by always-SLOWER,
   crashes, while always-SLOWER from that step does not. The head rated the action at
   most ``m`` riskier than SLOWER there; the row gives both of its probabilities;
-* **the state was lost under SLOWER**: at no step did the taken action turn a state from
-  which always-SLOWER survives into one from which it crashes. Either always-SLOWER
-  crashes from the episode's start (as always-SLOWER itself does, about once in 5,000
-  roundabout-v0 episodes), or the crash comes from the policy's own later actions, which
-  the head's labels do not score.
+* **the episode was lost from its start**: always-SLOWER from the first state crashes
+  too, as always-SLOWER itself does about once in 5,000 roundabout-v0 episodes.
+
+The step is deterministic, so there is no third case: if always-SLOWER survives from
+the first state but not from the crash step, some action in between took the episode
+from one to the other, and the last such step is the decisive one.
 
 Each crashed episode is replayed on the tensor simulator in float64 from highway-env's
 starts (the simulator follows highway-env to 1e-9 there, docs/sim.md); from every step
@@ -137,9 +138,9 @@ def causes(
                 "actions": taken.tolist(),
                 "slower_from_start_crashes": bool(outcome[0, SLOWER]),
                 "decisive_step": k,
-                "risk_taken": [round(float(risks[k, taken[k]]), 4) for k in range(t)],
-                "risk_slower": [round(float(risks[k, SLOWER]), 4) for k in range(t)],
-                "safe_actions": [int((~outcome[k]).sum()) for k in range(t)],
+                "risk_taken": [round(float(risks[j, taken[j]]), 4) for j in range(t)],
+                "risk_slower": [round(float(risks[j, SLOWER]), 4) for j in range(t)],
+                "safe_actions": [int((~outcome[j]).sum()) for j in range(t)],
                 "outcome": outcome.tolist(),
             }
         )
@@ -191,7 +192,7 @@ def main() -> None:
     lines += [
         "",
         f"the head was wrong (an action it allowed turned a safe state into a crash under "
-        f"always-SLOWER): {len(wrong)} of {len(records)}; the state lost under SLOWER: "
+        f"always-SLOWER): {len(wrong)} of {len(records)}; lost from the start: "
         f"{len(records) - len(wrong)}",
     ]
     print("\n".join(lines))  # noqa: T201 (the benchmark's output)

@@ -58,8 +58,9 @@ def test_a_crash_is_replayed_from_its_saved_state_and_traced_to_its_step():
         # The branch of the action taken at the crash step is the episode's own last step.
         assert outcome[c][FASTER]
         k = r["decisive_step"]
-        if k is None:
+        if k is None:  # then, the step being deterministic, always-SLOWER crashes from the start
             assert not any(o[FASTER] and not o[bench.SLOWER] for o in outcome)
+            assert r["slower_from_start_crashes"]
         else:
             assert outcome[k][FASTER] and not outcome[k][bench.SLOWER]
             assert all(0.0 <= share <= 1.0 for share in r["redrawn_shares"])
