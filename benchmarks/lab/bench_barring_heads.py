@@ -59,8 +59,7 @@ class BarredGreedy:
             logits = self.heads[0](obs)
         for head in self.heads[1:]:
             risk = torch.sigmoid(head.crash_logits(obs))
-            allowed = risk <= risk[..., SLOWER : SLOWER + 1] + self.margin
-            allowed[..., SLOWER] = True
+            allowed = risk <= risk[..., SLOWER : SLOWER + 1] + self.margin  # SLOWER always
             logits = torch.where(allowed, logits, float("-inf"))
         return tensordict.set("action", logits.argmax(-1))
 

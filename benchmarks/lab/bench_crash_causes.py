@@ -44,7 +44,7 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 
 import torchrl_grpo.experimental  # noqa: F401  (runs of algo=grpo_lab load too)
-from torchrl_grpo.envs import TensorHighwayEnv
+from torchrl_grpo.envs import TensorHighwayEnv, tensor_params
 from torchrl_grpo.envs.core.snapshot_env import STATE_KEY
 from torchrl_grpo.modules.crash_head import CrashHead
 from torchrl_grpo.training import load_run_policy, make_env
@@ -84,7 +84,7 @@ def branch_crashes(env_cfg, states: TensorDict, first: torch.Tensor) -> torch.Te
 def redrawn_shares(env_cfg, state: TensorDict, action: int, copies: int) -> tuple[float, float]:
     """Over ``copies`` redraws of the hidden variables: the crash shares of ``action`` and
     of SLOWER, each followed by always-SLOWER."""
-    params = TensorHighwayEnv(str(env_cfg.scenario), env_overrides(env_cfg), num_envs=1).params
+    params = tensor_params(str(env_cfg.scenario), env_overrides(env_cfg))
     redrawn = redraw_hidden(
         state.unsqueeze(0).expand(copies).clone(), params, "both", torch.Generator().manual_seed(0)
     )
