@@ -38,10 +38,12 @@ import warnings
 from pathlib import Path
 
 import torch
+from bench_hidden_search import RedrawnSearch
 from omegaconf import OmegaConf
 from search_labels import visit
 from tensordict import TensorDict
 
+from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.modules.actors import DeterministicActor
 from torchrl_grpo.training import make_env
 from torchrl_grpo.training.checkpoint import load_checkpoint, save_checkpoint
@@ -154,6 +156,15 @@ def main() -> None:
     parser.add_argument("--weight", type=float, default=1.0, help="--loss crash: deciding states")
     parser.add_argument("--speed", type=float, default=1.0, help="--loss both: the regret's scale")
     parser.add_argument("--temperature", type=float, default=0.0, help="tilt to safe scores")
+    parser.add_argument(
+        "--copies", type=int, default=0,
+        help="> 0: the planner scores each action over this many copies of the state with "
+        "the other drivers' hidden variables redrawn (bench_hidden_search.py, --redraw all)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--wide-targets", action="store_true",
+        help="--copies: target speeds from the whole spawn range (bench_hidden_search.py)",
+    )  # fmt: skip
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -174,9 +185,18 @@ def main() -> None:
     frames = 0
     for k in range(args.rounds):
         seeds = list(range(40_000 + k * args.episodes, 40_000 + (k + 1) * args.episodes))
-        visited = visit(greedy, str(env_cfg.scenario), seeds, args.horizon, 40)
+        planner = None
+        if args.copies > 0:
+            rows = 5 * args.copies * args.episodes
+            planner = RedrawnSearch(
+                TensorHighwayEnv(str(env_cfg.scenario), num_envs=rows), args.horizon,
+                copies=args.copies, redraw="all", aggregate="mean", crash_penalty=0.0,
+                seed=40_000 + k, base=policy, wide_targets=args.wide_targets,
+            )  # fmt: skip
+        visited = visit(greedy, str(env_cfg.scenario), seeds, args.horizon, 40, planner)
         m = visited["scores"].shape[0]
-        frames += m * (1 + 5 * args.horizon)  # driven steps, and at most 5 x H per state
+        # Driven steps, and at most 5 x H per state and copy.
+        frames += m * (1 + 5 * args.horizon * max(1, args.copies))
         for key in data:
             data[key].append(visited[key])
         merged = {key: torch.cat(value) for key, value in data.items()}

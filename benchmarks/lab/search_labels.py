@@ -55,12 +55,24 @@ def branch_outcomes(planner: LookaheadPolicy, td) -> tuple[torch.Tensor, torch.T
 
 @torch.no_grad()
 def visit(
-    policy: TensorDictModuleBase, scenario: str, seeds: list[int], horizon: int, max_steps: int
+    policy: TensorDictModuleBase,
+    scenario: str,
+    seeds: list[int],
+    horizon: int,
+    max_steps: int,
+    planner: LookaheadPolicy | None = None,
 ) -> dict[str, torch.Tensor]:
     """Every action's score and crash flag at every state the greedy ``policy`` visits;
-    what it saw and did."""
+    what it saw and did.
+
+    ``planner`` scores the actions (default: the search over ``policy``, ``horizon``
+    steps, from the whole state). One with an ``outcomes`` method (the search from
+    redrawn copies of ``bench_hidden_search``) gives a branch's crash flag as "crashes in
+    more than half of the copies".
+    """
     n = len(seeds)
-    planner = LookaheadPolicy(TensorHighwayEnv(scenario, num_envs=5 * n), policy, horizon)
+    if planner is None:
+        planner = LookaheadPolicy(TensorHighwayEnv(scenario, num_envs=5 * n), policy, horizon)
     env = TensorHighwayEnv(scenario, num_envs=n, return_state=True)
     td = highway_starts(env, seeds)
     live = torch.ones(n, dtype=torch.bool)
@@ -70,7 +82,11 @@ def visit(
             rows = live.nonzero().squeeze(-1)
             if rows.numel() == 0:
                 break
-            score, crash = branch_outcomes(planner, td[rows])
+            if hasattr(planner, "outcomes"):
+                score, share = planner.outcomes(td[rows])
+                crash = share > 0.5
+            else:
+                score, crash = branch_outcomes(planner, td[rows])
             scores.append(score)
             crashes.append(crash)
             observations.append(td.get("observation")[rows])

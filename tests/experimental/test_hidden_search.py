@@ -18,7 +18,9 @@ from torchrl_grpo.branching.keys import MASK, STATE  # noqa: E402
 from torchrl_grpo.branching.lookahead import branch_returns  # noqa: E402
 from torchrl_grpo.envs import TensorHighwayEnv  # noqa: E402
 from torchrl_grpo.modules import make_scripted_policy  # noqa: E402
+from torchrl_grpo.modules.actors import DeterministicActor  # noqa: E402
 from torchrl_grpo.sim.roundabout_reset import route_paths  # noqa: E402
+from torchrl_grpo.training import compose_config, make_env, make_policy  # noqa: E402
 
 pytestmark = pytest.mark.experimental
 
@@ -150,6 +152,9 @@ def test_bad_settings_are_refused_by_name(worlds):
     env, td = worlds
     with pytest.raises(ValueError, match="redraw must be one of"):
         bench.redraw_hidden(td[STATE], env.params, "drivers", torch.Generator())
+    with pytest.raises(ValueError, match="redraws are for roundabout-v0 and highway-fast-v0"):
+        merge = TensorHighwayEnv("merge-v0", num_envs=1)
+        bench.redraw_hidden(td[STATE], merge.params, "delta", torch.Generator())
     with pytest.raises(ValueError, match="aggregate must be"):
         bench.RedrawnSearch(
             env, 11, copies=1, redraw="none", aggregate="max", crash_penalty=0.0, seed=0
@@ -168,3 +173,81 @@ def test_a_two_episode_run_prints_its_table():
     assert rows[1].startswith("| always-SLOWER | 9.1")
     assert rows[2].startswith("| redraw none, 1 copies, mean, crash penalty 0 |")
     assert rows[3].startswith("| redraw both, 2 copies, mean, crash penalty 0 |")
+
+
+@pytest.fixture(scope="module")
+def highway_worlds():
+    """highway-fast-v0 states a few steps in, with lane changes under way."""
+    env = TensorHighwayEnv(bench.HIGHWAY, num_envs=32, return_state=True, seed=5)
+    td = env.reset()
+    for _ in range(3):
+        td["action"] = torch.full((32,), 3)
+        td = env.step_and_maybe_reset(td)[1]
+    return env, td
+
+
+@pytest.mark.parametrize(
+    ("redraw", "moved"),
+    [("delta", {"delta"}), ("target", {"target_speed"}), ("timer", {"timer"}),
+     ("all", {"delta", "target_speed", "timer"}), ("none", set())],
+)  # fmt: skip
+def test_a_highway_redraw_moves_only_its_hidden_columns_of_the_others(
+    highway_worlds, redraw, moved
+):
+    env, td = highway_worlds
+    state, params = td[STATE], env.params
+    new = bench.redraw_hidden(state, params, redraw, torch.Generator().manual_seed(1))
+    limit = params.road.speed_limit
+    bounds = {
+        "delta": params.idm.delta_range,
+        "target_speed": (params.traffic.speed_low * limit, params.traffic.speed_high * limit),
+        "timer": (0.0, params.idm.lane_change_delay),
+    }
+    for key in state["vehicles"].keys():
+        old, now = state["vehicles", key], new["vehicles", key]
+        if key not in moved:
+            assert torch.equal(old, now), key
+            continue
+        assert torch.equal(old[:, 0], now[:, 0]), f"the ego's {key} moved"
+        assert not torch.equal(old[:, 1:], now[:, 1:]), key
+        low, high = bounds[key]
+        assert ((now[:, 1:] >= low) & (now[:, 1:] <= high)).all(), key
+    if "target_speed" in moved:
+        # Never below a car's speed: IDM drives no car faster than its target speed.
+        speed = state["vehicles", "speed"][:, 1:]
+        assert (new["vehicles", "target_speed"][:, 1:] >= speed).all()
+    # Hand check of the bounds: U(21, 24) m/s target speeds, U(3.5, 4.5) exponents.
+    assert bounds["target_speed"] == pytest.approx((21.0, 24.0))
+    assert tuple(bounds["delta"]) == (3.5, 4.5)
+
+
+def test_a_highway_search_over_a_network_without_a_redraw_is_the_plain_search(highway_worlds):
+    env, td = highway_worlds
+    cfg = compose_config(["experiment=smoke", "model=mlp"])
+    policy = make_policy(cfg.model, make_env(cfg.env, seed=0))
+    roots = td[:6]
+    plain = LookaheadPolicy(
+        TensorHighwayEnv(bench.HIGHWAY, num_envs=30), DeterministicActor(policy), 8
+    )
+    expected = branch_returns(plain.branches(roots))
+    search = bench.RedrawnSearch(
+        TensorHighwayEnv(bench.HIGHWAY, num_envs=30), 8, copies=1, redraw="none",
+        aggregate="mean", crash_penalty=0.0, seed=0, base=policy,
+    )  # fmt: skip
+    assert torch.equal(search.returns(roots), expected)
+    with pytest.raises(ValueError, match="redraw must be one of"):
+        bench.redraw_hidden(td[STATE], env.params, "route", torch.Generator())
+
+
+def test_target_speeds_are_drawn_at_or_above_the_speed_unless_wide(highway_worlds):
+    env, td = highway_worlds
+    state = td[STATE]
+    speed = state["vehicles", "speed"][:, 1:]
+    present = state["vehicles", "present"][:, 1:]
+    for wide in (False, True):
+        new = bench.redraw_hidden(
+            state, env.params, "target", torch.Generator().manual_seed(2), wide_targets=wide
+        )
+        below = (new["vehicles", "target_speed"][:, 1:] < speed) & present
+        # The whole range puts some cars' targets below their speed; the observed one never.
+        assert bool(below.any()) == wide

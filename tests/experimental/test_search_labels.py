@@ -12,6 +12,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks" / "lab
 
 from search_labels import label_stats, visit  # noqa: E402
 
+from torchrl_grpo.modules import make_scripted_policy  # noqa: E402
+
 pytestmark = pytest.mark.experimental
 
 
@@ -102,3 +104,23 @@ def test_crash_loss_tilts_the_target_towards_the_safe_actions_that_score_more():
     crash_loss(logits, crashed, logits.detach(), 1.0, scores, temperature=1.0, speed=0.0).backward()
     assert torch.allclose(logits.grad[0, 1:3], 0.2 - p)  # softmax gradient: pi - target
     assert torch.isclose(tilted, torch.log(torch.tensor(5.0)))
+
+
+def test_a_planner_over_redrawn_copies_labels_as_the_plain_one_when_nothing_is_redrawn():
+    from bench_hidden_search import RedrawnSearch
+
+    from torchrl_grpo.envs import TensorHighwayEnv
+
+    seeds = list(range(8))
+    plain = visit(make_scripted_policy("aggressive"), "highway-fast-v0", seeds, 4, max_steps=6)
+    # Two copies of each state, nothing redrawn: each copy is the plain search's branch,
+    # so the mean score is its score and the crash share is its crash flag (0 or 1).
+    copies = RedrawnSearch(
+        TensorHighwayEnv("highway-fast-v0", num_envs=5 * 2 * len(seeds)), 4, copies=2,
+        redraw="none", aggregate="mean", crash_penalty=0.0, seed=0, base="aggressive",
+    )  # fmt: skip
+    redrawn = visit(make_scripted_policy("aggressive"), "highway-fast-v0", seeds, 4, 6, copies)
+    assert torch.equal(redrawn["scores"], plain["scores"])
+    assert torch.equal(redrawn["crashed"], plain["crashed"])
+    assert torch.equal(redrawn["action"], plain["action"])
+    assert plain["crashed"].any() and not plain["crashed"].all()
