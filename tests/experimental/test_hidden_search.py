@@ -28,15 +28,20 @@ pytestmark = pytest.mark.experimental
 SEEN = ("x", "y", "heading", "speed", "target_speed", "lane", "target_lane", "present")
 
 
+def _worlds_after(scenario: str, n: int, seed: int, action: int, steps: int):
+    """``n`` worlds of ``scenario`` after ``steps`` steps of ``action``: (env, tensordict)."""
+    env = TensorHighwayEnv(scenario, num_envs=n, return_state=True, seed=seed)
+    td = env.reset()
+    for _ in range(steps):
+        td["action"] = torch.full((n,), action)
+        td = env.step_and_maybe_reset(td)[1]
+    return env, td
+
+
 @pytest.fixture(scope="module")
 def worlds():
     """Roundabout states a few steps in: vehicles on entries, the ring and exits."""
-    env = TensorHighwayEnv(bench.SCENARIO, num_envs=64, return_state=True, seed=3)
-    td = env.reset()
-    for _ in range(4):
-        td["action"] = torch.full((64,), 1)
-        td = env.step_and_maybe_reset(td)[1]
-    return env, td
+    return _worlds_after(bench.SCENARIO, 64, seed=3, action=1, steps=4)
 
 
 def test_a_redraw_moves_only_the_other_vehicles_hidden_variables(worlds):
@@ -177,13 +182,8 @@ def test_a_two_episode_run_prints_its_table():
 
 @pytest.fixture(scope="module")
 def highway_worlds():
-    """highway-fast-v0 states a few steps in, with lane changes under way."""
-    env = TensorHighwayEnv(bench.HIGHWAY, num_envs=32, return_state=True, seed=5)
-    td = env.reset()
-    for _ in range(3):
-        td["action"] = torch.full((32,), 3)
-        td = env.step_and_maybe_reset(td)[1]
-    return env, td
+    """highway-fast-v0 states a few steps in (always-FASTER), the traffic under way."""
+    return _worlds_after(bench.HIGHWAY, 32, seed=5, action=3, steps=3)
 
 
 @pytest.mark.parametrize(
