@@ -22,7 +22,11 @@ state keeps its KL to the start. ``--loss both`` adds the regret where no action
 crashes (speed without a crash at stake). Unlike hard argmax labels, tied actions
 cost nothing (no index bias), and a state pulls in proportion to what the network's
 choice loses there: the crash-scale corrections weigh more than the many small ones
-(``search_labels.py`` measures both). After each round the network is evaluated
+(``search_labels.py`` measures both). With ``--copies K`` the planner scores each action
+by its mean over K copies of the state with the other drivers' hidden variables redrawn
+(``bench_hidden_search.py``, ``--redraw all``; a branch counts as crashing where more
+than half of its copies crash): labels that hold only what the observation shows. After
+each round the network is evaluated
 greedily over ``--eval-episodes`` tensor-simulator episodes from highway-env's starts
 of seeds 60000.. (used for nothing else) and saved as ``<out>/round_<k>.pt``, a
 checkpoint ``scripts/evaluate.py`` reads. Frames: the planner's branch steps and the
