@@ -25,10 +25,11 @@ choice loses there: the crash-scale corrections weigh more than the many small o
 (``search_labels.py`` measures both). With ``--copies K`` the planner scores each action
 by its mean over K copies of the state with the other drivers' hidden variables redrawn
 (``bench_hidden_search.py``, ``--redraw all``; a branch counts as crashing where more
-than half of its copies crash): labels that hold only what the observation shows. After
-each round the network is evaluated
-greedily over ``--eval-episodes`` tensor-simulator episodes from highway-env's starts
-of seeds 60000.. (used for nothing else) and saved as ``<out>/round_<k>.pt``, a
+than half of its copies crash): labels that hold only what the observation shows.
+
+After each round the network is evaluated greedily over ``--eval-episodes``
+tensor-simulator episodes from highway-env's starts of seeds 60000.. (used for nothing
+else) and saved as ``<out>/round_<k>.pt``, a
 checkpoint ``scripts/evaluate.py`` reads. Frames: the planner's branch steps and the
 driven steps, counted as training counts them.
 """
