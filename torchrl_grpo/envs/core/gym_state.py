@@ -52,6 +52,21 @@ def encode_rng(generator: np.random.Generator, out: np.ndarray) -> None:
     out[9] = state["uinteger"]
 
 
+def invalid_rng_rows(words: torch.Tensor) -> torch.Tensor:
+    """True where encoded words ``[..., RNG_WORDS]`` are no state :func:`decode_rng` accepts.
+
+    The batched form of its checks: a word outside 32 bits, an even increment, or
+    ``has_uint32`` other than 0 or 1.
+
+    Example:
+        >>> words = torch.stack([seeded_rng_words(0), torch.zeros(RNG_WORDS, dtype=torch.int64)])
+        >>> invalid_rng_rows(words).tolist()
+        [False, True]
+    """
+    bad = ((words < 0) | (words > _MASK32)).any(-1) | (words[..., 4] & 1 == 0)
+    return bad | (words[..., 8] < 0) | (words[..., 8] > 1)
+
+
 def decode_rng(words: np.ndarray, where: str = "rng") -> dict:
     """Validate encoded words and return the bit-generator state dict they describe.
 

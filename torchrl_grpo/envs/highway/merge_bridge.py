@@ -28,7 +28,12 @@ from highway_env.vehicle.objects import Obstacle
 from tensordict import TensorDictBase
 
 from torchrl_grpo.envs.core.errors import StateMismatchError
-from torchrl_grpo.envs.core.gym_state import RNG_WORDS, decode_rng, encode_rng
+from torchrl_grpo.envs.core.gym_state import (
+    RNG_WORDS,
+    decode_rng,
+    encode_rng,
+    invalid_rng_rows,
+)
 from torchrl_grpo.envs.highway.bridge import HighwayBridge, read_vehicle, vehicle_columns, world_of
 from torchrl_grpo.envs.highway.lane_constants import lane_keys
 from torchrl_grpo.envs.highway.tensor_params import tensor_params
@@ -121,8 +126,7 @@ def native_merge_draws(
             f"and {tuple(reset.shape)}"
         )
     # What decode_rng refuses, checked at once; its message for the first such row.
-    bad = ((host < 0) | (host >= 2**32)).any(-1) | (host[:, 4] % 2 == 0) | (host[:, 8] > 1)
-    for row in (bad & reset).nonzero().flatten()[:1].tolist():
+    for row in (invalid_rng_rows(host) & reset).nonzero().flatten()[:1].tolist():
         decode_rng(host[row].numpy(), f"highway.rng of row {row}")  # raises, naming it
     draws = torch.zeros(host.shape[0], DRAWS, dtype=torch.float64)
     after = torch.empty_like(host)

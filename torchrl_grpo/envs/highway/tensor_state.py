@@ -22,7 +22,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Composite, Unbounded
 
 from torchrl_grpo.envs.core.errors import StateCorruptedError, StateMismatchError
-from torchrl_grpo.envs.core.gym_state import RNG_WORDS, seeded_rng_words
+from torchrl_grpo.envs.core.gym_state import RNG_WORDS, invalid_rng_rows, seeded_rng_words
 from torchrl_grpo.envs.highway.schema import MAX_MAGNITUDE
 from torchrl_grpo.sim.intersection_reset import check_regulated
 from torchrl_grpo.sim.params import HighwayParams
@@ -45,8 +45,6 @@ __all__ = [
     "tensor_state_spec",
     "where_rows",
 ]
-
-_MASK32 = (1 << 32) - 1
 
 
 def tensor_state_spec(
@@ -172,8 +170,7 @@ def check_state_values(state: TensorDictBase, params: HighwayParams) -> None:
     if world.yielding is not None:
         problems += check_regulated(world)
     words = state.get(("highway", "rng"))
-    bad = ((words < 0) | (words > _MASK32)).any(-1) | (words[..., 4] & 1 == 0)
-    bad |= (words[..., 8] < 0) | (words[..., 8] > 1)
+    bad = invalid_rng_rows(words)
     if bool(bad.any()):
         rows = bad.nonzero().flatten()[:8].tolist()
         problems.append(f"highway.rng: not a valid PCG64 state in rows {rows}")
