@@ -45,12 +45,13 @@ class BarredGreedy:
     """The first head's greedy action (its margin applied), barred by the other heads too.
 
     Args:
-        heads: the runs' crash heads; ``heads[0]`` gives the logits.
-        margin: how much likelier to crash than SLOWER an action may be, for every head.
+        heads: the runs' crash heads, each with its margin over SLOWER
+            (:meth:`~torchrl_grpo.modules.CrashHead.set_margin`); ``heads[0]`` gives the
+            logits.
     """
 
-    def __init__(self, heads: list[CrashHead], margin: float) -> None:
-        self.heads, self.margin = heads, margin
+    def __init__(self, heads: list[CrashHead]) -> None:
+        self.heads = heads
 
     @torch.no_grad()
     def __call__(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -58,9 +59,7 @@ class BarredGreedy:
         with acting_greedily():
             logits = self.heads[0](obs)
         for head in self.heads[1:]:
-            risk = torch.sigmoid(head.crash_logits(obs))
-            allowed = risk <= risk[..., SLOWER : SLOWER + 1] + self.margin  # SLOWER always
-            logits = torch.where(allowed, logits, float("-inf"))
+            logits = torch.where(head.allowed(obs), logits, float("-inf"))  # SLOWER always
         return tensordict.set("action", logits.argmax(-1))
 
 
@@ -93,7 +92,7 @@ def main() -> None:
     rows = [play(ConstantActionPolicy("SLOWER"), "always-SLOWER")]
     for k in range(1, len(heads) + 1):
         name = f"{names[0]}, margin {args.crash_margin}, barred by " + " + ".join(names[:k])
-        rows.append(play(BarredGreedy(heads[:k], args.crash_margin), name))
+        rows.append(play(BarredGreedy(heads[:k]), name))
     slower = rows[0][0]
     print(  # noqa: T201 (the benchmark's output)
         f"{env_cfg.scenario}: {args.episodes} tensor-simulator episodes (float64), "

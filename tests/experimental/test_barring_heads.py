@@ -32,13 +32,13 @@ def head(logits: list[float], risks: list[float]) -> CrashHead:
 def test_one_head_plays_its_own_greedy_choice_and_another_head_bars():
     obs = TensorDict(observation=torch.zeros(2, 3), batch_size=[2])
     own = head([0.0, 1.0, 0.0, 3.0, 0.0], [0.01, 0.01, 0.01, 0.015, 0.01])
-    assert bench.BarredGreedy([own], 0.01)(obs.clone())["action"].tolist() == [3, 3]
+    assert bench.BarredGreedy([own])(obs.clone())["action"].tolist() == [3, 3]
     # Its own margin: FASTER at 0.03 is 0.02 riskier than SLOWER, barred; IDLE is next.
     wary = head([0.0, 1.0, 0.0, 3.0, 0.0], [0.01, 0.01, 0.01, 0.03, 0.01])
-    assert bench.BarredGreedy([wary], 0.01)(obs.clone())["action"].tolist() == [1, 1]
+    assert bench.BarredGreedy([wary])(obs.clone())["action"].tolist() == [1, 1]
     # A second head that finds FASTER and IDLE dangerous bars both of them.
     other = head([0.0] * 5, [0.01, 0.5, 0.01, 0.5, 0.01])
-    assert bench.BarredGreedy([own, other], 0.01)(obs.clone())["action"].tolist() == [0, 0]
+    assert bench.BarredGreedy([own, other])(obs.clone())["action"].tolist() == [0, 0]
     # Where a head finds every other action dangerous, SLOWER is what is left.
     alarmed = head([0.0] * 5, [0.9, 0.9, 0.9, 0.9, 0.1])
-    assert bench.BarredGreedy([own, alarmed], 0.01)(obs.clone())["action"].tolist() == [4, 4]
+    assert bench.BarredGreedy([own, alarmed])(obs.clone())["action"].tolist() == [4, 4]

@@ -44,6 +44,16 @@ def test_an_action_riskier_than_the_fallback_by_more_than_the_margin_is_barred()
     assert float(torch.softmax(out, -1)[0, 1]) < 1e-12
 
 
+def test_allowed_is_the_bar_the_greedy_choice_applies():
+    # Fallback 0 at p = 0.10, margin 0.05: the same bar as the test above, as a mask.
+    head = _head([1.0, 5.0, 2.0, 0.5], [0.10, 0.30, 0.12, 0.15], margin=0.05, fallback=0)
+    assert head.allowed(torch.tensor([0])).tolist() == [[True, False, True, True]]
+    assert torch.equal(head.allowed(torch.tensor([0])), _greedy(head) > 0.5 - BARRED)
+    # Without a margin nothing is barred, and outside acting_greedily the mask still holds.
+    head.set_margin(None)
+    assert head.allowed(torch.tensor([0])).all()
+
+
 def test_the_margin_applies_after_the_aversion():
     head = _head([1.0, 3.0], [0.5, 0.75], aversion=2.0, margin=0.2, fallback=1)
     # The fallback is never barred, however risky; action 0 is safer, so it stays too.

@@ -151,12 +151,25 @@ class CrashHead(nn.Module):
             logits = logits + self.aversion * nn.functional.logsigmoid(-crash.detach())
         if self.margin is None or not _GREEDY.get():
             return logits
-        risk = torch.sigmoid(crash.detach())
-        fallback = risk[..., self.fallback : self.fallback + 1]
-        allowed = risk <= fallback + self.margin
         floor = logits.detach().amin(-1, keepdim=True) - BARRED
-        return torch.where(allowed, logits, floor)
+        return torch.where(self._allowed(crash), logits, floor)
 
     def crash_logits(self, observation: torch.Tensor) -> torch.Tensor:
         """The logit of each action's crash probability, ``[*batch, n_actions]``."""
         return self._split(observation)[1]
+
+    def allowed(self, observation: torch.Tensor) -> torch.Tensor:
+        """Which actions the margin lets the greedy choice take, ``[*batch, n_actions]``.
+
+        Every action without a margin; otherwise those the head finds at most ``margin``
+        likelier to crash than the fallback (the fallback always). Other heads' bars
+        can be laid over a policy's with it.
+        """
+        crash = self.crash_logits(observation)
+        if self.margin is None:
+            return torch.ones_like(crash, dtype=torch.bool)
+        return self._allowed(crash)
+
+    def _allowed(self, crash: torch.Tensor) -> torch.Tensor:
+        risk = torch.sigmoid(crash.detach())
+        return risk <= risk[..., self.fallback : self.fallback + 1] + self.margin
