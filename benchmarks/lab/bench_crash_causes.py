@@ -24,7 +24,11 @@ The head sees the observation only. With ``--copies K`` (roundabout-v0), the dec
 step's state is copied K times with the other cars' destinations and IDM exponents
 drawn afresh (``bench_hidden_search.redraw_hidden``), and the share of copies in which
 the taken action, then always-SLOWER, crashes (and always-SLOWER's) estimates the crash
-probability that the observation allows: what a calibrated head would say there.
+probability that the observation allows: what a calibrated head would say there. Each
+row also says whether the vehicles the ego hit were in the observation at the decisive
+step (:func:`partners_seen`), for every other vehicle crashed after the crash step: a
+crash with a vehicle the table leaves out is one no head over that observation could
+foresee.
 
     python benchmarks/lab/bench_crash_causes.py --checkpoint <run>/last.pt \\
         --crash-margin 0.001 --episodes 4000 --seed 61000 [--copies 256]
@@ -60,17 +64,30 @@ SLOWER, N_ACTIONS = 4, 5
 
 
 @torch.no_grad()
-def branch_crashes(env_cfg, states: TensorDict, first: torch.Tensor) -> torch.Tensor:
-    """Whether each state, after its ``first`` action and always-SLOWER, crashes: ``[N]``."""
+def branch_crashes(
+    env_cfg,
+    states: TensorDict,
+    first: torch.Tensor,
+    count_steps: bool = False,
+    native: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, int]:
+    """Whether each state, after its ``first`` action and always-SLOWER, crashes: ``[N]``.
+
+    With ``count_steps``, also the number of steps the branches took (their frames);
+    with ``native``, the substeps run in C++ (the same model, to an ulp in float64).
+    """
     n = states.batch_size[0]
     env = TensorHighwayEnv(
-        str(env_cfg.scenario), env_overrides(env_cfg), num_envs=n, dtype=torch.float64
-    )
+        str(env_cfg.scenario), env_overrides(env_cfg), num_envs=n, dtype=torch.float64,
+        native=native,
+    )  # fmt: skip
     td = env.reset(TensorDict({STATE_KEY: states}, batch_size=[n]), set_state=True)
     crashed = torch.zeros(n, dtype=torch.bool)
     live = torch.ones(n, dtype=torch.bool)
     action = first.clone()
+    steps = 0
     for _ in range(int(env_cfg.max_episode_steps)):
+        steps += int(live.sum())
         out = env.step(td.set("action", action))
         crashed |= live & out.get(("next", "crashed")).reshape(n)
         live &= ~out.get(("next", "done")).reshape(n)
@@ -78,7 +95,25 @@ def branch_crashes(env_cfg, states: TensorDict, first: torch.Tensor) -> torch.Te
             break
         td = out.get("next").exclude("reward", "done", "terminated", "truncated", "crashed")
         action = torch.full_like(action, SLOWER)
-    return crashed
+    return (crashed, steps) if count_steps else crashed
+
+
+@torch.no_grad()
+def partners_seen(env_cfg, state: TensorDict, partners: list[int]) -> list[bool]:
+    """Whether each of ``partners`` (vehicle rows) is in the observation at ``state``.
+
+    A vehicle is observed exactly when taking it out of the world changes the
+    observation: one the table leaves out changes nothing.
+    """
+    n = len(partners) + 1
+    rows = state.unsqueeze(0).expand(n).clone()
+    for j, partner in enumerate(partners):
+        rows.get("vehicles").get("present")[j + 1, partner] = False
+    env = TensorHighwayEnv(
+        str(env_cfg.scenario), env_overrides(env_cfg), num_envs=n, dtype=torch.float64
+    )
+    obs = env.reset(TensorDict({STATE_KEY: rows}, batch_size=[n]), set_state=True)["observation"]
+    return [not torch.equal(obs[0], obs[j + 1]) for j in range(len(partners))]
 
 
 def redrawn_shares(env_cfg, state: TensorDict, action: int, copies: int) -> tuple[float, float]:
@@ -130,9 +165,17 @@ def causes(
         shares = None
         if copies and k is not None:
             shares = redrawn_shares(env_cfg, states[k], int(taken[k]), copies)
+        # Every other vehicle crashed after the crash step: the ego's partner, or a wreck
+        # of two others that it ran into.
+        after = data[e, last].get(("next", STATE_KEY)).get("vehicles")
+        hit = after.get("crashed") & after.get("present")
+        partners = hit[1:].nonzero().squeeze(-1).add(1).tolist()
+        seen = None if k is None else partners_seen(env_cfg, states[k], partners)
         records.append(
             {
                 "redrawn_shares": shares,
+                "partners": partners,
+                "partners_seen": seen,
                 "episode": seed + e,
                 "crash_step": last,
                 "actions": taken.tolist(),
@@ -176,18 +219,26 @@ def main() -> None:
         "",
         "| episode | crash step | actions | always-SLOWER from the start | decisive step "
         "| head there: taken / SLOWER | redrawn hidden variables there: taken / SLOWER "
-        "| safe first actions per step |",
-        "|---|---|---|---|---|---|---|---|",
+        "| the other crashed vehicles: in the observation there | safe first actions per step |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in records:
         k = r["decisive_step"]
         there = "-" if k is None else f"{r['risk_taken'][k]:.4f} / {r['risk_slower'][k]:.4f}"
         shares = r["redrawn_shares"]
         redrawn = "-" if shares is None else f"{shares[0]:.3f} / {shares[1]:.3f}"
+        seen = (
+            "-"
+            if k is None
+            else ", ".join(
+                f"{p}: {'seen' if s else 'unseen'}"
+                for p, s in zip(r["partners"], r["partners_seen"], strict=True)
+            )
+        )
         lines.append(
             f"| {r['episode']} | {r['crash_step']} | {r['actions']} | "
             f"{'crashes' if r['slower_from_start_crashes'] else 'safe'} | "
-            f"{'-' if k is None else k} | {there} | {redrawn} | {r['safe_actions']} |"
+            f"{'-' if k is None else k} | {there} | {redrawn} | {seen} | {r['safe_actions']} |"
         )
     lines += [
         "",

@@ -65,3 +65,15 @@ def test_a_crash_is_replayed_from_its_saved_state_and_traced_to_its_step():
             assert outcome[k][FASTER] and not outcome[k][bench.SLOWER]
             assert all(0.0 <= share <= 1.0 for share in r["redrawn_shares"])
         assert r["risk_taken"] == [0.0] * (c + 1)
+
+
+def test_a_vehicle_is_seen_when_taking_it_out_changes_the_observation():
+    env = TensorHighwayEnv("roundabout-v0", num_envs=1, return_state=True, dtype=torch.float64)
+    td = highway_starts(env, [40000])
+    state = td.get(STATE_KEY)[0]
+    shown = int((td.get("observation")[0, 1:, 0] > 0.5).sum())  # rows beside the ego's
+    seen = bench.partners_seen(CFG, state, [1, 2, 3, 4])
+    assert sum(seen) == shown
+    far = state.clone()
+    far.get("vehicles").get("x")[2] = 5000.0  # beyond the perception distance
+    assert bench.partners_seen(CFG, far, [2]) == [False]
