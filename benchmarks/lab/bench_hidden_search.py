@@ -23,7 +23,11 @@ worst copy) over the copies is highest. ``--redraw none`` is the plain search.
   at or above the car's speed, since IDM never drives a car faster, or from all of it
   with ``--wide-targets``); the clock that times its lane-change decisions (``timer``:
   U(0, 1) s); or ``all`` three. The vehicles the observation leaves out (beyond the
-  four nearest, or more than 10 m behind) are kept.
+  four nearest, or more than 10 m behind) are kept, unless ``--drop-unseen`` takes them
+  away: then the search plans from what the observation shows, with nothing beyond it.
+  ``--drop-unseen COUNT[,behind]`` keeps what a Kinematics observation of ``COUNT``
+  vehicles (and those behind, with ``see_behind``) shows. A checkpoint's own
+  ``env.config`` (its observation) holds for its episodes and branches.
 
 The episodes are the tensor simulator's in float64 from highway-env's starts of
 ``--seed, --seed + 1, ...`` (the tensor simulator follows highway-env to 1e-9 there:
@@ -34,7 +38,7 @@ docs/sim.md), paired against always-SLOWER on the same starts. One row per setti
         [--bases idle slower]
     python benchmarks/lab/bench_hidden_search.py --scenario highway-fast-v0 \\
         --base-checkpoint <run>/last.pt --episodes 500 --seed 40000 --copies 8 \\
-        --redraw none delta target timer all [--wide-targets]
+        --redraw none delta target timer all [--wide-targets] [--drop-unseen [COUNT[,behind]]]
 """
 
 from __future__ import annotations
@@ -47,7 +51,7 @@ import time
 import torch
 from bench_scenario_room import TABLE_HEADER, table_row  # the table of the scenario's room
 from omegaconf import OmegaConf
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from torchrl_grpo.branching import LookaheadPolicy
@@ -57,12 +61,14 @@ from torchrl_grpo.branching.lookahead import branch_returns
 from torchrl_grpo.branching.rollout import branch_rollout
 from torchrl_grpo.branching.root_builders import as_roots
 from torchrl_grpo.envs import TensorHighwayEnv
+from torchrl_grpo.envs.core.snapshot_env import STATE_KEY
 from torchrl_grpo.modules import make_scripted_policy
 from torchrl_grpo.modules.actors import DeterministicActor
 from torchrl_grpo.sim.params import HighwayParams
 from torchrl_grpo.sim.roundabout_params import RoundaboutParams
 from torchrl_grpo.sim.roundabout_reset import route_paths
 from torchrl_grpo.training.checkpoint import load_checkpoint
+from torchrl_grpo.training.env_builder import env_overrides
 from torchrl_grpo.training.evaluation import BASELINE_LABELS
 from torchrl_grpo.training.pretrained import load_run_policy
 from torchrl_grpo.training.results import EvalResult
@@ -174,6 +180,37 @@ def redraw_hidden(
     return state
 
 
+@torch.no_grad()
+def without_unseen(
+    state: TensorDictBase, scenario: str, observation: dict | None = None
+) -> TensorDictBase:
+    """The states with every vehicle that the ego's observation leaves out taken away.
+
+    A vehicle is in the observation exactly when taking it out of the world changes the
+    observation (``bench_crash_causes.partners_seen``); the others are made absent, as
+    the padding rows are. ``observation`` is that observation's config (default: the
+    scenario's), for example ``{"type": "Kinematics", "vehicles_count": 10}``.
+    """
+    n, count = state.get(("vehicles", "present")).shape
+    rows = state.unsqueeze(1).expand(n, count).reshape(n * count).clone()
+    present = rows.get(("vehicles", "present")).reshape(n, count, count)
+    others = torch.arange(1, count)
+    present[:, others, others] = False  # row j of a state: vehicle j taken out
+    rows.set(("vehicles", "present"), present.reshape(n * count, count))
+    dtype = state.get(("vehicles", "x")).dtype
+    config = None if observation is None else {"observation": observation}
+    env = TensorHighwayEnv(scenario, config, num_envs=n * count, dtype=dtype)
+    # The same world under another observation: the state is stamped with its config.
+    rows.set("fingerprint", torch.full_like(rows.get("fingerprint"), env.fingerprint))
+    obs = env.reset(TensorDict({STATE_KEY: rows}, batch_size=[n * count]), set_state=True)
+    obs = obs.get("observation").reshape(n, count, -1)
+    seen = (obs[:, 1:] != obs[:, :1]).any(-1)
+    out = state.clone()
+    kept = torch.cat([torch.ones(n, 1, dtype=torch.bool), seen], 1)
+    out.set(("vehicles", "present"), out.get(("vehicles", "present")) & kept)
+    return out
+
+
 class RedrawnSearch(LookaheadPolicy):
     """The lookahead planner, scoring each action over copies with redrawn hidden state.
 
@@ -197,6 +234,7 @@ class RedrawnSearch(LookaheadPolicy):
         seed: int,
         base: str | TensorDictModuleBase = "idle",
         wide_targets: bool = False,
+        drop_unseen: dict | bool = False,
     ) -> None:
         if isinstance(base, str):
             base = make_scripted_policy(base)
@@ -209,6 +247,7 @@ class RedrawnSearch(LookaheadPolicy):
         self.crash_penalty = float(crash_penalty)
         self.draws = torch.Generator().manual_seed(seed)
         self.wide_targets = wide_targets
+        self.drop_unseen = drop_unseen
 
     def returns(self, tensordict: TensorDictBase) -> torch.Tensor:
         return self.outcomes(tensordict)[0]
@@ -216,6 +255,9 @@ class RedrawnSearch(LookaheadPolicy):
     def outcomes(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """``[N, n_actions]``: the aggregated scores, and the share of copies that crash."""
         state = tensordict.get(STATE)
+        if self.drop_unseen is not False:
+            seen_by = None if self.drop_unseen is True else self.drop_unseen
+            state = without_unseen(state, self.env.scenario, seen_by)
         n = state.shape[0]
         state = state.unsqueeze(1).expand(n, self.copies).reshape(n * self.copies)
         state = redraw_hidden(state, self.env.params, self.redraw, self.draws, self.wide_targets)
@@ -234,8 +276,9 @@ class RedrawnSearch(LookaheadPolicy):
 def play(planner: RedrawnSearch, seeds: list[int], name: str, max_steps: int) -> EvalResult:
     """The planner's episodes of ``seeds`` on the float64 tensor simulator."""
     episodes = TensorHighwayEnv(
-        planner.env.scenario, num_envs=len(seeds), return_state=True, dtype=torch.float64
-    )
+        planner.env.scenario, planner.env.overrides, num_envs=len(seeds), return_state=True,
+        dtype=torch.float64,
+    )  # fmt: skip
     return searched_result(name, search_episodes(planner, episodes, seeds, max_steps), seeds)
 
 
@@ -261,6 +304,12 @@ def main() -> None:
         help="highway-fast-v0: target speeds from the whole spawn range U(21, 24)",
     )  # fmt: skip
     p.add_argument(
+        "--drop-unseen", nargs="?", const="", default=None, metavar="COUNT[,behind]",
+        help="plan from the states without the vehicles the observation leaves out; with "
+        "COUNT, those a Kinematics observation of COUNT vehicles leaves out (',behind': "
+        "with see_behind)",
+    )  # fmt: skip
+    p.add_argument(
         "--base-checkpoint", default=None,
         help="a run's last.pt whose greedy policy the branches follow instead of --bases",
     )  # fmt: skip
@@ -279,7 +328,7 @@ def main() -> None:
         if env_cfg.scenario != args.scenario:
             raise SystemExit(f"--base-checkpoint: a run of {env_cfg.scenario}, not {args.scenario}")
         cfg = env_cfg
-        probe = TensorHighwayEnv(args.scenario, num_envs=1)
+        probe = TensorHighwayEnv(args.scenario, env_overrides(env_cfg), num_envs=1)
         bases = [load_run_policy(args.base_checkpoint, env_cfg, probe)]
     start = time.perf_counter()
     slower = evaluate_on_tensor(
@@ -294,19 +343,33 @@ def main() -> None:
             name=f"{args.base_checkpoint}, greedy", dtype=torch.float64,
         )  # fmt: skip
         rows.append(table_row(greedy, slower, time.perf_counter() - start))
+    drop_unseen: dict | bool = False
+    seen_by = "the observation"
+    if args.drop_unseen:  # COUNT[,behind]
+        count, _, behind = args.drop_unseen.partition(",")
+        drop_unseen = {"type": "Kinematics", "vehicles_count": int(count)}
+        drop_unseen["see_behind"] = behind == "behind"
+        seen_by = f"an observation of {count} vehicles" + (" and those behind" * bool(behind))
+    elif args.drop_unseen is not None:
+        drop_unseen = True
     settings = itertools.product(bases, args.redraw, args.aggregate, args.crash_penalty)
     for base, redraw, aggregate, penalty in settings:
         # The plain search needs one copy: every copy would be the same state.
         copies = 1 if redraw == "none" else args.copies
         rows_needed = args.episodes * copies * 5
-        env = TensorHighwayEnv(args.scenario, num_envs=rows_needed, dtype=torch.float64)
+        env = TensorHighwayEnv(
+            args.scenario, env_overrides(cfg), num_envs=rows_needed, dtype=torch.float64
+        )
         planner = RedrawnSearch(
             env, horizon, copies=copies, redraw=redraw, aggregate=aggregate,
             crash_penalty=penalty, seed=args.seed, base=base, wide_targets=args.wide_targets,
+            drop_unseen=drop_unseen,
         )  # fmt: skip
         name = f"redraw {redraw}, {copies} copies, {aggregate}, crash penalty {penalty:g}"
         if args.wide_targets and redraw in ("target", "all"):
             name += ", wide targets"
+        if args.drop_unseen is not None:
+            name += f", the vehicles {seen_by} leaves out dropped"
         if not isinstance(base, str):
             name = f"H={horizon} over the checkpoint, {name}"
         elif base != "idle":

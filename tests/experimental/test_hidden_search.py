@@ -251,3 +251,40 @@ def test_target_speeds_are_drawn_at_or_above_the_speed_unless_wide(highway_world
         below = (new["vehicles", "target_speed"][:, 1:] < speed) & present
         # The whole range puts some cars' targets below their speed; the observed one never.
         assert bool(below.any()) == wide
+
+
+@pytest.mark.parametrize(
+    "observation", [None, {"type": "Kinematics", "vehicles_count": 10, "see_behind": True}]
+)
+def test_dropping_the_unseen_vehicles_keeps_the_observation_and_only_the_observed(
+    highway_worlds, observation
+):
+    _, td = highway_worlds
+    state = td[STATE]
+    kept = bench.without_unseen(state, bench.HIGHWAY, observation)
+    present = kept["vehicles", "present"]
+    assert (present <= state["vehicles", "present"]).all()
+    assert present.sum() < state["vehicles", "present"].sum()  # traffic the table leaves out
+    # The same observation from both states, and its rows are the vehicles kept.
+    config = None if observation is None else {"observation": observation}
+    seen = []
+    for world in (state, kept):
+        env = TensorHighwayEnv(bench.HIGHWAY, config, num_envs=32, return_state=True)
+        world = world.clone().set("fingerprint", torch.full((32,), env.fingerprint))
+        seen.append(env.reset(TensorDict({STATE: world}, [32]), set_state=True)["observation"])
+    assert torch.equal(seen[0], seen[1])
+    assert torch.equal(present.sum(1), (seen[0][:, :, 0] > 0.5).sum(1))
+
+
+def test_a_search_without_the_unseen_vehicles_plans_from_the_dropped_states(highway_worlds):
+    _, td = highway_worlds
+    roots = td[:4]
+    search = bench.RedrawnSearch(
+        TensorHighwayEnv(bench.HIGHWAY, num_envs=20), 4, copies=1, redraw="none",
+        aggregate="mean", crash_penalty=0.0, seed=0, base="idle", drop_unseen=True,
+    )  # fmt: skip
+    dropped = roots.clone().set(STATE, bench.without_unseen(roots[STATE], bench.HIGHWAY))
+    plain = LookaheadPolicy(
+        TensorHighwayEnv(bench.HIGHWAY, num_envs=20), make_scripted_policy("idle"), 4
+    )
+    assert torch.equal(search.returns(roots), branch_returns(plain.branches(dropped)))
