@@ -43,13 +43,14 @@ import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
 from bench_crash_causes import N_ACTIONS, SLOWER, branch_crashes
 from omegaconf import OmegaConf
+from search_fit import save_round
 from torch.nn import functional as F
 
 import torchrl_grpo.experimental  # noqa: F401  (runs of algo=grpo_lab load too)
 from torchrl_grpo.envs.core.snapshot_env import STATE_KEY
 from torchrl_grpo.modules.crash_head import CrashHead, acting_greedily
 from torchrl_grpo.training import load_run_policy, make_env
-from torchrl_grpo.training.checkpoint import load_checkpoint, save_checkpoint
+from torchrl_grpo.training.checkpoint import load_checkpoint
 from torchrl_grpo.training.model_builder import set_crash_margin
 from torchrl_grpo.training.transfer import tensor_episodes
 
@@ -192,10 +193,7 @@ def main() -> None:
         row["frames"] = frames
         log.info(json.dumps(row))
         history.append(row)
-        saved = copy.copy(ckpt)
-        saved["policy"] = policy.state_dict()
-        save_checkpoint(saved, out / f"round_{k + 1}.pt")
-    (out / "history.json").write_text(json.dumps(history, indent=1))
+        save_round(ckpt, policy, out, k + 1, history)
 
 
 if __name__ == "__main__":

@@ -52,6 +52,7 @@ from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.modules.actors import DeterministicActor
 from torchrl_grpo.training import make_env
 from torchrl_grpo.training.checkpoint import load_checkpoint, save_checkpoint
+from torchrl_grpo.training.env_builder import env_overrides
 from torchrl_grpo.training.pretrained import load_run_policy
 from torchrl_grpo.training.transfer import evaluate_on_tensor
 
@@ -177,6 +178,7 @@ def main() -> None:
     env_cfg = OmegaConf.create(ckpt["config"])["env"]
     policy = load_run_policy(args.checkpoint, env_cfg, make_env(env_cfg, seed=0))
     greedy = DeterministicActor(policy)
+    config = env_overrides(env_cfg)  # the run's config overrides, its observation among them
 
     def evaluate(label: str) -> dict:
         res = evaluate_on_tensor(env_cfg, greedy, episodes=args.eval_episodes, seed=60_000)
@@ -194,11 +196,11 @@ def main() -> None:
         if args.copies > 0:
             rows = 5 * args.copies * args.episodes
             planner = RedrawnSearch(
-                TensorHighwayEnv(str(env_cfg.scenario), num_envs=rows), args.horizon,
+                TensorHighwayEnv(str(env_cfg.scenario), config, num_envs=rows), args.horizon,
                 copies=args.copies, redraw="all", aggregate="mean", crash_penalty=0.0,
                 seed=40_000 + k, base=policy, wide_targets=args.wide_targets,
             )  # fmt: skip
-        visited = visit(greedy, str(env_cfg.scenario), seeds, args.horizon, 40, planner)
+        visited = visit(greedy, str(env_cfg.scenario), seeds, args.horizon, 40, planner, config)
         m = visited["scores"].shape[0]
         # Driven steps, and at most 5 x H per state and copy.
         frames += m * (1 + 5 * args.horizon * max(1, args.copies))
@@ -212,9 +214,15 @@ def main() -> None:
         row.update(states=int(merged["scores"].shape[0]), loss=loss, frames_at_most=frames)
         row.update(deciding=row_deciding)
         history.append(row)
-        saved = copy.copy(ckpt)
-        saved["policy"] = policy.state_dict()
-        save_checkpoint(saved, out / f"round_{k + 1}.pt")
+        save_round(ckpt, policy, out, k + 1, history)
+
+
+def save_round(ckpt: dict, policy, out: Path, k: int, history: list[dict]) -> None:  # noqa: ANN001
+    """The run's checkpoint with ``policy``'s weights as ``<out>/round_<k>.pt``, and the
+    rounds so far as ``<out>/history.json``."""
+    saved = copy.copy(ckpt)
+    saved["policy"] = policy.state_dict()
+    save_checkpoint(saved, out / f"round_{k}.pt")
     (out / "history.json").write_text(json.dumps(history, indent=1))
 
 

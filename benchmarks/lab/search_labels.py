@@ -61,6 +61,7 @@ def visit(
     horizon: int,
     max_steps: int,
     planner: LookaheadPolicy | None = None,
+    config: dict | None = None,
 ) -> dict[str, torch.Tensor]:
     """Every action's score and crash flag at every state the greedy ``policy`` visits;
     what it saw and did.
@@ -68,12 +69,14 @@ def visit(
     ``planner`` scores the actions (default: the search over ``policy``, ``horizon``
     steps, from the whole state). One with an ``outcomes`` method (the search from
     redrawn copies of ``bench_hidden_search``) gives a branch's crash flag as "crashes in
-    more than half of the copies".
+    more than half of the copies". ``config``: the scenario's config overrides (the
+    run's ``env.config``, such as a larger observation).
     """
     n = len(seeds)
     if planner is None:
-        planner = LookaheadPolicy(TensorHighwayEnv(scenario, num_envs=5 * n), policy, horizon)
-    env = TensorHighwayEnv(scenario, num_envs=n, return_state=True)
+        branches = TensorHighwayEnv(scenario, config, num_envs=5 * n)
+        planner = LookaheadPolicy(branches, policy, horizon)
+    env = TensorHighwayEnv(scenario, config, num_envs=n, return_state=True)
     td = highway_starts(env, seeds)
     live = torch.ones(n, dtype=torch.bool)
     scores, crashes, chosen, rewards, observations = [], [], [], [], []

@@ -42,6 +42,17 @@ def test_one_step_scores_are_the_rewards_the_driven_episodes_get():
     assert not torch.allclose(data["scores"][:, 3], played)  # FASTER scores otherwise
 
 
+def test_a_runs_config_reaches_the_driven_episodes_and_the_branches():
+    # A larger observation, as a run's env.config gives it: the states the labels are
+    # fitted on are read through it, and the branches' policy sees it too.
+    config = {"observation": {"type": "Kinematics", "vehicles_count": 7, "see_behind": True}}
+    data = visit(make_scripted_policy("slower"), "highway-fast-v0", [0], 2, 2, config=config)
+    assert data["observation"].shape == (2, 7, 5)
+    plain = visit(make_scripted_policy("slower"), "highway-fast-v0", [0], 2, 2)
+    assert plain["observation"].shape == (2, 5, 5)
+    assert torch.equal(data["scores"], plain["scores"])  # the same worlds, other tables
+
+
 def test_regret_loss_by_hand():
     from search_fit import regret_loss
 
