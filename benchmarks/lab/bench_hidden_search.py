@@ -219,7 +219,9 @@ class RedrawnSearch(LookaheadPolicy):
 
     ``returns`` gives ``[N, n_actions]``: per action, the ``aggregate`` over ``copies``
     redraws of its branch return less ``crash_penalty`` where the branch crashes. Its
-    env needs ``N * copies * n_actions`` rows.
+    env needs ``N * copies * n_actions`` rows. ``drop_unseen``: True plans from what the
+    env's own observation shows (:func:`without_unseen`); an observation config, from
+    what that one shows.
     """
 
     def __init__(
@@ -256,7 +258,9 @@ class RedrawnSearch(LookaheadPolicy):
         """``[N, n_actions]``: the aggregated scores, and the share of copies that crash."""
         state = tensordict.get(STATE)
         if self.drop_unseen is not False:
-            seen_by = None if self.drop_unseen is True else self.drop_unseen
+            # True: what this env's own observation (its config's, else the scenario's) shows.
+            own = self.env.overrides.get("observation")
+            seen_by = own if self.drop_unseen is True else self.drop_unseen
             state = without_unseen(state, self.env.scenario, seen_by)
         n = state.shape[0]
         state = state.unsqueeze(1).expand(n, self.copies).reshape(n * self.copies)

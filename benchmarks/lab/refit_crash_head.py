@@ -48,7 +48,7 @@ from torch.nn import functional as F
 
 import torchrl_grpo.experimental  # noqa: F401  (runs of algo=grpo_lab load too)
 from torchrl_grpo.envs.core.snapshot_env import STATE_KEY
-from torchrl_grpo.modules.crash_head import CrashHead, acting_greedily
+from torchrl_grpo.modules.crash_head import CrashHead
 from torchrl_grpo.training import load_run_policy, make_env
 from torchrl_grpo.training.checkpoint import load_checkpoint
 from torchrl_grpo.training.model_builder import set_crash_margin
@@ -179,7 +179,7 @@ def main() -> None:
             "greedy_wrong": wrong_greedy(crashed, visited["greedy"]),
             "deciding": float((crashed.any(-1) & ~crashed.all(-1)).double().mean()),
         }
-        with torch.no_grad(), acting_greedily():
+        with torch.no_grad():
             allowed = head.allowed(visited["observation"])
         row["allowed_wrong"] = float(
             (allowed & crashed & ~crashed[:, [SLOWER]]).any(-1).double().mean()
