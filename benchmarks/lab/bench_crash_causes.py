@@ -43,7 +43,7 @@ from collections.abc import Callable
 
 import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
-from bench_hidden_search import redraw_hidden
+from bench_hidden_search import observed_vehicles, redraw_hidden
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
@@ -98,22 +98,12 @@ def branch_crashes(
     return (crashed, steps) if count_steps else crashed
 
 
-@torch.no_grad()
 def partners_seen(env_cfg, state: TensorDict, partners: list[int]) -> list[bool]:
-    """Whether each of ``partners`` (vehicle rows) is in the observation at ``state``.
-
-    A vehicle is observed exactly when taking it out of the world changes the
-    observation: one the table leaves out changes nothing.
-    """
-    n = len(partners) + 1
-    rows = state.unsqueeze(0).expand(n).clone()
-    for j, partner in enumerate(partners):
-        rows.get("vehicles").get("present")[j + 1, partner] = False
-    env = TensorHighwayEnv(
-        str(env_cfg.scenario), env_overrides(env_cfg), num_envs=n, dtype=torch.float64
-    )
-    obs = env.reset(TensorDict({STATE_KEY: rows}, batch_size=[n]), set_state=True)["observation"]
-    return [not torch.equal(obs[0], obs[j + 1]) for j in range(len(partners))]
+    """Whether each of ``partners`` (vehicle rows) is in the observation at ``state``
+    (``bench_hidden_search.observed_vehicles``)."""
+    scenario, config = str(env_cfg.scenario), env_overrides(env_cfg)
+    seen = observed_vehicles(state.unsqueeze(0), scenario, config)[0]
+    return [bool(seen[partner]) for partner in partners]
 
 
 def redrawn_shares(env_cfg, state: TensorDict, action: int, copies: int) -> tuple[float, float]:

@@ -181,15 +181,14 @@ def redraw_hidden(
 
 
 @torch.no_grad()
-def without_unseen(
-    state: TensorDictBase, scenario: str, observation: dict | None = None
-) -> TensorDictBase:
-    """The states with every vehicle that the ego's observation leaves out taken away.
+def observed_vehicles(
+    state: TensorDictBase, scenario: str, config: dict | None = None
+) -> torch.Tensor:
+    """Which vehicles of each state the ego's observation shows: ``[n, count]`` booleans.
 
-    A vehicle is in the observation exactly when taking it out of the world changes the
-    observation (``bench_crash_causes.partners_seen``); the others are made absent, as
-    the padding rows are. ``observation`` is that observation's config (default: the
-    scenario's), for example ``{"type": "Kinematics", "vehicles_count": 10}``.
+    A vehicle is observed exactly when taking it out of the world changes the
+    observation; one the table leaves out changes nothing. The ego counts as observed.
+    ``config``: the overrides whose observation is meant (default: the scenario's own).
     """
     n, count = state.get(("vehicles", "present")).shape
     rows = state.unsqueeze(1).expand(n, count).reshape(n * count).clone()
@@ -198,16 +197,23 @@ def without_unseen(
     present[:, others, others] = False  # row j of a state: vehicle j taken out
     rows.set(("vehicles", "present"), present.reshape(n * count, count))
     dtype = state.get(("vehicles", "x")).dtype
-    config = None if observation is None else {"observation": observation}
     env = TensorHighwayEnv(scenario, config, num_envs=n * count, dtype=dtype)
     # The same world under another observation: the state is stamped with its config.
     rows.set("fingerprint", torch.full_like(rows.get("fingerprint"), env.fingerprint))
     obs = env.reset(TensorDict({STATE_KEY: rows}, batch_size=[n * count]), set_state=True)
     obs = obs.get("observation").reshape(n, count, -1)
     seen = (obs[:, 1:] != obs[:, :1]).any(-1)
+    return torch.cat([torch.ones(n, 1, dtype=torch.bool), seen], 1)
+
+
+def without_unseen(
+    state: TensorDictBase, scenario: str, config: dict | None = None
+) -> TensorDictBase:
+    """The states with every vehicle that the observation of ``config`` leaves out made
+    absent, as the padding rows are (:func:`observed_vehicles`)."""
     out = state.clone()
-    kept = torch.cat([torch.ones(n, 1, dtype=torch.bool), seen], 1)
-    out.set(("vehicles", "present"), out.get(("vehicles", "present")) & kept)
+    present = out.get(("vehicles", "present"))
+    out.set(("vehicles", "present"), present & observed_vehicles(state, scenario, config))
     return out
 
 
@@ -259,8 +265,8 @@ class RedrawnSearch(LookaheadPolicy):
         state = tensordict.get(STATE)
         if self.drop_unseen is not False:
             # True: what this env's own observation (its config's, else the scenario's) shows.
-            own = self.env.overrides.get("observation")
-            seen_by = own if self.drop_unseen is True else self.drop_unseen
+            own = self.drop_unseen is True
+            seen_by = self.env.overrides if own else {"observation": self.drop_unseen}
             state = without_unseen(state, self.env.scenario, seen_by)
         n = state.shape[0]
         state = state.unsqueeze(1).expand(n, self.copies).reshape(n * self.copies)

@@ -261,12 +261,12 @@ def test_dropping_the_unseen_vehicles_keeps_the_observation_and_only_the_observe
 ):
     _, td = highway_worlds
     state = td[STATE]
-    kept = bench.without_unseen(state, bench.HIGHWAY, observation)
+    config = None if observation is None else {"observation": observation}
+    kept = bench.without_unseen(state, bench.HIGHWAY, config)
     present = kept["vehicles", "present"]
     assert (present <= state["vehicles", "present"]).all()
     assert present.sum() < state["vehicles", "present"].sum()  # traffic the table leaves out
     # The same observation from both states, and its rows are the vehicles kept.
-    config = None if observation is None else {"observation": observation}
     seen = []
     for world in (state, kept):
         env = TensorHighwayEnv(bench.HIGHWAY, config, num_envs=32, return_state=True)
