@@ -1,19 +1,12 @@
 """bench_barring_heads: one head is the policy's own greedy choice; another head bars."""
 
-import sys
-from pathlib import Path
-
+import bench_barring_heads as bench
 import pytest
 import torch
 from tensordict import TensorDict
 from torch import nn
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "benchmarks" / "lab"))
-
-import bench_barring_heads as bench  # noqa: E402
-
-from torchrl_grpo.modules.crash_head import CrashHead  # noqa: E402
+from torchrl_grpo.modules.crash_head import CrashHead
 
 pytestmark = pytest.mark.experimental
 

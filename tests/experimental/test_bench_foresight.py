@@ -1,15 +1,10 @@
 """bench_crash_foresight's scoring of the decisions before each crash, worked by hand."""
 
 import doctest
-import sys
-from pathlib import Path
 
+import bench_crash_foresight as bench
 import pytest
 import torch
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks" / "lab"))
-
-import bench_crash_foresight as bench  # noqa: E402
 
 pytestmark = pytest.mark.experimental
 

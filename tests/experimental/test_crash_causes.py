@@ -1,21 +1,14 @@
 """bench_crash_causes: its branches crash as highway-env's do, and a crash is traced to its step."""
 
-import sys
-from pathlib import Path
-
+import bench_crash_causes as bench
 import pytest
 import torch
 from omegaconf import OmegaConf
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "benchmarks" / "lab"))
-
-import bench_crash_causes as bench  # noqa: E402
-
-from torchrl_grpo.branching.batched_search import highway_starts  # noqa: E402
-from torchrl_grpo.envs import HighwayEnv, TensorHighwayEnv  # noqa: E402
-from torchrl_grpo.envs.core.snapshot_env import STATE_KEY  # noqa: E402
-from torchrl_grpo.modules import ConstantActionPolicy  # noqa: E402
+from torchrl_grpo.branching.batched_search import highway_starts
+from torchrl_grpo.envs import HighwayEnv, TensorHighwayEnv
+from torchrl_grpo.envs.core.snapshot_env import STATE_KEY
+from torchrl_grpo.modules import ConstantActionPolicy
 
 pytestmark = pytest.mark.experimental
 

@@ -4,23 +4,21 @@ import subprocess
 import sys
 from pathlib import Path
 
+import bench_hidden_search as bench
 import pytest
 import torch
 from tensordict import TensorDict
 
+from torchrl_grpo.branching import LookaheadPolicy
+from torchrl_grpo.branching.keys import MASK, STATE
+from torchrl_grpo.branching.lookahead import branch_returns
+from torchrl_grpo.envs import TensorHighwayEnv
+from torchrl_grpo.modules import make_scripted_policy
+from torchrl_grpo.modules.actors import DeterministicActor
+from torchrl_grpo.sim.roundabout_reset import route_paths
+from torchrl_grpo.training import compose_config, make_env, make_policy
+
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "benchmarks" / "lab"))
-
-import bench_hidden_search as bench  # noqa: E402
-
-from torchrl_grpo.branching import LookaheadPolicy  # noqa: E402
-from torchrl_grpo.branching.keys import MASK, STATE  # noqa: E402
-from torchrl_grpo.branching.lookahead import branch_returns  # noqa: E402
-from torchrl_grpo.envs import TensorHighwayEnv  # noqa: E402
-from torchrl_grpo.modules import make_scripted_policy  # noqa: E402
-from torchrl_grpo.modules.actors import DeterministicActor  # noqa: E402
-from torchrl_grpo.sim.roundabout_reset import route_paths  # noqa: E402
-from torchrl_grpo.training import compose_config, make_env, make_policy  # noqa: E402
 
 pytestmark = pytest.mark.experimental
 

@@ -1,15 +1,8 @@
 """label_inputs' fits: the best-set cross-entropy and the expected regret, by hand."""
 
-import sys
-from pathlib import Path
-
+import label_inputs
 import pytest
 import torch
-
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "benchmarks" / "lab"))
-
-import label_inputs  # noqa: E402
 
 pytestmark = pytest.mark.experimental
 

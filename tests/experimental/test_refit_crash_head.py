@@ -3,21 +3,15 @@ one, and its fit moves the crash logits while the anchor holds the policy's."""
 
 import argparse
 import math
-import sys
-from pathlib import Path
 
 import pytest
+import refit_crash_head as refit
 import torch
 from omegaconf import OmegaConf
 from torch import nn
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "benchmarks" / "lab"))
-
-import refit_crash_head as refit  # noqa: E402
-
-from torchrl_grpo.modules import ConstantActionPolicy  # noqa: E402
-from torchrl_grpo.modules.crash_head import CrashHead  # noqa: E402
+from torchrl_grpo.modules import ConstantActionPolicy
+from torchrl_grpo.modules.crash_head import CrashHead
 
 pytestmark = pytest.mark.experimental
 

@@ -4,14 +4,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import bench_scenario_room as bench
 import pytest
 
+from torchrl_grpo.training.results import EvalResult
+
 ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT / "benchmarks" / "lab"))
-
-import bench_scenario_room as bench  # noqa: E402
-
-from torchrl_grpo.training.results import EvalResult  # noqa: E402
 
 pytestmark = pytest.mark.experimental
 

@@ -2,17 +2,11 @@
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import pytest
 import torch
+from search_labels import label_stats, visit
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks" / "lab"))
-
-from search_labels import label_stats, visit  # noqa: E402
-
-from torchrl_grpo.modules import make_scripted_policy  # noqa: E402
+from torchrl_grpo.modules import make_scripted_policy
 
 pytestmark = pytest.mark.experimental
 
