@@ -92,6 +92,7 @@ def test_roundabout_bars_the_greedy_actions_riskier_than_slower(overrides, margi
         ([], "scene"),  # model=auto: the scenario's network
         (["env=roundabout"], "mlp"),
         (["env=merge"], "mlp"),  # SCENARIO_NETWORKS
+        (["env=intersection"], "mlp"),
         (["env=merge", "algo=ppo"], "mlp"),  # the same network for the baseline
         (["env=merge", "model=scene"], "scene"),  # a chosen network wins
         (["env=merge", "model=ego_attention"], "ego_attention"),

@@ -28,9 +28,11 @@ __all__ = [
 #: The network of ``model=auto`` (the default) per scenario where it is not ``scene``:
 #: merge-v0's recipe reads the Kinematics table itself, whose ego x tells how far the
 #: merge is, and roundabout-v0's, whose cars drive on curves that the scene's per-lane
-#: features (built for straight lanes) do not describe (docs/results.md, section 5).
+#: features (built for straight lanes) do not describe (docs/results.md, section 5), and
+#: intersection-v0's, where the ego drives along y and the crossing cars along x, while
+#: the scene features read lanes from y and gaps along x (section 6).
 #: Both kinds share one schema.
-SCENARIO_NETWORKS = {"merge-v0": "mlp", "roundabout-v0": "mlp"}
+SCENARIO_NETWORKS = {"merge-v0": "mlp", "roundabout-v0": "mlp", "intersection-v0": "mlp"}
 
 #: The config folder of a source checkout (``conf/`` beside the package).
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
