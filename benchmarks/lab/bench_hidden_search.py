@@ -264,9 +264,12 @@ class RedrawnSearch(LookaheadPolicy):
         """``[N, n_actions]``: the aggregated scores, and the share of copies that crash."""
         state = tensordict.get(STATE)
         if self.drop_unseen is not False:
-            # True: what this env's own observation (its config's, else the scenario's) shows.
+            # True: what this env's own observation (its config's, else the scenario's)
+            # shows; an observation: what it shows of the same world (the env's config).
             own = self.drop_unseen is True
-            seen_by = self.env.overrides if own else {"observation": self.drop_unseen}
+            seen_by = self.env.overrides
+            if not own:
+                seen_by = {**seen_by, "observation": self.drop_unseen}
             state = without_unseen(state, self.env.scenario, seen_by)
         n = state.shape[0]
         state = state.unsqueeze(1).expand(n, self.copies).reshape(n * self.copies)

@@ -286,3 +286,23 @@ def test_a_search_without_the_unseen_vehicles_plans_from_the_dropped_states(high
         TensorHighwayEnv(bench.HIGHWAY, num_envs=20), make_scripted_policy("idle"), 4
     )
     assert torch.equal(search.returns(roots), branch_returns(plain.branches(dropped)))
+
+
+def test_an_observation_to_drop_by_keeps_the_envs_other_config():
+    # A world of four lanes, seen by a table of 10 vehicles: the search drops what that
+    # table shows of this world, not of the scenario's default three lanes.
+    config = {"lanes_count": 4}
+    env = TensorHighwayEnv(bench.HIGHWAY, config, num_envs=4, seed=3, return_state=True)
+    roots = env.reset()
+    table = {"type": "Kinematics", "vehicles_count": 10}
+    search = bench.RedrawnSearch(
+        TensorHighwayEnv(bench.HIGHWAY, config, num_envs=20), 3, copies=1, redraw="none",
+        aggregate="mean", crash_penalty=0.0, seed=0, base="idle", drop_unseen=table,
+    )  # fmt: skip
+    kept = bench.without_unseen(roots[STATE], bench.HIGHWAY, {**config, "observation": table})
+    plain = LookaheadPolicy(
+        TensorHighwayEnv(bench.HIGHWAY, config, num_envs=20), make_scripted_policy("idle"), 3
+    )
+    assert torch.equal(
+        search.returns(roots), branch_returns(plain.branches(roots.clone().set(STATE, kept)))
+    )
