@@ -154,16 +154,15 @@ def test_errors_name_the_problem_and_the_env_steps_on():
     many = {"action": {"type": "DiscreteMetaAction", "target_speeds": list(range(20))}}
     with pytest.raises(ValueError, match="1 to 16 target speeds, got 20"):
         TensorHighwayEnv(SCENARIO, many, num_envs=2, native=True)
-    env = TensorHighwayEnv("intersection-v0", num_envs=2, seed=0)
-    with pytest.raises(ValueError, match="intersection-v0"):
-        env.native()
+    with pytest.raises(ValueError, match="not 'parking-v0'"):
+        native_mode("parking-v0", params, torch.device("cpu"))
+    env = TensorHighwayEnv(SCENARIO, num_envs=2, seed=0, native=True)
     assert env.rollout(2)["next", "reward"].shape == (2, 2, 1)
 
 
 def test_training_steps_merge_and_the_roundabout_in_cpp_by_default():
     cfg = OmegaConf.create({"backend": "auto", "scenario": SCENARIO, "config": {}})
     assert steps_natively(cfg) and steps_natively(OmegaConf.merge(cfg, {"scenario": "merge-v0"}))
-    assert not steps_natively(OmegaConf.merge(cfg, {"scenario": "intersection-v0"}))
     assert not steps_natively(OmegaConf.merge(cfg, {"backend": "tensor"}))
 
 

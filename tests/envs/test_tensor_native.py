@@ -119,11 +119,9 @@ def test_the_input_world_is_left_as_it_was():
     assert all(torch.equal(a, b) for a, b in zip(before, world.vehicles, strict=True))
 
 
-def test_other_scenarios_are_refused_and_the_env_steps_on():
-    env = TensorHighwayEnv("intersection-v0", num_envs=2, seed=0)
-    with pytest.raises(ValueError, match="intersection-v0"):
-        env.native()
-    assert env.rollout(2)["next", "reward"].shape == (2, 2, 1)
+def test_other_scenarios_and_devices_are_refused():
+    with pytest.raises(ValueError, match="not 'parking-v0'"):
+        native_mode("parking-v0", tensor_params("highway-fast-v0"), torch.device("cpu"))
     with pytest.raises(ValueError, match="on the CPU"):
         native_mode("highway-fast-v0", tensor_params("highway-fast-v0"), torch.device("cuda"))
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchrl_grpo.envs import TensorHighwayEnv, tensor_params
-from torchrl_grpo.sim.intersection import INTERSECTION_ACTIONS, intersection_substep
+from torchrl_grpo.sim.intersection import INTERSECTION_ACTIONS, intersection_substep, tensor_frames
 from torchrl_grpo.sim.intersection_reset import (
     SPAWN_DRAWS,
     check_regulated,
@@ -98,9 +98,8 @@ def test_the_frames_on_the_rows_in_use_are_the_full_tables_bit_for_bit(params):
     full = world
     for _ in range(15):
         full = intersection_substep(full, action, params)
-    from torchrl_grpo.sim.intersection import _run_frames
 
-    narrow = _run_frames(world, action, 15, params)
+    narrow = tensor_frames(world, action, 15, params)
     assert 1 + int(world.vehicles.present[:, 1:].sum(1).max()) < params.num_vehicles
     present = full.vehicles.present
     for name in ("x", "y", "heading", "speed", "target_speed", "lane", "crashed"):

@@ -248,6 +248,6 @@ def test_the_native_backend_trains_on_the_cpp_step_and_resumes_exactly(tmp_path)
 
 
 def test_the_native_backend_refuses_scenarios_without_a_cpp_step():
-    cfg = OmegaConf.create({"scenario": "intersection-v0", "config": {}, "backend": "native"})
-    with pytest.raises(ValueError, match="env.backend=native.*intersection-v0"):
+    cfg = OmegaConf.create({"scenario": "parking-v0", "config": {}, "backend": "native"})
+    with pytest.raises(ValueError, match="env.backend=native.*parking-v0"):
         make_rollout_env(cfg, OmegaConf.create({"num_workers": 1, "backend": "single"}))

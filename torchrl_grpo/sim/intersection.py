@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from collections.abc import Callable
 
 import torch
 
@@ -48,11 +49,17 @@ from torchrl_grpo.sim.state import Vehicles, World, map_world
 
 __all__ = [
     "INTERSECTION_ACTIONS",
+    "FramesFn",
     "intersection_step",
     "intersection_substep",
     "road_order",
+    "tensor_frames",
     "warm_up",
 ]
+
+#: ``(world, meta-actions, frames, params) -> world``: a number of frames of B worlds
+#: (:func:`tensor_frames`, or the C++ ones: :func:`.intersection_native.native_frames`).
+FramesFn = Callable[[World, torch.Tensor, int, IntersectionParams], World]
 
 #: The meta-action of each of intersection-v0's actions (SLOWER, IDLE, FASTER).
 INTERSECTION_ACTIONS = (SLOWER, IDLE, FASTER)
@@ -138,12 +145,15 @@ def _narrowed(params: IntersectionParams, rows: int) -> IntersectionParams:
     )
 
 
-def _run_frames(world: World, action: torch.Tensor, frames: int, params) -> World:
+def tensor_frames(world: World, action: torch.Tensor, frames: int, params) -> World:
     """``frames`` substeps on the rows in use, the free rows after them set aside.
 
     The rows are packed, so the first ``1 + max(others)`` hold every vehicle of every
     world: the pair computations (neighbours, conflicts, collisions) shrink with the
     square of the rows, and a free row changes no present one's result.
+
+    Example:
+        >>> # see the module's example
     """
     used = 1 + int(world.vehicles.present[:, 1:].sum(1).max())
     if used == world.vehicles.x.shape[1]:
@@ -161,8 +171,12 @@ def _run_frames(world: World, action: torch.Tensor, frames: int, params) -> Worl
     return map_world(put_back, world, part)
 
 
-def warm_up(world: World, rows: torch.Tensor, params: IntersectionParams) -> World:
+def warm_up(
+    world: World, rows: torch.Tensor, params: IntersectionParams, frames: FramesFn = tensor_frames
+) -> World:
     """The reset's 3 seconds of traffic on ``rows``, before the ego exists (the others kept).
+
+    ``frames`` runs them (the tensor path's by default).
 
     Example:
         >>> # see the module's example
@@ -172,13 +186,17 @@ def warm_up(world: World, rows: torch.Tensor, params: IntersectionParams) -> Wor
         return world
     sub = map_world(lambda t: t.index_select(0, index), world)
     no_action = torch.full_like(sub.steps, -1)
-    sub = _run_frames(sub, no_action, params.traffic.warmup_frames, params)
+    sub = frames(sub, no_action, params.traffic.warmup_frames, params)
     sub = sub._replace(steps=world.steps.index_select(0, index))
     return map_world(lambda t, s: t.index_copy(0, index, s), world, sub)
 
 
 def intersection_step(
-    world: World, action: torch.Tensor, draws: torch.Tensor, params: IntersectionParams
+    world: World,
+    action: torch.Tensor,
+    draws: torch.Tensor,
+    params: IntersectionParams,
+    frames: FramesFn = tensor_frames,
 ) -> tuple[World, dict, torch.Tensor]:
     """``env.step(action)`` for B intersection worlds.
 
@@ -188,6 +206,7 @@ def intersection_step(
         draws: ``[B, SPAWN_DRAWS]`` the step's spawn draws (see
             :func:`~.intersection_reset.spawn_vehicles`).
         params: the constants.
+        frames: runs the step's frames (:func:`tensor_frames`, or the C++ ones).
 
     Returns:
         ``(worlds after the step, observe_intersection of them before the exits and
@@ -198,7 +217,7 @@ def intersection_step(
     """
     meta = torch.tensor(INTERSECTION_ACTIONS, device=action.device)[action]
     world = world._replace(time=world.time + params.time.step_time)
-    world = _run_frames(world, meta, params.time.frames, params)
+    world = frames(world, meta, params.time.frames, params)
     out = observe_intersection(world, params)
     world = clear_vehicles(world, params)
     t = params.traffic

@@ -35,6 +35,7 @@ from pathlib import Path
 
 import torch
 
+from torchrl_grpo.sim.intersection_params import IntersectionParams
 from torchrl_grpo.sim.lanes import LaneGeometry
 from torchrl_grpo.sim.merge_output import observe_merge
 from torchrl_grpo.sim.merge_params import MergeParams
@@ -57,7 +58,14 @@ SOURCES = (
     SOURCE,
     *(
         SOURCE.with_name(n)
-        for n in ("routed_road.h", "highway_native.h", "highway_collide.h", "pcg64.h")
+        for n in (
+            "routed_model.h",
+            "intersection_rules.h",
+            "routed_road.h",
+            "highway_native.h",
+            "highway_collide.h",
+            "pcg64.h",
+        )
     ),
 )
 _SCALARS = (
@@ -99,6 +107,12 @@ def load_routed_library() -> ctypes.CDLL:
         ctypes.POINTER(RoutedParams), ctypes.POINTER(NativeTable), ctypes.c_void_p,
         ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int, ctypes.c_int, ctypes.c_int,
     ]  # fmt: skip
+    library.intersection_frames.restype = ctypes.c_int
+    library.intersection_frames.argtypes = [
+        ctypes.POINTER(RoutedParams), ctypes.c_void_p, ctypes.POINTER(NativeTable),
+        ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+        ctypes.c_int64, ctypes.c_int64, ctypes.c_int, ctypes.c_int, ctypes.c_int,
+    ]  # fmt: skip
     library.merge_draws.restype = None
     library.merge_draws.argtypes = [
         ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_void_p,
@@ -110,9 +124,9 @@ def load_routed_library() -> ctypes.CDLL:
 class _Road:
     """The structure and the tensors its pointers address (kept alive together)."""
 
-    def __init__(self, params: MergeParams | RoundaboutParams) -> None:
+    def __init__(self, params: MergeParams | RoundaboutParams | IntersectionParams) -> None:
         road, car, idm, control = params.road, params.vehicle, params.idm, params.control
-        routed = isinstance(params, RoundaboutParams)
+        routed = not isinstance(params, MergeParams)
         speeds = control.target_speeds
         if not 1 <= len(speeds) <= MAX_SPEEDS:
             raise ValueError(
@@ -174,7 +188,7 @@ class _Road:
 
 
 @functools.lru_cache(maxsize=16)
-def routed_road(params: MergeParams | RoundaboutParams) -> _Road:
+def routed_road(params: MergeParams | RoundaboutParams | IntersectionParams) -> _Road:
     """The constants and road tables the C++ step reads (cached per params).
 
     Raises:
@@ -210,12 +224,18 @@ def routed_step(
         ``(worlds after the step, their observation with this action's reward)``.
 
     Raises:
-        ValueError: a world off the CPU, or whose routes do not fit the scenario.
+        ValueError: a world off the CPU, or whose routes do not fit the scenario, or
+            intersection-v0's params (its frames: :mod:`.intersection_native`).
         NativeBuildError: see :func:`load_routed_library`.
 
     Example:
         >>> # see the module's example
     """
+    if isinstance(params, IntersectionParams):
+        raise ValueError(
+            "routed_step steps merge-v0 and roundabout-v0; intersection-v0's frames, with "
+            "its right of way, are torchrl_grpo.sim.intersection_native.native_frames"
+        )
     routed = isinstance(params, RoundaboutParams)
     if routed != (world.route is not None):
         raise ValueError(

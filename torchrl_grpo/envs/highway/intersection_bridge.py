@@ -39,7 +39,7 @@ from torchrl_grpo.envs.highway.lane_constants import lane_keys
 from torchrl_grpo.envs.highway.merge_bridge import row_generators
 from torchrl_grpo.envs.highway.tensor_params import tensor_params
 from torchrl_grpo.envs.highway.tensor_state import where_rows
-from torchrl_grpo.sim.intersection import warm_up
+from torchrl_grpo.sim.intersection import FramesFn, tensor_frames, warm_up
 from torchrl_grpo.sim.intersection_params import IntersectionParams
 from torchrl_grpo.sim.intersection_reset import (
     SPAWN_DRAWS,
@@ -135,13 +135,15 @@ def ego_draws(
     )
 
 
-def intersection_fresh(world: World, rows, words, seeds, params: IntersectionParams):
+def intersection_fresh(
+    world: World, rows, words, seeds, params: IntersectionParams, frames: FramesFn = tensor_frames
+):
     """Fresh worlds on ``rows`` as ``_make_vehicles`` builds them from the generator words.
 
-    The reset's spawns, its 3 seconds of traffic, the challenger and the ego, each
-    spawn's draws replayed on the host and placed on the device. Returns ``(worlds,
-    words after, seeds)``: row ``i`` of words seeded with ``s`` is highway-env's world
-    after ``reset(seed=s)``.
+    The reset's spawns, its 3 seconds of traffic (run by ``frames``: the tensor path's,
+    or the C++ ones), the challenger and the ego, each spawn's draws replayed on the
+    host and placed on the device. Returns ``(worlds, words after, seeds)``: row ``i``
+    of words seeded with ``s`` is highway-env's world after ``reset(seed=s)``.
 
     Example:
         >>> from torchrl_grpo.envs.core.gym_state import seeded_rng_words
@@ -167,7 +169,7 @@ def intersection_fresh(world: World, rows, words, seeds, params: IntersectionPar
         new, words = spawn(
             new, s, t.position_deviation, t.speed_deviation, t.initial_spawn_probability
         )
-    new = warm_up(new, rows, params)
+    new = warm_up(new, rows, params, frames)
     new, words = spawn(new, t.challenger_s, t.challenger_position_deviation,
                        t.challenger_speed_deviation, 1.0, straight=True)  # fmt: skip
     goal, offset, words = ego_draws(words, rows, params)

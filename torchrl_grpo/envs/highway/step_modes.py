@@ -18,7 +18,9 @@ episodes, all pure functions of tensors:
 - :func:`native_mode`: highway-v0 and highway-fast-v0 on a CPU with the
   substeps, the observation and the fresh episodes in C++
   (:mod:`torchrl_grpo.sim.native`), merge-v0 and roundabout-v0 with their substeps in
-  C++ (:mod:`torchrl_grpo.sim.routed_native`), worlds split over threads.
+  C++ (:mod:`torchrl_grpo.sim.routed_native`), intersection-v0 with its frames and
+  their right of way in C++ (:mod:`torchrl_grpo.sim.intersection_native`), worlds
+  split over threads.
 
 Compiled and C++ steps compute the eager step's model expression by expression, but
 round a few functions differently (1 to 2 ulp): they replay their own bits after a
@@ -41,6 +43,7 @@ import torch
 
 from torchrl_grpo.envs.highway.merge_bridge import native_merge_draws
 from torchrl_grpo.envs.highway.tensor_models import tensor_model
+from torchrl_grpo.sim.intersection_native import native_frames, rules_of
 from torchrl_grpo.sim.native import (
     load_library,
     native_fresh,
@@ -62,9 +65,11 @@ __all__ = [
 ]
 
 #: The scenarios whose step has a C++ version.
-NATIVE_SCENARIOS = ("highway-v0", "highway-fast-v0", "merge-v0", "roundabout-v0")
+NATIVE_SCENARIOS = (
+    "highway-v0", "highway-fast-v0", "merge-v0", "roundabout-v0", "intersection-v0",
+)  # fmt: skip
 #: Those of them on road graphs, whose observation and resets stay the tensor path's.
-ROUTED_NATIVE_SCENARIOS = ("merge-v0", "roundabout-v0")
+ROUTED_NATIVE_SCENARIOS = ("merge-v0", "roundabout-v0", "intersection-v0")
 
 
 class StepMode(NamedTuple):
@@ -150,7 +155,10 @@ def native_mode(
     highway-v0 and highway-fast-v0 step, observe and draw fresh worlds in C++
     (:mod:`torchrl_grpo.sim.native`); merge-v0 and roundabout-v0 step their substeps in
     C++ (:mod:`torchrl_grpo.sim.routed_native`) and keep the tensor observation and resets
-    (merge-v0's reset draws replayed in C++: :func:`.merge_bridge.native_merge_draws`).
+    (merge-v0's reset draws replayed in C++: :func:`.merge_bridge.native_merge_draws`);
+    intersection-v0 runs its frames in C++, in steps and in the reset's warm-up
+    (:mod:`torchrl_grpo.sim.intersection_native`), and keeps the tensor observation,
+    exits and spawns.
 
     Args:
         scenario: one of ``NATIVE_SCENARIOS``.
@@ -184,6 +192,13 @@ def native_mode(
     load_native(scenario, params)  # a missing compiler or a config it cannot hold: here
     if scenario in ROUTED_NATIVE_SCENARIOS:
         eager = eager_mode(tensor_model(scenario), params, device)
+        if scenario == "intersection-v0":
+            frames = functools.partial(native_frames, threads=threads)
+            return eager._replace(
+                name="native",
+                step=functools.partial(eager.step, frames=frames),
+                fresh=functools.partial(eager.fresh, frames=frames),
+            )
         step = functools.partial(routed_step, params=params, threads=threads)
         if scenario == "merge-v0":  # its reset draws replayed in C++ too, bit for bit
             fresh = functools.partial(eager.fresh, replay=native_merge_draws)
@@ -218,3 +233,5 @@ def load_native(scenario: str, params=None) -> None:
     (load_routed_library if routed else load_library)()
     if params is not None:
         (routed_road if routed else native_params)(params)
+        if scenario == "intersection-v0":
+            rules_of(params)

@@ -36,7 +36,12 @@ from torchrl_grpo.envs.highway.intersection_bridge import (
 from torchrl_grpo.envs.highway.merge_bridge import MergeBridge, merge_draws
 from torchrl_grpo.envs.highway.roundabout_bridge import RoundaboutBridge, roundabout_draws
 from torchrl_grpo.envs.highway.tensor_state import fresh_highway_words
-from torchrl_grpo.sim.intersection import INTERSECTION_ACTIONS, intersection_step
+from torchrl_grpo.sim.intersection import (
+    INTERSECTION_ACTIONS,
+    FramesFn,
+    intersection_step,
+    tensor_frames,
+)
 from torchrl_grpo.sim.intersection_output import (
     INTERSECTION_REWARD_COMPONENTS,
     observe_intersection,
@@ -112,12 +117,15 @@ def _roundabout_step(world, action, params, dense=False, stages=None):
     return roundabout_step(world, action, params)
 
 
-def _intersection_step(world, action, words, params, dense=False, stages=None):
+def _intersection_step(
+    world, action, words, params, dense=False, stages=None, frames: FramesFn = tensor_frames
+):
+    # frames: the tensor path's, or the C++ ones (step_modes.native_mode).
     del dense, stages
     rows = torch.ones_like(world.steps, dtype=torch.bool)
     probability = params.traffic.spawn_probability
     draws, dropped, kept = spawn_draws(words, rows, params, probability)
-    world, out, stayed = intersection_step(world, action, draws, params)
+    world, out, stayed = intersection_step(world, action, draws, params, frames)
     return world, out, torch.where(stayed.unsqueeze(-1), kept, dropped)
 
 
