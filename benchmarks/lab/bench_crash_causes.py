@@ -22,7 +22,7 @@ before its crash, each of the five actions is branched, then always-SLOWER to th
 
 The head sees the observation only. With ``--copies K`` (roundabout-v0), the decisive
 step's state is copied K times with the other cars' destinations and IDM exponents
-drawn afresh (``bench_hidden_search.redraw_hidden``), and the share of copies in which
+drawn afresh (``hidden_state.redraw_hidden``), and the share of copies in which
 the taken action, then always-SLOWER, crashes (and always-SLOWER's) estimates the crash
 probability that the observation allows: what a calibrated head would say there. Each
 row also says whether the vehicles the ego hit were in the observation at the decisive
@@ -43,7 +43,7 @@ from collections.abc import Callable
 
 import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
-from bench_hidden_search import observed_vehicles, redraw_hidden
+from hidden_state import observed_vehicles, redraw_hidden
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
@@ -100,7 +100,7 @@ def branch_crashes(
 
 def partners_seen(env_cfg, state: TensorDict, partners: list[int]) -> list[bool]:
     """Whether each of ``partners`` (vehicle rows) is in the observation at ``state``
-    (``bench_hidden_search.observed_vehicles``)."""
+    (``hidden_state.observed_vehicles``)."""
     scenario, config = str(env_cfg.scenario), env_overrides(env_cfg)
     seen = observed_vehicles(state.unsqueeze(0), scenario, config)[0]
     return [bool(seen[partner]) for partner in partners]

@@ -306,3 +306,12 @@ def test_an_observation_to_drop_by_keeps_the_envs_other_config():
     assert torch.equal(
         search.returns(roots), branch_returns(plain.branches(roots.clone().set(STATE, kept)))
     )
+
+
+def test_drop_unseen_reads_count_and_behind_and_names_bad_text():
+    assert bench.unseen_by(None) is False and bench.unseen_by("") is True
+    assert bench.unseen_by("7") == {"type": "Kinematics", "vehicles_count": 7, "see_behind": False}
+    assert bench.unseen_by("15,behind")["see_behind"] is True
+    for bad in ("abc", "0", "15,ahead", "-3"):
+        with pytest.raises(SystemExit, match=f"--drop-unseen '{bad}': give COUNT or COUNT,behind"):
+            bench.unseen_by(bad)
