@@ -58,22 +58,18 @@ import argparse
 import atexit
 import copy
 import functools
-import importlib.util
 import inspect
 import os
 import statistics
-import subprocess
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import torch
 from claims import claim
+from peer_steppers import IDLE, envpool_stepper, highjax_stepper, highway_stepper
 from tensordict import TensorDict
 
 from torchrl_grpo.envs import HighwayEnv, TensorHighwayEnv
-
-IDLE = 1
 
 
 def rate(step: Callable[[], None], calls: int, per_call: int) -> float:
@@ -96,10 +92,20 @@ def interleaved(
 
 
 def tensor_stepper(
-    batch: int, compile: bool, device: str, scenario: str = "highway-fast-v0", native=False
+    batch: int,
+    compile: bool,
+    device: str,
+    scenario: str = "highway-fast-v0",
+    native: bool = False,
+    **env_kwargs,
 ) -> Callable[[], None]:
-    """One ``env.step`` of B worlds, with TorchRL's auto-reset of finished rows."""
-    env = TensorHighwayEnv(scenario, num_envs=batch, seed=0, compile=compile, device=device)
+    """One ``env.step`` of B worlds, with TorchRL's auto-reset of finished rows.
+
+    ``env_kwargs`` go to TensorHighwayEnv (such as ``check_actions``).
+    """
+    env = TensorHighwayEnv(
+        scenario, num_envs=batch, seed=0, compile=compile, device=device, **env_kwargs
+    )
     if native:
         env.native()
     td = env.reset()
@@ -148,41 +154,6 @@ def shard_stepper(batch: int, shards: int) -> Callable[[], None]:
 
     step()
     return step
-
-
-def highway_stepper(scenario: str = "highway-fast-v0", **kwargs) -> Callable[[], None]:
-    """One step of highway-env, reset at the end of an episode."""
-    env = HighwayEnv(scenario, seed=0, **kwargs)
-    env.reset()
-    action = TensorDict(action=torch.tensor(IDLE))
-
-    def step() -> None:
-        out = env.step(action.clone())
-        if bool(out["next", "done"]):
-            env.reset()
-
-    return step
-
-
-def envpool_stepper(
-    batch: int, threads: int, scenario: str = "highway-fast-v0"
-) -> Callable[[], None] | None:
-    """One step of EnvPool's C++ port of the scenario with B envs, or None without envpool."""
-    if importlib.util.find_spec("envpool") is None:
-        return None
-    import envpool
-    import numpy as np
-
-    env = envpool.make(
-        scenario,
-        env_type="gymnasium",
-        num_envs=batch,
-        batch_size=batch,
-        num_threads=threads,
-    )
-    env.reset()
-    action = np.full(batch, IDLE, dtype=np.int32)
-    return lambda: env.step(action)  # EnvPool resets finished envs itself
 
 
 def snapshot_cost(batch: int, repeats: int) -> None:
@@ -287,30 +258,6 @@ def action_check_cost(sizes: list[int], device: str, repeats: int) -> None:
         rates["True"] / rates["False"],
         note=f"{rates['True']:,.0f}/s vs {rates['False']:,.0f}/s",
     )
-
-
-def highjax_stepper(python: str, batch: int, threads: int) -> Callable[[], None]:
-    """Blocks of HighJax steps run by ``highjax_worker.py`` under ``python``.
-
-    The returned call steps one block; its rate is the worker's own timing (the pipe's
-    round trip stays outside it), read back by :func:`rate` through ``last``.
-    """
-    worker = subprocess.Popen(
-        [python, str(Path(__file__).with_name("highjax_worker.py")), "--batch", str(batch),
-         "--threads", str(threads)],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    if worker.stdout.readline().strip() != "ready":
-        raise RuntimeError(f"highjax_worker.py under {python} did not start")
-    atexit.register(worker.kill)
-    calls = max(2, min(200, 20000 // batch))
-
-    def block() -> float:
-        worker.stdin.write(f"{calls}\n")
-        worker.stdin.flush()
-        return float(worker.stdout.readline())
-
-    return block
 
 
 def peer_rates(
