@@ -14,10 +14,20 @@ from pathlib import Path
 from omegaconf import DictConfig
 from tensordict import TensorDict
 
+from torchrl_grpo.experimental.grpo_lab import GRPOLabConfig
 from torchrl_grpo.training import compose_config as library_compose
 
 ROOT = Path(__file__).resolve().parents[2]
 CONF = ROOT / "conf"
+
+# The settings the recipes fix are keys of the experimental algo=grpo_lab (model=lab).
+LAB_RUN = ["algo=grpo_lab", "model=lab"]
+
+
+def LAB(**kwargs) -> GRPOLabConfig:  # noqa: N802  (reads as the schema it builds)
+    """The lab's algo schema with ``kwargs`` set."""
+    return GRPOLabConfig(name="grpo_lab", **kwargs)
+
 
 # Budgets small enough for CI: one in-process env, a tiny network, no media.
 TINY = [
