@@ -205,3 +205,20 @@ def test_the_core_never_imports_experimental():
         if subpackage(target) == "experimental"
     ]
     assert not strays, strays
+
+
+#: The folders of code, and the most lines a file of code there may hold.
+CODE_FOLDERS = ("torchrl_grpo", "benchmarks", "scripts", "tests", "tutorials", "docs/_ext")
+MAX_LINES = 400
+
+
+def test_no_code_file_is_over_400_lines():
+    root = PACKAGE.parent
+    long = {
+        str(path.relative_to(root)): lines
+        for folder in CODE_FOLDERS
+        for path in (root / folder).rglob("*")
+        if path.suffix in (".py", ".cpp", ".h")
+        and (lines := len(path.read_text().splitlines())) > MAX_LINES
+    }
+    assert not long, f"files over {MAX_LINES} lines (split them by job): {long}"

@@ -1,0 +1,1 @@
+"""Pictures the tutorials draw, kept out of the tutorials' own code."""
