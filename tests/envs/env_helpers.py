@@ -224,7 +224,7 @@ def stepped_states(scenario: str, dtype, steps: int, batch: int = 32) -> list:
     td = env.reset()
     states = []
     for _ in range(steps):
-        td.set("action", torch.randint(0, 5, (batch,), generator=g))
+        td.set("action", torch.randint(0, env.action_spec.space.n, (batch,), generator=g))
         _, td = env.step_and_maybe_reset(td)
         states.append(env.get_state())
     return states

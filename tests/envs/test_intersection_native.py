@@ -1,8 +1,9 @@
 """intersection-v0's C++ frames (``TensorHighwayEnv("intersection-v0", native=True)``).
 
 Two references: highway-env itself, through the parity ladder's rungs a to c on worlds
-recorded from highway-env runs (turns, yields, arrivals, exits and spawns), and the
-tensor frames, which the C++ frames follow expression by expression. Free rows of the
+recorded from highway-env runs (turns, yields, arrivals, exits and spawns; in
+test_routed_native.py, with merge-v0's and roundabout-v0's), and the tensor frames,
+which the C++ frames follow expression by expression. Free rows of the
 table are left as they were by the C++ frames (a spawn writes all of a row), so the
 comparisons with the tensor path read the present vehicles.
 """
@@ -11,35 +12,26 @@ from __future__ import annotations
 
 import pytest
 import torch
+from env_helpers import stepped_states
 from omegaconf import OmegaConf
-from parity_helpers import recording_policies
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from torchrl_grpo.envs import TensorHighwayEnv, tensor_params
-from torchrl_grpo.envs.highway.parity import one_step, record_worlds, same_world, whole_episodes
-from torchrl_grpo.envs.highway.parity_policies import ladder_policies
 from torchrl_grpo.sim.intersection import tensor_frames
 from torchrl_grpo.sim.intersection_native import native_frames
 from torchrl_grpo.sim.regulation import YIELDING
 from torchrl_grpo.sim.routed_native import routed_step
+from torchrl_grpo.sim.state import world_from_tensordict
 from torchrl_grpo.training.env_builder import steps_natively
 
 SCENARIO = "intersection-v0"
 SLOWER, IDLE, FASTER = 4, 1, 3  # the meta-actions the frames take
 
 
-def _worlds(batch: int, steps: int, dtype=torch.float64, seed: int = 5) -> list:
+def _worlds(batch: int, steps: int, dtype=torch.float64) -> list:
     """The tensor env's worlds after each of ``steps`` random steps (finished rows reset)."""
-    env = TensorHighwayEnv(SCENARIO, num_envs=batch, seed=seed, dtype=dtype)
-    g = torch.Generator().manual_seed(2)
-    td = env.reset()
-    worlds = []
-    for _ in range(steps):
-        td.set("action", torch.randint(0, 3, (batch,), generator=g))
-        _, td = env.step_and_maybe_reset(td)
-        worlds.append(env._world)
-    return worlds
+    return [world_from_tensordict(s) for s in stepped_states(SCENARIO, dtype, steps, batch)]
 
 
 def _present_gap(one, two) -> tuple[float, int]:
@@ -113,30 +105,6 @@ def test_threads_split_worlds_without_changing_bits():
     three = native_frames(world, action, 15, tensor_params(SCENARIO), threads=3)
     for a, b in zip((*one.vehicles, one.yielding), (*three.vehicles, three.yielding), strict=True):
         assert torch.equal(a, b)
-
-
-@pytest.fixture(scope="module")
-def recorded():
-    env = TensorHighwayEnv(SCENARIO, num_envs=20, dtype=torch.float64, native=True)
-    states, kinds = record_worlds(SCENARIO, recording_policies(env.config, SCENARIO), 20, seed=0)
-    assert kinds["curved"] > 0 and kinds["hand_over"] > 0 and kinds["yielding"] > 0, kinds
-    return env, states
-
-
-def test_ladder_a_b_against_highway_env(recorded):
-    env, states = recorded
-    worst = same_world(env, states)
-    assert worst["observation"] <= 1e-9 and worst["reward"] <= 1e-9 and worst["flags"] == 0
-    report = one_step(env, states)
-    assert report.pairs == 60 and report.agreement >= 0.995, report.misses
-
-
-def test_ladder_c_whole_episodes(recorded):
-    env, states = recorded
-    small = TensorHighwayEnv(SCENARIO, num_envs=4, dtype=torch.float64, native=True)
-    drive = ladder_policies(SCENARIO, env.config)["drive"]
-    horizons = whole_episodes(small, states[::5][:4], drive)
-    assert bool((horizons == -1).all()), horizons
 
 
 def test_errors_name_the_problem_and_the_env_steps_on():

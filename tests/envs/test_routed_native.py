@@ -2,7 +2,8 @@
 
 Two references: highway-env itself, through the parity ladder's rungs a to c on worlds
 recorded from highway-env runs (vehicles on the sines, the ramp and the ring, handing
-over between roads, merge's obstacle), and the tensor step, which the C++ step follows
+over between roads, merge's obstacle; intersection-v0's C++ frames too, whose other
+tests are test_intersection_native.py), and the tensor step, which the C++ step follows
 expression by expression: in float64 they agree to rounding after a step, with the same
 lanes, targets, route heads and crashes; in float32 to an ulp or two in all but the
 ill-conditioned worlds (a nearly stopped ego steering by its clip).
@@ -22,6 +23,7 @@ from torchrl.envs.utils import check_env_specs
 
 from torchrl_grpo.envs import TensorHighwayEnv, tensor_params
 from torchrl_grpo.envs.highway.parity import one_step, record_worlds, same_world, whole_episodes
+from torchrl_grpo.envs.highway.parity_policies import ladder_policies
 from torchrl_grpo.envs.highway.step_modes import native_mode
 from torchrl_grpo.sim.roundabout import roundabout_step
 from torchrl_grpo.sim.routed_native import routed_step
@@ -97,12 +99,15 @@ def test_a_restore_replays_the_same_bits(scenario, dtype):
     torch.testing.assert_close(plays[0], plays[1], rtol=0, atol=0)
 
 
-@pytest.fixture(scope="module", params=SCENARIOS)
+@pytest.fixture(scope="module", params=(*SCENARIOS, "intersection-v0"))
 def recorded(request):
     scenario = request.param
     env = TensorHighwayEnv(scenario, num_envs=15, dtype=torch.float64, native=True)
-    states, kinds = record_worlds(scenario, recording_policies(env.config), 15, seed=0)
-    assert kinds["curved"] > 0 and kinds["hand_over"] > 0 and kinds["changing"] > 0, kinds
+    policies = recording_policies(env.config, scenario)
+    states, kinds = record_worlds(scenario, policies, 15, seed=0)
+    # Curves and hand-overs, and lane changes (intersection-v0: cars yielding).
+    turn = "yielding" if scenario == "intersection-v0" else "changing"
+    assert kinds["curved"] > 0 and kinds["hand_over"] > 0 and kinds[turn] > 0, kinds
     return env, states
 
 
@@ -111,13 +116,15 @@ def test_ladder_a_b_against_highway_env(recorded):
     worst = same_world(env, states)
     assert worst["observation"] <= 1e-9 and worst["reward"] <= 1e-9 and worst["flags"] == 0
     report = one_step(env, states)
-    assert report.pairs == 75 and report.agreement >= 0.995, report.misses
+    assert report.pairs == 15 * env.action_spec.space.n and report.agreement >= 0.995
+    assert not report.misses
 
 
 def test_ladder_c_whole_episodes(recorded):
     env, states = recorded
     small = TensorHighwayEnv(env.scenario, num_envs=3, dtype=torch.float64, native=True)
-    horizons = whole_episodes(small, states[::5][:3], recording_policies(env.config)[0])
+    drive = ladder_policies(env.scenario, env.config)["drive"]
+    horizons = whole_episodes(small, states[::5][:3], drive)
     assert bool((horizons == -1).all()), horizons
 
 
