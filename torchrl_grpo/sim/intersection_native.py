@@ -110,7 +110,7 @@ def native_frames(
 
     Raises:
         ValueError: a world off the CPU or without the intersection's state, an ego rank
-            outside the table, or a config the C++ step cannot hold.
+            outside the table, negative ``frames``, or a config the C++ step cannot hold.
         NativeBuildError: see :func:`~torchrl_grpo.sim.routed_native.load_routed_library`.
 
     Example:
@@ -118,16 +118,20 @@ def native_frames(
     """
     if world.route is None or world.yielding is None:
         raise ValueError("the C++ intersection step needs worlds with routes and yield states")
+    if frames < 0:
+        raise ValueError(f"frames must be >= 0, got {frames}")
     rules = rules_of(params)
     road = routed_road(params)
     batch, n = world.vehicles.x.shape
     columns = world_columns(world, clone=True, routed=True)
     columns["action"] = action.to(torch.int64).contiguous()
-    legs = world.route.contiguous()
-    heads = world.route_head.contiguous().clone()
+    # The C++ code reads int64 legs, heads, frames and ranks, int8 yield states; copies of
+    # what it writes, so that the input world stays as it was.
+    legs = world.route.to(torch.int64).contiguous()
+    heads = world.route_head.to(torch.int64).contiguous().clone()
     yielding = world.yielding.to(torch.int8).contiguous().clone()
-    road_steps = world.road_steps.contiguous().clone()
-    ego_rank = world.ego_rank.contiguous()
+    road_steps = world.road_steps.to(torch.int64).contiguous().clone()
+    ego_rank = world.ego_rank.to(torch.int64).contiguous()
     table = NativeTable.of(columns)
     status = load_routed_library().intersection_frames(
         ctypes.byref(road.struct), ctypes.byref(rules.struct), ctypes.byref(table),
