@@ -1,6 +1,7 @@
 // The substeps of B merge-v0 or roundabout-v0 worlds in C++: the frames of
 // torchrl_grpo/sim/merge.py and roundabout.py (the ego's and the IDM vehicles' act() on
-// the road graph, kinematics, every pair's collision, merge's obstacle).
+// the road graph, kinematics, every pair's collision, merge's obstacle; routed_model.h),
+// and intersection-v0's frames, which add the right of way (intersection_rules.h).
 //
 // A loop per world and per vehicle, in road order: each IDM vehicle follows the road
 // (its route, on the roundabout), runs MOBIL (with the route rule while a route's head
@@ -11,7 +12,8 @@
 // (a Python float over a tensor, `c / t`, is torch's reciprocal(t) * c), so float64
 // agrees with the tensor path to rounding. Worlds are split over `threads` threads.
 //
-// Built and loaded by torchrl_grpo/sim/routed_native.py.
+// Built and loaded by torchrl_grpo/sim/routed_native.py (intersection_native.py calls
+// intersection_frames).
 #include "intersection_rules.h"
 #include "pcg64.h"
 #include "routed_model.h"
