@@ -74,8 +74,8 @@ class TensorHighwayEnv(EnvBase):
             :class:`~torchrl_grpo.envs.InvalidActionError` naming rows and values (the env
             is left unchanged). One comparison a step, read back (a sync on a GPU).
         categorical_action_encoding: integer actions (``False``: one-hot).
-        native: step in C++ on the CPU (:meth:`native`: highway-v0, highway-fast-v0,
-            merge-v0, roundabout-v0), the fastest step there (docs/sim.md, "Speed").
+        native: step in C++ on the CPU (:meth:`native`: every scenario of the tensor
+            simulator), the fastest step there (docs/sim.md, "Speed").
 
     Example:
         >>> from torchrl.envs.utils import check_env_specs
@@ -173,13 +173,15 @@ class TensorHighwayEnv(EnvBase):
         return self
 
     def native(self, threads: int | None = None) -> TensorHighwayEnv:
-        """Step in C++ on the CPU (highway, highway-fast, merge, roundabout); ``self``.
+        """Step in C++ on the CPU (every scenario of the tensor simulator); ``self``.
 
         A loop per world over ``threads`` (default ``torch.get_num_threads()``), the fastest
-        step on a CPU: see :mod:`torchrl_grpo.sim.native`, :mod:`~torchrl_grpo.sim.routed_native`.
+        step on a CPU: see :mod:`torchrl_grpo.sim.native`, :mod:`~torchrl_grpo.sim.routed_native`,
+        :mod:`~torchrl_grpo.sim.intersection_native`.
 
         Raises:
-            ValueError: another scenario, or a GPU (the env is left as it was).
+            ValueError: a GPU, or a config the C++ step cannot hold (the env is left as
+                it was).
             NativeBuildError: no C++ compiler to build it.
 
         Example:
