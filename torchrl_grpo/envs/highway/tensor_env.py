@@ -180,8 +180,7 @@ class TensorHighwayEnv(EnvBase):
         :mod:`~torchrl_grpo.sim.intersection_native`.
 
         Raises:
-            ValueError: a GPU, or a config the C++ step cannot hold (the env is left as
-                it was).
+            ValueError: a GPU, or a config the C++ step cannot hold (the env stays as it was).
             NativeBuildError: no C++ compiler to build it.
 
         Example:
