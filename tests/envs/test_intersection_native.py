@@ -58,8 +58,8 @@ def test_specs_and_rollout():
 
 
 def test_a_step_of_frames_agrees_with_the_tensor_frames_in_float64():
-    # An ulp of a sine or an arcsine (libm's against torch's) grows through 15 frames;
-    # most through the steering of a nearly stopped car, whose arcsine sits by its clip.
+    # An ulp of a sine or an arcsine (libm's against torch's) grows through 15 frames
+    # (the largest gap seen, 1.5e-6, on a steering angle); every discrete field agrees.
     yields = crashes = 0
     for k, world in enumerate(_worlds(32, 9)[2::3]):
         action = torch.tensor([SLOWER, IDLE, FASTER])[torch.arange(32) % 3]
@@ -75,7 +75,8 @@ def test_a_step_of_frames_agrees_with_the_tensor_frames_in_float64():
 def test_fresh_worlds_warm_up_in_cpp_as_with_tensors():
     tensor = TensorHighwayEnv(SCENARIO, num_envs=16, seed=9, dtype=torch.float64)
     native = TensorHighwayEnv(SCENARIO, num_envs=16, seed=9, dtype=torch.float64, native=True)
-    tensor.reset(), native.reset()
+    tensor.reset()
+    native.reset()
     worst, differ = _present_gap(native._world, tensor._world)
     assert worst <= 1e-9 and differ == 0
     assert torch.equal(native._world.ego_rank, tensor._world.ego_rank)
