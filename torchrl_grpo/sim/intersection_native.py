@@ -73,18 +73,18 @@ class _Rules:
 
 @functools.lru_cache(maxsize=16)
 def rules_of(params: IntersectionParams) -> _Rules:
-    """The right-of-way constants the C++ step reads, with the road's (cached per params).
+    """The right-of-way constants the C++ step reads (cached per params).
+
+    The road's constants are :func:`~torchrl_grpo.sim.routed_native.routed_road`'s.
 
     Raises:
-        ValueError: more prediction times than the C++ step holds, or a road the routed
-            step cannot hold (:func:`~torchrl_grpo.sim.routed_native.routed_road`).
+        ValueError: more prediction times than the C++ step holds.
 
     Example:
         >>> from torchrl_grpo.envs import tensor_params
         >>> rules_of(tensor_params("intersection-v0")).struct.every
         7.0
     """
-    routed_road(params)
     return _Rules(params)
 
 
