@@ -1,7 +1,9 @@
 """The reset draws replayed from highway-env's generator words, against numpy's own calls.
 
-merge-v0's in C++ (sim/pcg64.h), roundabout-v0's destination drawn as ``integers``
-where highway-env calls ``choice``: each bit for bit.
+The C++ replays (sim/draws_native.cpp: merge-v0's and roundabout-v0's resets,
+intersection-v0's spawns and ego) against the numpy replays, and those against
+highway-env's own calls (roundabout-v0's destination drawn as ``integers`` where
+highway-env calls ``choice``): each bit for bit, draws and generator words after them.
 """
 
 from __future__ import annotations
@@ -12,7 +14,14 @@ import torch
 
 from torchrl_grpo.envs import StateCorruptedError, TensorHighwayEnv
 from torchrl_grpo.envs.core.gym_state import encode_rng, restore_rng, seeded_rng_words
-from torchrl_grpo.envs.highway.merge_bridge import merge_draws, native_merge_draws
+from torchrl_grpo.envs.highway.intersection_bridge import ego_draws, spawn_draws
+from torchrl_grpo.envs.highway.merge_bridge import merge_draws
+from torchrl_grpo.envs.highway.native_draws import (
+    native_ego_draws,
+    native_merge_draws,
+    native_roundabout_draws,
+    native_spawn_draws,
+)
 from torchrl_grpo.envs.highway.roundabout_bridge import roundabout_draws
 from torchrl_grpo.envs.highway.tensor_params import tensor_params
 
@@ -54,17 +63,80 @@ def test_corrupted_words_are_refused_by_row_as_numpys_replay_refuses_them():
         native_merge_draws(words[:, :9], rows)
 
 
-def test_the_cpp_step_resets_merge_worlds_as_the_tensor_step_does():
-    native = TensorHighwayEnv("merge-v0", num_envs=64, seed=5, native=True)
-    tensor = TensorHighwayEnv("merge-v0", num_envs=64, seed=5)
-    assert torch.equal(native.reset()["observation"], tensor.reset()["observation"])
-    actions = torch.randint(0, 5, (12, 64), generator=torch.Generator().manual_seed(1))
+def _rows(count: int, seed: int) -> torch.Tensor:
+    return torch.rand(count, generator=torch.Generator().manual_seed(seed)) < 0.7
+
+
+def test_the_cpp_roundabout_draws_are_numpys():
+    params = tensor_params("roundabout-v0")
+    words, rows = generator_words(600), _rows(600, 1)
+    native = native_roundabout_draws(words, rows, params)
+    assert all(map(torch.equal, native, roundabout_draws(words, rows, params)))
+    assert torch.equal(native[1][~rows], words[~rows])
+
+
+@pytest.mark.parametrize("probability", [0.0, 0.6, 1.0])
+@pytest.mark.parametrize("go_straight", [False, True])
+def test_the_cpp_spawn_draws_are_numpys(probability, go_straight):
+    # A spawn's choice(4, 2, replace=False) is numpy's Floyd sample and shuffle, its
+    # normals numpy's ziggurat: the numpy replay calls Generator.choice and normal.
+    params = tensor_params("intersection-v0")
+    words, rows = generator_words(600), _rows(600, 2)
+    native = native_spawn_draws(words, rows, params, probability, go_straight)
+    host = spawn_draws(words, rows, params, probability, go_straight)
+    assert all(map(torch.equal, native, host))
+    spawned = rows & (native[0][:, 0] <= probability)
+    assert int(spawned.sum()) == pytest.approx(420 * probability, abs=60)
+    assert torch.equal(native[1][~rows], words[~rows]) and torch.equal(
+        native[2][~rows], words[~rows]
+    )
+    assert torch.equal(native[1][~spawned], native[2][~spawned])  # no car: nothing more drawn
+    assert not (native[1] == native[2]).all(-1)[spawned].any()  # a kept car: its exponent
+    if spawned.any():
+        corner, goal = native[0][spawned, 1], native[0][spawned, 2]
+        assert (corner != goal).all()
+        assert ((goal - corner) % 4 == 2).all() == go_straight
+
+
+@pytest.mark.parametrize("destination", ["o1", None])  # the config's, a random one
+def test_the_cpp_ego_draws_are_numpys(destination):
+    params = tensor_params("intersection-v0", {"destination": destination})
+    words, rows = generator_words(300), _rows(300, 3)
+    native = native_ego_draws(words, rows, params)
+    assert all(map(torch.equal, native, ego_draws(words, rows, params)))
+    assert len(set(native[0][rows].tolist())) == (1 if destination else 3)
+
+
+def test_the_cpp_draws_refuse_corrupted_words_naming_the_row():
+    params = tensor_params("intersection-v0")
+    words = generator_words(4)
+    words[1, 8] = 2  # has_uint32 neither 0 nor 1
+    with pytest.raises(StateCorruptedError, match="highway.rng of row 1"):
+        native_spawn_draws(words, torch.ones(4, dtype=torch.bool), params, 0.6)
+    with pytest.raises(StateCorruptedError, match="highway.rng of row 1"):
+        native_ego_draws(words, torch.ones(4, dtype=torch.bool), params)
+    unread = torch.tensor([True, False, True, True])
+    assert torch.equal(native_spawn_draws(words, unread, params, 0.6)[1][1], words[1])
+
+
+@pytest.mark.parametrize(
+    "scenario, actions", [("merge-v0", 5), ("roundabout-v0", 5), ("intersection-v0", 3)]
+)
+def test_the_cpp_step_draws_as_the_tensor_step_does(scenario, actions):
+    # Resets (and intersection-v0's spawns, every step) leave the same generator words.
+    # intersection-v0's C++ frames round a sine as libm does: observations agree to 1e-9.
+    native = TensorHighwayEnv(scenario, num_envs=32, seed=5, native=True, dtype=torch.float64)
+    tensor = TensorHighwayEnv(scenario, num_envs=32, seed=5, dtype=torch.float64)
+    torch.testing.assert_close(
+        native.reset()["observation"], tensor.reset()["observation"], rtol=0, atol=1e-9
+    )
+    steps = torch.randint(0, actions, (12, 32), generator=torch.Generator().manual_seed(1))
     a, b, ended = native.reset(), tensor.reset(), 0
-    for action in actions:  # random actions crash and end episodes: many resets
+    for action in steps:  # random actions crash and end episodes: many resets
         out, a = native.step_and_maybe_reset(a.set("action", action))
         ended += int(out["next", "done"].sum())
         b = tensor.step_and_maybe_reset(b.set("action", action))[1]
-    assert ended >= 20
+    assert ended >= 5
     assert torch.equal(native.get_state()["highway", "rng"], tensor.get_state()["highway", "rng"])
 
 

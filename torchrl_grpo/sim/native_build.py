@@ -2,8 +2,9 @@
 
 A library is built with the system's C++ compiler (``$CXX``, else ``c++`` or ``g++``)
 into ``$XDG_CACHE_HOME/torchrl_grpo`` (default ``~/.cache/torchrl_grpo``; the temporary
-directory where the home is read-only), named by a digest of its sources and flags, so
-an edited source rebuilds and an unchanged one loads at once.
+directory where the home is read-only), named by a digest of its sources, the static
+libraries it links and its flags, so an edited source (or another numpy) rebuilds and an
+unchanged one loads at once.
 
 Example:
     >>> from torchrl_grpo.sim.native import SOURCES
@@ -44,12 +45,16 @@ def _cache_dir() -> Path:
     return root
 
 
-def build_library(sources: tuple[Path, ...]) -> ctypes.CDLL:
+def build_library(
+    sources: tuple[Path, ...], includes: tuple[Path, ...] = (), links: tuple[Path, ...] = ()
+) -> ctypes.CDLL:
     """Compile ``sources[0]`` (which includes the others) unless built already, and load it.
 
     Args:
         sources: the translation unit first, then every header it includes (all of
             them name the build).
+        includes: more header directories (``-I``).
+        links: static libraries linked in (their bytes name the build too).
 
     Returns:
         The loaded library (argument types are the caller's to declare).
@@ -60,8 +65,9 @@ def build_library(sources: tuple[Path, ...]) -> ctypes.CDLL:
     Example:
         >>> # see the module's example
     """
-    text = b"".join(path.read_bytes() for path in sources)
-    digest = hashlib.sha256(text + " ".join(FLAGS).encode()).hexdigest()[:16]
+    text = b"".join(path.read_bytes() for path in (*sources, *links))
+    options = [*FLAGS, *(f"-I{path}" for path in includes)]
+    digest = hashlib.sha256(text + " ".join(options).encode()).hexdigest()[:16]
     target = _cache_dir() / f"{sources[0].stem}-{digest}.so"
     if not target.exists():
         asked = os.environ.get("CXX")
@@ -77,7 +83,8 @@ def build_library(sources: tuple[Path, ...]) -> ctypes.CDLL:
         # load a half-written library.
         with tempfile.TemporaryDirectory(dir=target.parent) as tmp:
             built = Path(tmp) / target.name
-            command = [compiler, *FLAGS, str(sources[0]), "-o", str(built)]
+            libraries = [*map(str, links), "-lm"] if links else []
+            command = [compiler, *options, str(sources[0]), *libraries, "-o", str(built)]
             run = subprocess.run(command, capture_output=True, text=True)
             if run.returncode != 0:
                 raise NativeBuildError(f"{' '.join(command)} failed:\n{run.stderr[-2000:]}")

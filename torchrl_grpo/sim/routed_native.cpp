@@ -15,7 +15,6 @@
 // Built and loaded by torchrl_grpo/sim/routed_native.py (intersection_native.py calls
 // intersection_frames).
 #include "intersection_rules.h"
-#include "pcg64.h"
 #include "routed_model.h"
 
 namespace highway {
@@ -77,27 +76,6 @@ extern "C" int routed_step(const highway::RoutedParams* p, const highway::Table*
       highway::step_worlds<float>(*p, *t, legs, heads, lo, hi, int(n), frames);
   });
   return 0;
-}
-
-// merge-v0's reset draws (MergeEnv._make_vehicles) from each reset row's generator words
-// (gym_state.encode_rng): per highway car integers(2), uniform(-5, 5), uniform(-1, 1).
-// Rows outside `rows` keep their words and get no draws.
-extern "C" void merge_draws(const int64_t* words, const uint8_t* rows, int64_t batch,
-                            int64_t cars, double* draws, int64_t* after) {
-  for (int64_t b = 0; b < batch; ++b) {
-    const int64_t* w = words + 10 * b;
-    int64_t* out = after + 10 * b;
-    for (int k = 0; k < 10; ++k) out[k] = w[k];
-    if (!rows[b]) continue;
-    highway::Pcg64 g(w);
-    double* d = draws + 3 * cars * b;
-    for (int64_t k = 0; k < cars; ++k) {
-      d[3 * k] = double(g.integers(2));
-      d[3 * k + 1] = g.uniform(-5.0, 5.0);
-      d[3 * k + 2] = g.uniform(-1.0, 1.0);
-    }
-    g.store(out);
-  }
 }
 
 // Steps B intersection-v0 worlds of n vehicles by `frames` substeps, in place: the vehicle

@@ -64,7 +64,6 @@ SOURCES = (
             "routed_road.h",
             "highway_native.h",
             "highway_collide.h",
-            "pcg64.h",
         )
     ),
 )
@@ -112,11 +111,6 @@ def load_routed_library() -> ctypes.CDLL:
         ctypes.POINTER(RoutedParams), ctypes.c_void_p, ctypes.POINTER(NativeTable),
         ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
         ctypes.c_int64, ctypes.c_int64, ctypes.c_int, ctypes.c_int, ctypes.c_int,
-    ]  # fmt: skip
-    library.merge_draws.restype = None
-    library.merge_draws.argtypes = [
-        ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_void_p,
-        ctypes.c_void_p,
     ]  # fmt: skip
     return library
 

@@ -25,6 +25,9 @@ Example:
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import NamedTuple
+
 import numpy as np
 import torch
 from highway_env.road.regulation import RegulatedRoad
@@ -50,7 +53,14 @@ from torchrl_grpo.sim.intersection_reset import (
 from torchrl_grpo.sim.regulation import NEVER, YIELDED, YIELDING
 from torchrl_grpo.sim.state import Vehicles, World
 
-__all__ = ["IntersectionBridge", "ego_draws", "intersection_fresh", "spawn_draws"]
+__all__ = [
+    "HOST_DRAWS",
+    "IntersectionBridge",
+    "IntersectionDraws",
+    "ego_draws",
+    "intersection_fresh",
+    "spawn_draws",
+]
 
 
 def spawn_draws(
@@ -135,15 +145,38 @@ def ego_draws(
     )
 
 
+class IntersectionDraws(NamedTuple):
+    """Who replays intersection-v0's draws: numpy on the host (:data:`HOST_DRAWS`) or C++.
+
+    Attributes:
+        spawn: a spawn's draws, as :func:`spawn_draws`.
+        ego: the ego's, as :func:`ego_draws`.
+    """
+
+    spawn: Callable
+    ego: Callable
+
+
+#: The draws replayed by numpy, a generator per world (the tensor path's: no compiler).
+HOST_DRAWS = IntersectionDraws(spawn_draws, ego_draws)
+
+
 def intersection_fresh(
-    world: World, rows, words, seeds, params: IntersectionParams, frames: FramesFn = tensor_frames
+    world: World,
+    rows,
+    words,
+    seeds,
+    params: IntersectionParams,
+    frames: FramesFn = tensor_frames,
+    draws: IntersectionDraws = HOST_DRAWS,
 ):
     """Fresh worlds on ``rows`` as ``_make_vehicles`` builds them from the generator words.
 
     The reset's spawns, its 3 seconds of traffic (run by ``frames``: the tensor path's,
-    or the C++ ones), the challenger and the ego, each spawn's draws replayed on the
-    host and placed on the device. Returns ``(worlds, words after, seeds)``: row ``i``
-    of words seeded with ``s`` is highway-env's world after ``reset(seed=s)``.
+    or the C++ ones), the challenger and the ego, each spawn's draws replayed (by
+    ``draws``: numpy's, or the C++ ones) and placed on the device. Returns ``(worlds,
+    words after, seeds)``: row ``i`` of words seeded with ``s`` is highway-env's world
+    after ``reset(seed=s)``.
 
     Example:
         >>> from torchrl_grpo.envs.core.gym_state import seeded_rng_words
@@ -161,8 +194,8 @@ def intersection_fresh(
     new = new._replace(rng_key=world.rng_key, rng_counter=world.rng_counter)
 
     def spawn(new, longitudinal, position, speed, probability, straight=False):
-        draws, dropped, kept = spawn_draws(words, rows, params, probability, straight)
-        new, stayed = spawn_vehicles(new, draws, longitudinal, position, speed, probability, params)
+        drawn, dropped, kept = draws.spawn(words, rows, params, probability, straight)
+        new, stayed = spawn_vehicles(new, drawn, longitudinal, position, speed, probability, params)
         return new, torch.where(stayed.unsqueeze(-1), kept, dropped)
 
     for s in t.spawn_s:
@@ -172,7 +205,7 @@ def intersection_fresh(
     new = warm_up(new, rows, params, frames)
     new, words = spawn(new, t.challenger_s, t.challenger_position_deviation,
                        t.challenger_speed_deviation, 1.0, straight=True)  # fmt: skip
-    goal, offset, words = ego_draws(words, rows, params)
+    goal, offset, words = draws.ego(words, rows, params)
     new = place_ego(new, rows, goal, offset, params)
     return where_rows(rows, new, world), words, seeds
 

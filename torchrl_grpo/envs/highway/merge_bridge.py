@@ -28,20 +28,14 @@ from highway_env.vehicle.objects import Obstacle
 from tensordict import TensorDictBase
 
 from torchrl_grpo.envs.core.errors import StateMismatchError
-from torchrl_grpo.envs.core.gym_state import (
-    RNG_WORDS,
-    decode_rng,
-    encode_rng,
-    invalid_rng_rows,
-)
+from torchrl_grpo.envs.core.gym_state import decode_rng, encode_rng
 from torchrl_grpo.envs.highway.bridge import HighwayBridge, read_vehicle, vehicle_columns, world_of
 from torchrl_grpo.envs.highway.lane_constants import lane_keys
 from torchrl_grpo.envs.highway.tensor_params import tensor_params
 from torchrl_grpo.sim.merge_reset import DRAWS
-from torchrl_grpo.sim.routed_native import load_routed_library
 from torchrl_grpo.sim.state import Vehicles, World
 
-__all__ = ["MergeBridge", "merge_draws", "native_merge_draws", "row_generators"]
+__all__ = ["MergeBridge", "merge_draws", "row_generators"]
 
 
 def row_generators(words: torch.Tensor, rows: torch.Tensor):
@@ -95,46 +89,6 @@ def merge_draws(words: torch.Tensor, rows: torch.Tensor) -> tuple[torch.Tensor, 
         encode_rng(generator, after[row])
     device = words.device
     return torch.from_numpy(draws).to(device), torch.from_numpy(after).to(device)
-
-
-def native_merge_draws(
-    words: torch.Tensor, rows: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`merge_draws`, the same draws and words bit for bit, replayed in C++.
-
-    numpy's PCG64 and the Generator's ``integers`` and ``uniform`` in ``sim/pcg64.h``:
-    no Python call per world, which the C++ step's resets (``TensorHighwayEnv("merge-v0",
-    native=True)``) use.
-
-    Raises:
-        StateCorruptedError: a reset row's words are not a PCG64 state numpy makes
-            (:func:`~torchrl_grpo.envs.core.gym_state.decode_rng`'s message).
-        NativeBuildError: no C++ compiler.
-
-    Example:
-        >>> from torchrl_grpo.envs.core.gym_state import seeded_rng_words
-        >>> words, rows = seeded_rng_words(0).unsqueeze(0), torch.tensor([True])
-        >>> all(torch.equal(a, b) for a, b in zip(native_merge_draws(words, rows),
-        ...                                        merge_draws(words, rows)))
-        True
-    """
-    host = words.detach().to("cpu", torch.int64).contiguous()
-    reset = rows.detach().to("cpu", torch.bool).contiguous()
-    if host.dim() != 2 or host.shape[-1] != RNG_WORDS or reset.shape != host.shape[:1]:
-        raise ValueError(
-            f"generator words are [B, {RNG_WORDS}] with [B] rows, got {tuple(host.shape)} "
-            f"and {tuple(reset.shape)}"
-        )
-    # What decode_rng refuses, checked at once; its message for the first such row.
-    for row in (invalid_rng_rows(host) & reset).nonzero().flatten()[:1].tolist():
-        decode_rng(host[row].numpy(), f"highway.rng of row {row}")  # raises, naming it
-    draws = torch.zeros(host.shape[0], DRAWS, dtype=torch.float64)
-    after = torch.empty_like(host)
-    load_routed_library().merge_draws(
-        host.data_ptr(), reset.data_ptr(), host.shape[0], DRAWS // 3, draws.data_ptr(),
-        after.data_ptr(),
-    )  # fmt: skip
-    return draws.to(words.device), after.to(words.device)
 
 
 class MergeBridge(HighwayBridge):

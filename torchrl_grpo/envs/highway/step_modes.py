@@ -20,7 +20,8 @@ episodes, all pure functions of tensors:
   (:mod:`torchrl_grpo.sim.native`), merge-v0 and roundabout-v0 with their substeps in
   C++ (:mod:`torchrl_grpo.sim.routed_native`), intersection-v0 with its frames and
   their right of way in C++ (:mod:`torchrl_grpo.sim.intersection_native`), worlds
-  split over threads.
+  split over threads; the three with highway-env's reset and spawn draws replayed in
+  C++ (:mod:`.native_draws`).
 
 Compiled and C++ steps compute the eager step's model expression by expression, but
 round a few functions differently (1 to 2 ulp): they replay their own bits after a
@@ -41,8 +42,15 @@ from typing import Any, NamedTuple
 
 import torch
 
-from torchrl_grpo.envs.highway.merge_bridge import native_merge_draws
+from torchrl_grpo.envs.highway.intersection_bridge import IntersectionDraws
+from torchrl_grpo.envs.highway.native_draws import (
+    native_ego_draws,
+    native_merge_draws,
+    native_roundabout_draws,
+    native_spawn_draws,
+)
 from torchrl_grpo.envs.highway.tensor_models import tensor_model
+from torchrl_grpo.sim.draws_native import load_draws_library
 from torchrl_grpo.sim.intersection_native import native_frames, rules_of
 from torchrl_grpo.sim.native import (
     load_library,
@@ -154,11 +162,11 @@ def native_mode(
 
     highway-v0 and highway-fast-v0 step, observe and draw fresh worlds in C++
     (:mod:`torchrl_grpo.sim.native`); merge-v0 and roundabout-v0 step their substeps in
-    C++ (:mod:`torchrl_grpo.sim.routed_native`) and keep the tensor observation and resets
-    (merge-v0's reset draws replayed in C++: :func:`.merge_bridge.native_merge_draws`);
+    C++ (:mod:`torchrl_grpo.sim.routed_native`) and keep the tensor observation and resets;
     intersection-v0 runs its frames in C++, in steps and in the reset's warm-up
     (:mod:`torchrl_grpo.sim.intersection_native`), and keeps the tensor observation,
-    exits and spawns.
+    exits and spawns. The three replay highway-env's reset and spawn draws in C++
+    (:mod:`.native_draws`), bit for bit numpy's.
 
     Args:
         scenario: one of ``NATIVE_SCENARIOS``.
@@ -194,16 +202,17 @@ def native_mode(
         eager = eager_mode(tensor_model(scenario), params, device)
         if scenario == "intersection-v0":
             frames = functools.partial(native_frames, threads=threads)
+            draws = IntersectionDraws(native_spawn_draws, native_ego_draws)
             return eager._replace(
                 name="native",
-                step=functools.partial(eager.step, frames=frames),
-                fresh=functools.partial(eager.fresh, frames=frames),
+                step=functools.partial(eager.step, frames=frames, draws=draws),
+                fresh=functools.partial(eager.fresh, frames=frames, draws=draws),
             )
         step = functools.partial(routed_step, params=params, threads=threads)
-        if scenario == "merge-v0":  # its reset draws replayed in C++ too, bit for bit
-            fresh = functools.partial(eager.fresh, replay=native_merge_draws)
-            return eager._replace(name="native", step=step, fresh=fresh)
-        return eager._replace(name="native", step=step)
+        # The reset draws replayed in C++ too, bit for bit.
+        replay = native_merge_draws if scenario == "merge-v0" else native_roundabout_draws
+        fresh = functools.partial(eager.fresh, replay=replay)
+        return eager._replace(name="native", step=step, fresh=fresh)
     return StepMode(
         "native",
         functools.partial(native_step, params=params, threads=threads),
@@ -231,6 +240,8 @@ def load_native(scenario: str, params=None) -> None:
     """
     routed = scenario in ROUTED_NATIVE_SCENARIOS
     (load_routed_library if routed else load_library)()
+    if routed:
+        load_draws_library()
     if params is not None:
         (routed_road if routed else native_params)(params)
         if scenario == "intersection-v0":

@@ -29,9 +29,10 @@ from tensordict import TensorDict
 from torchrl_grpo.envs.core.gym_state import seeded_rng_words
 from torchrl_grpo.envs.highway.bridge import HighwayBridge
 from torchrl_grpo.envs.highway.intersection_bridge import (
+    HOST_DRAWS,
     IntersectionBridge,
+    IntersectionDraws,
     intersection_fresh,
-    spawn_draws,
 )
 from torchrl_grpo.envs.highway.merge_bridge import MergeBridge, merge_draws
 from torchrl_grpo.envs.highway.roundabout_bridge import RoundaboutBridge, roundabout_draws
@@ -107,8 +108,9 @@ def _merge_fresh(world: World, rows, words, seeds, params, replay=merge_draws):
     return reset_merge(world, rows, draws, params), words, seeds
 
 
-def _roundabout_fresh(world: World, rows, words, seeds, params):
-    draws, words = roundabout_draws(words, rows, params)
+def _roundabout_fresh(world: World, rows, words, seeds, params, replay=roundabout_draws):
+    # replay: numpy's (roundabout_draws) or the C++ step's (native_roundabout_draws).
+    draws, words = replay(words, rows, params)
     return reset_roundabout(world, rows, draws, params), words, seeds
 
 
@@ -118,14 +120,21 @@ def _roundabout_step(world, action, params, dense=False, stages=None):
 
 
 def _intersection_step(
-    world, action, words, params, dense=False, stages=None, frames: FramesFn = tensor_frames
+    world,
+    action,
+    words,
+    params,
+    dense=False,
+    stages=None,
+    frames: FramesFn = tensor_frames,
+    draws: IntersectionDraws = HOST_DRAWS,
 ):
-    # frames: the tensor path's, or the C++ ones (step_modes.native_mode).
+    # frames and draws: the tensor path's, or the C++ ones (step_modes.native_mode).
     del dense, stages
     rows = torch.ones_like(world.steps, dtype=torch.bool)
     probability = params.traffic.spawn_probability
-    draws, dropped, kept = spawn_draws(words, rows, params, probability)
-    world, out, stayed = intersection_step(world, action, draws, params, frames)
+    drawn, dropped, kept = draws.spawn(words, rows, params, probability)
+    world, out, stayed = intersection_step(world, action, drawn, params, frames)
     return world, out, torch.where(stayed.unsqueeze(-1), kept, dropped)
 
 
