@@ -41,7 +41,6 @@ from torchrl_grpo.envs.highway.bridge import HighwayBridge, read_vehicle, vehicl
 from torchrl_grpo.envs.highway.lane_constants import lane_keys
 from torchrl_grpo.envs.highway.merge_bridge import row_generators
 from torchrl_grpo.envs.highway.tensor_params import tensor_params
-from torchrl_grpo.envs.highway.tensor_state import where_rows
 from torchrl_grpo.sim.intersection import FramesFn, tensor_frames, warm_up
 from torchrl_grpo.sim.intersection_params import IntersectionParams
 from torchrl_grpo.sim.intersection_reset import (
@@ -51,7 +50,7 @@ from torchrl_grpo.sim.intersection_reset import (
     spawn_vehicles,
 )
 from torchrl_grpo.sim.regulation import NEVER, YIELDED, YIELDING
-from torchrl_grpo.sim.state import Vehicles, World
+from torchrl_grpo.sim.state import Vehicles, World, map_world
 
 __all__ = [
     "HOST_DRAWS",
@@ -188,10 +187,23 @@ def intersection_fresh(
         >>> int(world.vehicles.present.sum()), world.ego_rank.tolist(), world.road_steps.tolist()
         (8, [7], [45])
     """
+    index = rows.nonzero().flatten()
+    if index.numel() == 0:
+        return world, words, seeds
+    # Only the rows that reset are built (a few of the batch at each step), then put back.
+    old = map_world(lambda t: t.index_select(0, index), world)
+    new, drawn = _fresh_worlds(old, words.index_select(0, index), params, frames, draws)
+    world = map_world(lambda t, s: t.index_copy(0, index, s), world, new)
+    return world, words.index_copy(0, index, drawn), seeds
+
+
+def _fresh_worlds(old: World, words, params, frames: FramesFn, draws: IntersectionDraws):
+    """``(fresh worlds in place of every row of old, words after)``: ``intersection_fresh``'s."""
     t = params.traffic
-    v = world.vehicles
+    v = old.vehicles
+    rows = torch.ones(v.x.shape[0], dtype=torch.bool, device=v.x.device)
     new = empty_intersection(v.x.shape[0], params, v.x.dtype, v.x.device)
-    new = new._replace(rng_key=world.rng_key, rng_counter=world.rng_counter)
+    new = new._replace(rng_key=old.rng_key, rng_counter=old.rng_counter)
 
     def spawn(new, longitudinal, position, speed, probability, straight=False):
         drawn, dropped, kept = draws.spawn(words, rows, params, probability, straight)
@@ -206,8 +218,7 @@ def intersection_fresh(
     new, words = spawn(new, t.challenger_s, t.challenger_position_deviation,
                        t.challenger_speed_deviation, 1.0, straight=True)  # fmt: skip
     goal, offset, words = draws.ego(words, rows, params)
-    new = place_ego(new, rows, goal, offset, params)
-    return where_rows(rows, new, world), words, seeds
+    return place_ego(new, rows, goal, offset, params), words
 
 
 class IntersectionBridge(HighwayBridge):
