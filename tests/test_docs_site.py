@@ -21,8 +21,7 @@ import yaml
 pytest.importorskip("sphinx")
 pytest.importorskip("myst_parser")
 
-# Under pytest-xdist the module stays on one worker, so the site is built once.
-pytestmark = pytest.mark.xdist_group("docs_site")
+# Under pytest-xdist the file stays on one worker (--dist loadfile): the site is built once.
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ["envs", "branching", "objectives", "modules", "training", "distributed"]

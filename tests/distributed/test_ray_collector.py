@@ -26,9 +26,6 @@ from torchrl_grpo.branching import GROUP_ID, MASK  # noqa: E402
 from torchrl_grpo.branching.keys import TRAJ_IDS  # noqa: E402
 from torchrl_grpo.distributed import RayGroupCollector, init_ray  # noqa: E402
 
-# Under pytest-xdist the module stays on one worker: one Ray instance, not one per worker.
-pytestmark = pytest.mark.xdist_group("ray")
-
 
 @pytest.fixture(scope="module", autouse=True)
 def ray_session():

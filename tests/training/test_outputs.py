@@ -46,17 +46,6 @@ def test_evaluate_with_a_wrong_path_leaves_no_folder(tmp_path):
     assert os.listdir(tmp_path / "runs" / "x") == []
 
 
-def test_evaluate_refuses_an_env_beside_a_checkpoint(tmp_path, smoke_run):
-    _, run_dir, _ = smoke_run
-    proc = _script(
-        "evaluate.py",
-        [f"checkpoint={run_dir / 'last.pt'}", "env=merge", "hydra.run.dir=h"],
-        tmp_path,
-    )
-    assert proc.returncode != 0
-    assert "env=merge: a checkpoint is evaluated on its own env" in proc.stderr
-
-
 @pytest.mark.slow  # 9 s: every choice of --help composed
 def test_help_lists_only_choices_that_compose():
     proc = _script("train.py", ["--help"], ROOT, timeout=120)

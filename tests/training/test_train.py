@@ -16,7 +16,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.modules import ProbabilisticActor
 from train_helpers import LAB, REPLAY, csv_scalars, train_run
-from train_setup import ROOT, TINY, compose_config
+from train_setup import ROOT, TINY, compose_config, run_script
 
 from torchrl_grpo.modules.greedy_tail import EXPLORED
 from torchrl_grpo.modules.scripted.actions import SLOWER
@@ -71,6 +71,19 @@ def test_smoke_run_writes_finite_metrics_and_checkpoint(smoke_run):
     # The first is the evaluation before the first batch: no training yet.
     assert len(walls) > 1 and walls[0] == 0 and walls[1] > 0 and walls == sorted(walls), walls
     assert walls[-1] < elapsed
+
+
+def test_evaluate_refuses_an_env_beside_a_checkpoint(tmp_path, smoke_run):
+    # Here, beside the other reader of the shared smoke run: a test worker trains it once.
+    _, run_dir, _ = smoke_run
+    proc = run_script(
+        "evaluate.py",
+        [f"checkpoint={run_dir / 'last.pt'}", "env=merge", "hydra.run.dir=h"],
+        timeout=180,
+        cwd=tmp_path,
+    )
+    assert proc.returncode != 0
+    assert "env=merge: a checkpoint is evaluated on its own env" in proc.stderr
 
 
 def _params(trainer: Trainer) -> dict[str, torch.Tensor]:
