@@ -16,24 +16,34 @@ void copy_words(const int64_t* from, int64_t* to) {
   for (int k = 0; k < 10; ++k) to[k] = from[k];
 }
 
+// draw(b, generator) on each row b of `rows`, its words after in `after`; the other rows
+// keep their words.
+template <class Draw>
+void each_row(const int64_t* words, const uint8_t* rows, int64_t batch, int64_t* after,
+              Draw draw) {
+  for (int64_t b = 0; b < batch; ++b) {
+    copy_words(words + 10 * b, after + 10 * b);
+    if (!rows[b]) continue;
+    highway::NumpyGenerator g(words + 10 * b);
+    draw(b, g);
+    g.store(after + 10 * b);
+  }
+}
+
 }  // namespace
 
 // merge-v0's reset (MergeEnv._make_vehicles): per highway car integers(2),
 // uniform(-5, 5), uniform(-1, 1). Draws [B, 3 * cars], zero outside `rows`.
 extern "C" void merge_draws(const int64_t* words, const uint8_t* rows, int64_t batch,
                             int64_t cars, double* draws, int64_t* after) {
-  for (int64_t b = 0; b < batch; ++b) {
-    copy_words(words + 10 * b, after + 10 * b);
-    if (!rows[b]) continue;
-    highway::NumpyGenerator g(words + 10 * b);
+  each_row(words, rows, batch, after, [&](int64_t b, highway::NumpyGenerator& g) {
     double* d = draws + 3 * cars * b;
     for (int64_t k = 0; k < cars; ++k) {
       d[3 * k] = double(g.integers(0, 2));
       d[3 * k + 1] = g.uniform(-5.0, 5.0);
       d[3 * k + 2] = g.uniform(-1.0, 1.0);
     }
-    g.store(after + 10 * b);
-  }
+  });
 }
 
 // roundabout-v0's reset (RoundaboutEnv._make_vehicles): per IDM vehicle normal(),
@@ -42,10 +52,7 @@ extern "C" void merge_draws(const int64_t* words, const uint8_t* rows, int64_t b
 extern "C" void roundabout_draws(const int64_t* words, const uint8_t* rows, int64_t batch,
                                  int64_t cars, int64_t exits, double low, double high,
                                  double* draws, int64_t* after) {
-  for (int64_t b = 0; b < batch; ++b) {
-    copy_words(words + 10 * b, after + 10 * b);
-    if (!rows[b]) continue;
-    highway::NumpyGenerator g(words + 10 * b);
+  each_row(words, rows, batch, after, [&](int64_t b, highway::NumpyGenerator& g) {
     double* d = draws + 4 * cars * b;
     for (int64_t k = 0; k < cars; ++k) {
       d[4 * k] = g.normal();
@@ -53,8 +60,7 @@ extern "C" void roundabout_draws(const int64_t* words, const uint8_t* rows, int6
       d[4 * k + 2] = double(g.integers(0, exits));
       d[4 * k + 3] = g.uniform(low, high);
     }
-    g.store(after + 10 * b);
-  }
+  });
 }
 
 // One intersection-v0 spawn (IntersectionEnv._spawn_vehicle): uniform(), and unless it
@@ -98,13 +104,11 @@ extern "C" void spawn_draws(const int64_t* words, const uint8_t* rows, int64_t b
 extern "C" void ego_draws(const int64_t* words, const uint8_t* rows, int64_t batch,
                           int64_t destination, int64_t* goal, double* offset, int64_t* after) {
   for (int64_t b = 0; b < batch; ++b) {
-    copy_words(words + 10 * b, after + 10 * b);
     goal[b] = destination < 0 ? 0 : destination;
     offset[b] = 0.0;
-    if (!rows[b]) continue;
-    highway::NumpyGenerator g(words + 10 * b);
+  }
+  each_row(words, rows, batch, after, [&](int64_t b, highway::NumpyGenerator& g) {
     if (destination < 0) goal[b] = g.integers(1, 4);
     offset[b] = g.normal(1.0);
-    g.store(after + 10 * b);
-  }
+  });
 }
