@@ -14,7 +14,13 @@ import torch
 
 from torchrl_grpo.envs import StateCorruptedError, TensorHighwayEnv
 from torchrl_grpo.envs.core.gym_state import encode_rng, restore_rng, seeded_rng_words
-from torchrl_grpo.envs.highway.intersection_bridge import ego_draws, spawn_draws
+from torchrl_grpo.envs.highway.intersection_bridge import (
+    HOST_DRAWS,
+    IntersectionDraws,
+    ego_draws,
+    intersection_fresh,
+    spawn_draws,
+)
 from torchrl_grpo.envs.highway.merge_bridge import merge_draws
 from torchrl_grpo.envs.highway.native_draws import (
     native_ego_draws,
@@ -24,6 +30,7 @@ from torchrl_grpo.envs.highway.native_draws import (
 )
 from torchrl_grpo.envs.highway.roundabout_bridge import roundabout_draws
 from torchrl_grpo.envs.highway.tensor_params import tensor_params
+from torchrl_grpo.sim.intersection_reset import empty_intersection
 
 
 def generator_words(count: int) -> torch.Tensor:
@@ -117,6 +124,20 @@ def test_the_cpp_draws_refuse_corrupted_words_naming_the_row():
         native_ego_draws(words, torch.ones(4, dtype=torch.bool), params)
     unread = torch.tensor([True, False, True, True])
     assert torch.equal(native_spawn_draws(words, unread, params, 0.6)[1][1], words[1])
+
+
+def test_an_intersection_reset_names_a_bad_rows_place_in_the_batch():
+    # Only the rows that reset are built: the error still names the row of the batch.
+    params = tensor_params("intersection-v0")
+    words = generator_words(4)
+    words[2, 4] += 1  # an even increment
+    world = empty_intersection(4, params)
+    rows = torch.tensor([False, False, True, False])
+    for draws in (HOST_DRAWS, IntersectionDraws(native_spawn_draws, native_ego_draws)):
+        with pytest.raises(StateCorruptedError, match="highway.rng of row 2: the PCG64"):
+            intersection_fresh(world, rows, words, None, params, draws=draws)
+    fresh, after, _ = intersection_fresh(world, ~rows, words, None, params)  # row 2 not read
+    assert torch.equal(after[2], words[2]) and not fresh.vehicles.present[2].any()
 
 
 @pytest.mark.parametrize(

@@ -67,6 +67,21 @@ def invalid_rng_rows(words: torch.Tensor) -> torch.Tensor:
     return bad | (words[..., 8] < 0) | (words[..., 8] > 1)
 
 
+def check_rng_rows(words: torch.Tensor, rows: torch.Tensor) -> None:
+    """Refuse ``[B, RNG_WORDS]`` words where ``rows`` is set and they are no numpy state.
+
+    Raises:
+        StateCorruptedError: :func:`decode_rng`'s message for the first such row,
+            ``highway.rng of row <i>`` with ``i`` its index in ``words``.
+
+    Example:
+        >>> words = torch.stack([seeded_rng_words(0), torch.zeros(RNG_WORDS, dtype=torch.int64)])
+        >>> check_rng_rows(words, torch.tensor([True, False]))  # row 1 is not read
+    """
+    for row in (invalid_rng_rows(words) & rows).nonzero().flatten()[:1].tolist():
+        decode_rng(words[row].cpu().numpy(), f"highway.rng of row {row}")  # raises, naming it
+
+
 def decode_rng(words: np.ndarray, where: str = "rng") -> dict:
     """Validate encoded words and return the bit-generator state dict they describe.
 

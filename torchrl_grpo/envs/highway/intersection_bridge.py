@@ -36,7 +36,7 @@ from highway_env.vehicle.controller import MDPVehicle
 from tensordict import TensorDictBase
 
 from torchrl_grpo.envs.core.errors import StateMismatchError
-from torchrl_grpo.envs.core.gym_state import encode_rng
+from torchrl_grpo.envs.core.gym_state import check_rng_rows, encode_rng
 from torchrl_grpo.envs.highway.bridge import HighwayBridge, read_vehicle, vehicle_columns, world_of
 from torchrl_grpo.envs.highway.lane_constants import lane_keys
 from torchrl_grpo.envs.highway.merge_bridge import row_generators
@@ -190,6 +190,7 @@ def intersection_fresh(
     index = rows.nonzero().flatten()
     if index.numel() == 0:
         return world, words, seeds
+    check_rng_rows(words, rows)  # here, where a bad row's error names its place in the batch
     # Only the rows that reset are built (a few of the batch at each step), then put back.
     old = map_world(lambda t: t.index_select(0, index), world)
     new, drawn = _fresh_worlds(old, words.index_select(0, index), params, frames, draws)

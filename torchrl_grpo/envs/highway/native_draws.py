@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import torch
 
-from torchrl_grpo.envs.core.gym_state import RNG_WORDS, decode_rng, invalid_rng_rows
+from torchrl_grpo.envs.core.gym_state import RNG_WORDS, check_rng_rows
 from torchrl_grpo.envs.highway.tensor_params import tensor_params
 from torchrl_grpo.sim.draws_native import load_draws_library
 from torchrl_grpo.sim.intersection_params import IntersectionParams
@@ -53,9 +53,7 @@ def _host(words: torch.Tensor, rows: torch.Tensor) -> tuple[torch.Tensor, torch.
             f"generator words are [B, {RNG_WORDS}] with [B] rows, got {tuple(host.shape)} "
             f"and {tuple(drawing.shape)}"
         )
-    # What decode_rng refuses, checked at once; its message for the first such row.
-    for row in (invalid_rng_rows(host) & drawing).nonzero().flatten()[:1].tolist():
-        decode_rng(host[row].numpy(), f"highway.rng of row {row}")  # raises, naming it
+    check_rng_rows(host, drawing)
     return host, drawing
 
 
