@@ -40,6 +40,7 @@ def test_each_branch_crashes_as_highway_env_does_from_the_same_state():
     assert 0 < sum(expected) < len(expected)  # both outcomes occur among these branches
 
 
+@pytest.mark.slow  # 24 s, a lab script's whole run: the default suite's 10-minute budget
 def test_a_crash_is_replayed_from_its_saved_state_and_traced_to_its_step():
     records = bench.causes(
         CFG, ConstantActionPolicy("FASTER"), lambda obs: torch.zeros(obs.shape[0], 5), 12, 40000, 4

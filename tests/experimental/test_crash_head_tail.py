@@ -82,6 +82,7 @@ def test_a_group_size_other_than_twice_the_actions_is_refused(tmp_path):
         Trainer(cfg, run_dir=tmp_path / "refused")
 
 
+@pytest.mark.slow  # 14 s of training: the default suite's 10-minute budget
 def test_the_head_learns_the_base_tails_crashes_and_the_policy_its_own_half(tmp_path, monkeypatch):
     seen = []
     update, targets = GRPOLab.update, GRPOLab.crash_targets

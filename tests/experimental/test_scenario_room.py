@@ -50,7 +50,11 @@ def test_a_row_pairs_with_always_slower_by_hand():
 
 @pytest.mark.parametrize(
     ("on", "other", "bases"),
-    [("highway", "float32", ["slower"]), ("tensor", "float64", ["idle", "slower"])],
+    [
+        # 26 s on highway-env: in the slow tests for the default suite's 10-minute budget
+        pytest.param("highway", "float32", ["slower"], marks=pytest.mark.slow),
+        ("tensor", "float64", ["idle", "slower"]),
+    ],
 )
 def test_a_short_run_prints_every_policy_row(on, other, bases):
     out = _bench(
@@ -77,6 +81,7 @@ def test_a_short_run_prints_every_policy_row(on, other, bases):
     assert "+0.00 ± 0.00, does not beat always-SLOWER" in own
 
 
+@pytest.mark.slow  # 31 s: the default suite's 10-minute budget
 def test_trained_runs_are_driven_with_their_own_config(tmp_path):
     # A run trained with merge-v0's x range widened: every row of the table, always-SLOWER
     # included, is driven with that observation (the run's policy would refuse another).
