@@ -8,6 +8,8 @@ highway-env calls ``choice``): each bit for bit, draws and generator words after
 
 from __future__ import annotations
 
+import importlib.machinery
+
 import numpy as np
 import pytest
 import torch
@@ -30,7 +32,9 @@ from torchrl_grpo.envs.highway.native_draws import (
 )
 from torchrl_grpo.envs.highway.roundabout_bridge import roundabout_draws
 from torchrl_grpo.envs.highway.tensor_params import tensor_params
+from torchrl_grpo.sim import draws_native
 from torchrl_grpo.sim.intersection_reset import empty_intersection
+from torchrl_grpo.sim.native_build import NativeBuildError
 
 
 def generator_words(count: int) -> torch.Tensor:
@@ -124,6 +128,17 @@ def test_the_cpp_draws_refuse_corrupted_words_naming_the_row():
         native_ego_draws(words, torch.ones(4, dtype=torch.bool), params)
     unread = torch.tensor([True, False, True, True])
     assert torch.equal(native_spawn_draws(words, unread, params, 0.6)[1][1], words[1])
+
+
+def test_a_numpy_without_its_c_random_library_is_named(tmp_path, monkeypatch):
+    # The C++ draws link numpy's libnpyrandom; a numpy that lacks it gets a build error
+    # that names the missing file (env.backend=auto then steps with tensors).
+    (tmp_path / "numpy").mkdir()
+    (tmp_path / "numpy" / "__init__.py").write_text("")
+    spec = importlib.machinery.ModuleSpec("numpy", None, origin=str(tmp_path / "numpy/__init__.py"))
+    monkeypatch.setattr(draws_native.importlib.util, "find_spec", lambda name: spec)
+    with pytest.raises(NativeBuildError, match=r"libnpyrandom\.a.*not found"):
+        draws_native.numpy_random_library()
 
 
 def test_an_intersection_reset_names_a_bad_rows_place_in_the_batch():
