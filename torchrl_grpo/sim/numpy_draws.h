@@ -31,6 +31,9 @@ class NumpyGenerator {
   explicit NumpyGenerator(const int64_t* words) : pcg_(words) {
     bitgen_ = bitgen_t{&pcg_, next64, next32, next_double, next64};
   }
+  // The bit generator points at this object's own state: no copies.
+  NumpyGenerator(const NumpyGenerator&) = delete;
+  NumpyGenerator& operator=(const NumpyGenerator&) = delete;
 
   void store(int64_t* words) const { pcg_.store(words); }
 
