@@ -24,6 +24,7 @@ import pytest
 import torch
 
 import torchrl_grpo
+from torchrl_grpo.envs.highway import schema
 
 OPTIONFLAGS = doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE
 
@@ -38,6 +39,15 @@ SUBPACKAGES = ("sim", "envs", "branching", "objectives", "modules", "training", 
 DATA_TYPES = (str, int, float, bool, tuple, frozenset, dict, list)
 
 HAS_RAY = importlib.util.find_spec("ray") is not None
+
+# The snapshot schema's process-global registries, which register_vehicle_class and
+# register_class_parameter (and so their examples) extend.
+_SCHEMA_REGISTRY = (
+    schema.FIELDS,
+    schema.VEHICLE_CLASSES,
+    schema.CLASS_PARAMETERS,
+    schema.PRISTINE_CLASS_PARAMETERS,
+)
 
 
 def _walk_error(name: str) -> None:
@@ -84,8 +94,11 @@ def test_docstring_examples_run(module_name):
     tests = doctest.DocTestFinder(exclude_empty=True).find(module, module_name)
     runner = _Runner()
     report: list[str] = []
-    # Examples seed torch or set its threads (a GroupWorker does): leave no trace.
+    # Examples seed torch or set its threads (a GroupWorker does), or register classes
+    # in the snapshot schema (schema.py's own): leave no trace. A registration left in
+    # this process would give its later snapshots a layout that fresh env workers lack.
     rng_state, num_threads = torch.get_rng_state(), torch.get_num_threads()
+    registry = [(table, table.copy()) for table in _SCHEMA_REGISTRY]
     children = {p.pid for p in multiprocessing.active_children()}
     try:
         for test in sorted(tests, key=lambda t: t.name):
@@ -93,6 +106,9 @@ def test_docstring_examples_run(module_name):
     finally:
         torch.set_rng_state(rng_state)
         torch.set_num_threads(num_threads)
+        for table, saved in registry:  # in place: the library holds these very objects
+            table.clear()
+            table.update(saved) if isinstance(table, dict) else table.extend(saved)
     failed, attempted = runner.failures, runner.tries
     only_ray = len(runner.exceptions) == failed and all(map(_is_missing_ray, runner.exceptions))
     if failed and only_ray and not HAS_RAY:
