@@ -108,7 +108,10 @@ def test_docstring_examples_run(module_name):
         torch.set_num_threads(num_threads)
         for table, saved in registry:  # in place: the library holds these very objects
             table.clear()
-            table.update(saved) if isinstance(table, dict) else table.extend(saved)
+            if isinstance(table, dict):
+                table.update(saved)
+            else:
+                table.extend(saved)
     failed, attempted = runner.failures, runner.tries
     only_ray = len(runner.exceptions) == failed and all(map(_is_missing_ray, runner.exceptions))
     if failed and only_ray and not HAS_RAY:
