@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import multiprocessing
+import signal
+import time
+import types
+
 import pytest
 import torch
 from branching_helpers import ScheduledPolicy, branch_env, plain_env
@@ -138,6 +143,23 @@ def test_collector_stored_roots_from_another_config(no_workers_left):
     with pytest.raises(StateMismatchError):
         next(iter(collector))
     assert env.is_closed
+
+
+def _ignores_sigterm(ready) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    ready.set()
+    time.sleep(60)
+
+
+def test_a_worker_that_outlives_sigterm_is_killed(no_workers_left):
+    context = multiprocessing.get_context("spawn")
+    ready = context.Event()
+    worker = context.Process(target=_ignores_sigterm, args=(ready,))
+    worker.start()
+    assert ready.wait(60)  # SIGTERM is ignored from here on
+    env = types.SimpleNamespace(is_closed=True, _workers=[worker])  # a closed env's workers
+    shutdown_env(env, timeout=0.5)
+    assert not worker.is_alive() and worker.exitcode == -signal.SIGKILL
 
 
 def test_shutdown_is_idempotent(no_workers_left):

@@ -134,7 +134,8 @@ def shutdown_env(env: EnvBase, timeout: float = 10.0) -> None:
 
     Args:
         env: the env to close.
-        timeout: seconds to wait for each worker to exit before terminating it.
+        timeout: seconds to wait for each worker to exit before terminating it, and
+            again before killing it.
 
     Example:
         >>> env = make_branch_env("merge-v0", 1, backend="serial")
@@ -165,4 +166,10 @@ def shutdown_env(env: EnvBase, timeout: float = 10.0) -> None:
         if process.is_alive():
             logger.warning("terminating branch worker pid %s", process.pid)
             process.terminate()
+            process.join(timeout)
+        if process.is_alive():
+            # One outlived SIGTERM (a forked worker, on a loaded machine, in the test
+            # suite): SIGKILL cannot be caught or blocked.
+            logger.warning("killing branch worker pid %s (it outlived SIGTERM)", process.pid)
+            process.kill()
             process.join(timeout)
