@@ -48,13 +48,10 @@ def test_a_row_pairs_with_always_slower_by_hand():
     assert "| +0.33 / +1.67 (+2.05) |" in bench.table_row(search, slower_crash, seconds=0.0)
 
 
+@pytest.mark.slow  # 26 and 34 s, a lab script's whole runs: the default suite's 10 minutes
 @pytest.mark.parametrize(
     ("on", "other", "bases"),
-    [
-        # 26 s on highway-env: in the slow tests for the default suite's 10-minute budget
-        pytest.param("highway", "float32", ["slower"], marks=pytest.mark.slow),
-        ("tensor", "float64", ["idle", "slower"]),
-    ],
+    [("highway", "float32", ["slower"]), ("tensor", "float64", ["idle", "slower"])],
 )
 def test_a_short_run_prints_every_policy_row(on, other, bases):
     out = _bench(
