@@ -54,6 +54,7 @@ from pathlib import Path
 import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
 from omegaconf import DictConfig, OmegaConf
+from search_labels import branch_outcomes
 from tensordict import TensorDict
 from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -104,31 +105,48 @@ def labelled_states(
     horizon: int,
     seed: int,
     config: dict | None = None,
-) -> tuple[str, torch.Tensor, TensorDict, torch.Tensor]:
-    """The scenario, the planner's states (observations, full states), each action's score."""
+    keep_states: bool = True,
+    native: bool = False,
+    behaviour: nn.Module | None = None,
+) -> tuple[str, torch.Tensor, TensorDict | None, torch.Tensor, torch.Tensor]:
+    """The scenario, the planner's states (observations, full states), each action's score
+    and whether its branch crashed.
+
+    ``keep_states=False`` keeps no full state (``None`` in their place): a large labelling
+    run holds only what a fit of the observation needs. ``native``: the C++ substeps
+    (``TensorHighwayEnv(native=True)``), for speed. ``behaviour``: the policy that drives
+    between the random actions (default: the search itself), such as a fit of the search
+    driving its own states (DAgger).
+    """
     cfg, n_actions, base = searched_policy(scenario, tail, config)
     scenario, overrides = str(cfg.scenario), OmegaConf.to_container(cfg.config)
     planner = LookaheadPolicy(
-        TensorHighwayEnv(scenario, overrides, num_envs=n_actions * worlds), base, horizon
+        TensorHighwayEnv(scenario, overrides, num_envs=n_actions * worlds, native=native),
+        base,
+        horizon,
     )
-    env = TensorHighwayEnv(scenario, overrides, num_envs=worlds, return_state=True)
+    env = TensorHighwayEnv(scenario, overrides, num_envs=worlds, return_state=True, native=native)
     td = highway_starts(env, list(range(seed, seed + worlds)))
     draws = torch.Generator().manual_seed(seed)
     live = torch.ones(worlds, dtype=torch.bool)
-    observations, states, scores = [], [], []
+    observations, states, scores, crashes = [], [], [], []
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         while live.any():
-            score = planner.returns(td)
+            score, crashed = branch_outcomes(planner, td)
             observations.append(td["observation"][live])
-            states.append(td["state"][live])
+            if keep_states:
+                states.append(td["state"][live])
             scores.append(score[live])
+            crashes.append(crashed[live])
             explore = torch.rand(worlds, generator=draws) < epsilon
             random = torch.randint(0, n_actions, (worlds,), generator=draws)
-            td["action"] = torch.where(explore, random, score.argmax(-1))
+            own = score.argmax(-1) if behaviour is None else behaviour(td.clone())["action"]
+            td["action"] = torch.where(explore, random, own)
             out, td = env.step_and_maybe_reset(td)
             # A finished world is reset by the step: its later states are not this episode's.
             live &= ~out["next", "done"].reshape(-1)
-    return scenario, torch.cat(observations), torch.cat(states), torch.cat(scores).float()
+    kept = torch.cat(states) if keep_states else None
+    return scenario, torch.cat(observations), kept, torch.cat(scores).float(), torch.cat(crashes)
 
 
 def _env_config(scenario: str) -> DictConfig:
@@ -183,6 +201,9 @@ def fit(
     net: nn.Module | None = None,
     keep_below: float | None = None,
     loss: str = "best-set",
+    width: int = 256,
+    danger: torch.Tensor | None = None,
+    danger_weight: float = 0.0,
 ) -> tuple[dict[str, float], nn.Module]:
     """Fits the best set from ``x[train]``; accuracy and regret on ``train`` and ``test``.
 
@@ -193,10 +214,14 @@ def fit(
     weighs each state by what a wrong action costs there; alone it settles on one action
     everywhere, since the actions the network gives no probability get no gradient.
 
-    ``net``: the network to fit (default: a fresh MLP, standardisation included).
+    ``net``: the network to fit (default: a fresh MLP of two hidden layers of ``width``,
+    standardisation included).
     ``keep_below``: where the network's own greedy action loses less than this to the
     best one, its target is its own distribution as it was before the fit (only the
     states where it loses more are corrected).
+    ``danger``: ``[N, A]``, the actions whose branch crashes where another action's does
+    not; the loss adds ``danger_weight`` times the probability the network gives them,
+    an expected crash that weighs the states where one action crashes.
     Returns the figures and the fitted network.
     """
     best = (scores >= scores.amax(-1, keepdim=True) - 1e-6).float()
@@ -212,11 +237,11 @@ def fit(
     torch.manual_seed(0)
     net = net or nn.Sequential(
         _Standardise(mean, std),
-        nn.Linear(x.shape[1], 256),
+        nn.Linear(x.shape[1], width),
         nn.Tanh(),
-        nn.Linear(256, 256),
+        nn.Linear(width, width),
         nn.Tanh(),
-        nn.Linear(256, 5),
+        nn.Linear(width, scores.shape[1]),
     )
     optim = torch.optim.Adam(net.parameters(), lr=1e-3)
     order = torch.Generator().manual_seed(1)
@@ -227,6 +252,8 @@ def fit(
             value = -(target[rows] * log_p).sum(-1).mean()
             if loss == "regret":
                 value = (log_p.exp() * regret[rows]).sum(-1).mean() + ANCHOR * value
+            if danger is not None:
+                value = value + danger_weight * (log_p.exp() * danger[rows]).sum(-1).mean()
             optim.zero_grad()
             value.backward()
             optim.step()
@@ -327,7 +354,7 @@ def main() -> None:
     config = None
     if args.ranges:
         config = {"observation": {"type": "Kinematics", "features_range": args.ranges}}
-    scenario, observation, state, scores = labelled_states(
+    scenario, observation, state, scores, _ = labelled_states(
         args.scenario, args.tail, args.worlds, args.epsilon, args.horizon, args.seed, config
     )
     n = len(scores)

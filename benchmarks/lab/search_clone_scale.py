@@ -1,0 +1,261 @@
+"""Is cloning the search short of states, of width, or of a loss? Learning curves.
+
+    T=runs/<run>/last.pt
+    python benchmarks/lab/search_clone_scale.py label --tail $T --worlds 10000 \
+        --seed 100000 --native --out <dir>/labels_100000.pt       # one process a seed range
+    python benchmarks/lab/search_clone_scale.py fit --tail $T --labels <dir>/labels_*.pt \
+        --fractions 0.0625 0.25 1 --widths 256 1024 [--danger-weights 0 100] --drive 1000
+    python benchmarks/lab/search_clone_scale.py dagger --tail $T --labels <dir>/labels_*.pt \
+        --danger-weights 100 --rounds 3 --worlds 4000 --epsilon 0.1 --seed 200000 \
+        --native --drive 1000 --out <dagger dir>
+    python benchmarks/lab/search_clone_scale.py heldout --tail $T \
+        --net <dagger dir>/round_3.pt --episodes 1000 --seed 150000
+
+``label`` lets the search (every action tried, then ``--horizon - 1`` greedy steps of
+the ``--tail`` run, rows of the tensor simulator, from the whole state) drive
+``--worlds`` episodes from highway-env's starts of ``--seed, --seed + 1, ...``, ``--chunk``
+of them at a time, with a random action on a fraction ``--epsilon`` of the steps so that
+the states spread (``label_inputs.labelled_states``; ``--native``: on the C++
+substeps). It keeps, at every state, the run's observation, every action's branch
+return and whether that branch crashed.
+
+``fit`` pools label files (their seed ranges must not overlap), holds out a tenth of
+the states, and fits a fresh MLP from the observation to the search's best set
+(``label_inputs.fit``: ``--epochs`` passes of 256 states a step, at most ``--max-steps``
+steps) on a fraction of the rest, for every hidden width, danger weight and fraction.
+``--danger-weights w`` adds ``w`` times the probability the fit gives the actions whose
+branch crashes where another's does not. For each fit, and for the run's own greedy
+network on the same held-out states, it prints:
+
+* the accuracy (argmax in the best set) and the regret (best return less the argmax's);
+* the share of states where the argmax loses more than 1, about a crash within the horizon;
+* the crash error: the share where the argmax's branch crashes and another action's
+  does not, the error that costs an episode, which the regret mixes with slowness.
+
+With ``--drive N`` the fit of all the states drives greedily over ``N``
+tensor-simulator episodes from highway-env's starts of seeds 40000.., beside the run's
+network (``label_inputs.drive``).
+
+``dagger`` fits every label so far (at the first width and danger weight), saves the
+fit as ``round_<r>.pt``, drives it as ``--drive`` does, and labels ``--worlds`` episodes
+of its own driving from ``--seed`` on, round after round. ``heldout`` drives a saved fit
+on highway-env itself, paired against the run and always-SLOWER.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import time
+import warnings
+
+import _path  # noqa: F401  (benchmarks/ on sys.path)
+import torch
+from label_inputs import _Greedy, _RunLogits, drive, fit, labelled_states
+from omegaconf import OmegaConf
+from torch import nn
+
+from torchrl_grpo.modules.actors import DeterministicActor
+from torchrl_grpo.training import make_env
+from torchrl_grpo.training.checkpoint import load_checkpoint
+from torchrl_grpo.training.env_builder import make_layout
+from torchrl_grpo.training.evaluation import baseline_policy, evaluate
+from torchrl_grpo.training.pretrained import load_run_policy
+from torchrl_grpo.training.results import compare_paired
+
+warnings.filterwarnings("ignore")
+
+
+def label_range(
+    args: argparse.Namespace, seed: int, worlds: int, behaviour: nn.Module | None = None
+) -> dict[str, torch.Tensor]:
+    """The labelled states of ``worlds`` episodes from ``seed`` on, ``args.chunk`` at a time."""
+    parts: dict[str, list[torch.Tensor]] = {"observation": [], "scores": [], "crashed": []}
+    start = time.perf_counter()
+    for first in range(seed, seed + worlds, args.chunk):
+        count = min(args.chunk, seed + worlds - first)
+        scenario, obs, _, scores, crashed = labelled_states(
+            "",
+            args.tail,
+            count,
+            args.epsilon,
+            args.horizon,
+            first,
+            keep_states=False,
+            native=args.native,
+            behaviour=behaviour,
+        )
+        for key, value in zip(parts, (obs.float(), scores, crashed), strict=True):
+            parts[key].append(value)
+        states = sum(len(s) for s in parts["scores"])
+        minutes = (time.perf_counter() - start) / 60
+        print(f"{scenario}: seeds {seed}..{first + count - 1}, {states} states, {minutes:.1f} min")
+    labels = {key: torch.cat(value) for key, value in parts.items()}
+    labels["seeds"] = torch.tensor([seed, seed + worlds])
+    return labels
+
+
+def errors(logits: torch.Tensor, scores: torch.Tensor, crashed: torch.Tensor) -> dict[str, float]:
+    """What the argmax of ``logits`` costs against the search's scores and crash flags."""
+    chosen = logits.argmax(-1, keepdim=True)
+    best = scores >= scores.amax(-1, keepdim=True) - 1e-6
+    regret = scores.amax(-1) - scores.gather(1, chosen).squeeze(-1)
+    crash = crashed.gather(1, chosen).squeeze(-1) & ~crashed.all(-1)
+    return {
+        "accuracy": float(best.gather(1, chosen).float().mean()),
+        "regret": float(regret.mean()),
+        "regret > 1": float((regret > 1).float().mean()),
+        "crash error": float(crash.float().mean()),
+    }
+
+
+def load_labels(paths: list[str]) -> dict[str, torch.Tensor]:
+    """The label files pooled; their seed ranges must be disjoint."""
+    files = [torch.load(path) for path in paths]
+    ranges = sorted(tuple(f["seeds"].tolist()) for f in files)
+    for (_, end), (begin, _) in zip(ranges, ranges[1:], strict=False):
+        if begin < end:
+            raise SystemExit(f"label files share seeds: {ranges}")
+    return {key: torch.cat([f[key] for f in files]) for key in ("observation", "scores", "crashed")}
+
+
+def fit_curve(args: argparse.Namespace) -> None:
+    """The fits over ``args.fractions`` and ``args.widths``; their errors and drives."""
+    torch.set_num_threads(args.threads)
+    labels = load_labels(args.labels)
+    obs, scores, crashed = labels["observation"], labels["scores"], labels["crashed"]
+    x = obs.flatten(1)
+    n = len(scores)
+    split = torch.randperm(n, generator=torch.Generator().manual_seed(0))
+    test, pool = split[: n // 10], split[n // 10 :]
+    cfg = OmegaConf.create(load_checkpoint(args.tail)["config"])["env"]
+    run = _RunLogits(load_run_policy(args.tail, cfg, make_env(cfg)), obs.shape[1:])
+    with torch.no_grad():
+        own = errors(run(x[test]), scores[test], crashed[test])
+    print(
+        f"{n} states, {len(test)} held out; the search's best set crashes on "
+        f"{float(crashed.gather(1, scores.argmax(-1, keepdim=True)).float().mean()):.2%}\n"
+    )
+    print("| network | states fitted | minutes | accuracy | regret | > 1 | crash error |")
+    print("|---|---|---|---|---|---|---|")
+    print(_row("the run, greedy", "-", 0.0, own))
+    danger = (crashed & ~crashed.all(-1, keepdim=True)).float()
+    grid = itertools.product(args.widths, args.danger_weights, args.fractions)
+    for width, weight, fraction in grid:
+        fitted = pool[: int(fraction * len(pool))]
+        start = time.perf_counter()
+        # Past --max-steps updates of 256 states, a larger set gets fewer epochs.
+        epochs = min(args.epochs, max(1, round(args.max_steps * 256 / len(fitted))))
+        _, net = fit(
+            x, scores, fitted, test, epochs, width=width, danger=danger, danger_weight=weight
+        )
+        minutes = (time.perf_counter() - start) / 60
+        with torch.no_grad():
+            figures = errors(net(x[test]), scores[test], crashed[test])
+        name = f"MLP {width}x2" + (f", danger weight {weight:g}" if weight else "")
+        print(_row(name, len(fitted), minutes, figures), flush=True)
+        if args.drive and fraction == max(args.fractions):
+            drive(str(cfg.scenario), args.tail, net, args.drive)
+
+
+def dagger(args: argparse.Namespace) -> None:
+    """Rounds of DAgger: fit every label so far, drive the fit, label the states it visits."""
+    torch.set_num_threads(args.threads)
+    files = list(args.labels)
+    for round_ in range(1, args.rounds + 1):
+        labels = load_labels(files)
+        x, scores, crashed = labels["observation"].flatten(1), labels["scores"], labels["crashed"]
+        danger = (crashed & ~crashed.all(-1, keepdim=True)).float()
+        every = torch.arange(len(scores))
+        epochs = min(args.epochs, max(1, round(args.max_steps * 256 / len(every))))
+        _, net = fit(
+            x,
+            scores,
+            every,
+            every,
+            epochs,
+            width=args.widths[0],
+            danger=danger,
+            danger_weight=args.danger_weights[0],
+        )
+        torch.save(net, f"{args.out}/round_{round_}.pt")
+        print(f"round {round_}: fitted {len(every)} states ({epochs} epochs)", flush=True)
+        cfg = OmegaConf.create(load_checkpoint(args.tail)["config"])["env"]
+        drive(str(cfg.scenario), args.tail, net, args.drive)
+        seed = args.seed + (round_ - 1) * args.worlds
+        new = label_range(args, seed, args.worlds, _Greedy(net))
+        files.append(f"{args.out}/labels_{seed}.pt")
+        torch.save(new, files[-1])
+
+
+def heldout(args: argparse.Namespace) -> None:
+    """The fit ``args.net`` on highway-env itself, paired against the run and always-SLOWER."""
+    cfg = OmegaConf.create(load_checkpoint(args.tail)["config"])["env"]
+    highway = make_env(cfg)
+    policies = {
+        "always-SLOWER": baseline_policy(
+            "slower", make_layout(highway), int(highway.action_spec.n)
+        ),
+        "the run, greedy": DeterministicActor(load_run_policy(args.tail, cfg, highway)),
+        "the fit, greedy": _Greedy(torch.load(args.net, weights_only=False)),
+    }
+    results = {}
+    for name, policy in policies.items():
+        results[name], _ = evaluate(
+            highway, policy, episodes=args.episodes, seed=args.seed, name=name, workers=args.workers
+        )
+        summary = results[name].summary()
+        print(
+            f"- {name}: {summary['return']:.2f} ± {summary['return_sem']:.2f} / "
+            f"{summary['crash_rate']:.1%} on highway-env, seeds {args.seed}.."
+        )
+    for other in ("always-SLOWER", "the run, greedy"):
+        print(f"- {compare_paired(results['the fit, greedy'], results[other])}")
+
+
+def _row(name: str, fitted: object, minutes: float, e: dict[str, float]) -> str:
+    return (
+        f"| {name} | {fitted} | {minutes:.1f} | {e['accuracy']:.3f} | {e['regret']:.3f} | "
+        f"{e['regret > 1']:.2%} | {e['crash error']:.2%} |"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("stage", choices=["label", "fit", "dagger", "heldout"])
+    parser.add_argument("--tail", required=True, help="the run whose greedy tails the search takes")
+    parser.add_argument("--worlds", type=int, default=8000)
+    parser.add_argument("--chunk", type=int, default=1000)
+    parser.add_argument("--epsilon", type=float, default=0.3)
+    parser.add_argument("--horizon", type=int, default=8)
+    parser.add_argument("--seed", type=int, default=70_000)
+    parser.add_argument("--native", action="store_true", help="label on the C++ substeps")
+    parser.add_argument("--out", help="label: the file of labels; dagger: a folder")
+    parser.add_argument("--rounds", type=int, default=3, help="dagger: rounds")
+    parser.add_argument("--net", help="heldout: a fit that dagger saved (round_<r>.pt)")
+    parser.add_argument("--episodes", type=int, default=1000, help="heldout: highway-env episodes")
+    parser.add_argument("--workers", type=int, default=2, help="heldout: processes")
+    parser.add_argument("--labels", nargs="+", help="fit: label files")
+    parser.add_argument("--fractions", type=float, nargs="+", default=[0.0625, 0.25, 1.0])
+    parser.add_argument("--widths", type=int, nargs="+", default=[256, 1024])
+    parser.add_argument("--epochs", type=int, default=40)
+    parser.add_argument(
+        "--danger-weights", type=float, nargs="+", default=[0.0], help="fit: expected-crash weights"
+    )
+    parser.add_argument("--max-steps", type=int, default=20_000, help="updates a fit at most")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--drive", type=int, default=0, help="episodes each width's fit drives")
+    args = parser.parse_args()
+    if args.stage == "label":
+        torch.set_num_threads(1)
+        torch.save(label_range(args, args.seed, args.worlds), args.out)
+    elif args.stage == "fit":
+        fit_curve(args)
+    elif args.stage == "dagger":
+        dagger(args)
+    else:
+        heldout(args)
+
+
+if __name__ == "__main__":
+    main()

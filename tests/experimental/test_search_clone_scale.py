@@ -1,0 +1,52 @@
+"""search_clone_scale's error measures and label pooling, against hand-computed figures."""
+
+import pytest
+import search_clone_scale
+import torch
+
+pytestmark = pytest.mark.experimental
+
+
+def test_errors_tell_a_crash_from_slowness():
+    # Three states, three actions. State 0: the argmax (action 2) is the best: no error.
+    # State 1: the argmax (action 0) loses 2 to the best and its branch crashes where
+    # action 1's does not: a crash error. State 2: the argmax (action 1) loses 1.5 to the
+    # best, whose branch crashes, and its own does not: slowness, not a crash error.
+    scores = torch.tensor([[0.0, 1.0, 3.0], [5.0, 7.0, 6.0], [9.0, 7.5, 8.0]])
+    crashed = torch.tensor([[False, False, False], [True, False, False], [True, False, True]])
+    logits = torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    e = search_clone_scale.errors(logits, scores, crashed)
+    assert e["accuracy"] == pytest.approx(1 / 3)
+    assert e["regret"] == pytest.approx((0.0 + 2.0 + 1.5) / 3)
+    assert e["regret > 1"] == pytest.approx(2 / 3)
+    assert e["crash error"] == pytest.approx(1 / 3)
+
+
+def test_a_state_where_every_branch_crashes_is_no_crash_error():
+    scores = torch.tensor([[-1.0, -2.0]])
+    crashed = torch.tensor([[True, True]])
+    e = search_clone_scale.errors(torch.tensor([[0.0, 1.0]]), scores, crashed)
+    assert e["crash error"] == 0.0 and e["regret"] == pytest.approx(1.0)
+
+
+def _labels(path, seeds, n):
+    torch.save(
+        {
+            "observation": torch.full((n, 2, 3), float(seeds[0])),
+            "scores": torch.zeros(n, 5),
+            "crashed": torch.zeros(n, 5, dtype=torch.bool),
+            "seeds": torch.tensor(seeds),
+        },
+        path,
+    )
+    return str(path)
+
+
+def test_label_files_pool_and_refuse_shared_seeds(tmp_path):
+    a = _labels(tmp_path / "a.pt", [100, 110], 4)
+    b = _labels(tmp_path / "b.pt", [110, 120], 3)
+    pooled = search_clone_scale.load_labels([b, a])
+    assert pooled["observation"].shape == (7, 2, 3) and pooled["crashed"].shape == (7, 5)
+    c = _labels(tmp_path / "c.pt", [115, 130], 2)
+    with pytest.raises(SystemExit, match="share seeds"):
+        search_clone_scale.load_labels([a, b, c])
