@@ -204,6 +204,7 @@ def fit(
     width: int = 256,
     danger: torch.Tensor | None = None,
     danger_weight: float = 0.0,
+    seed: int = 0,
 ) -> tuple[dict[str, float], nn.Module]:
     """Fits the best set from ``x[train]``; accuracy and regret on ``train`` and ``test``.
 
@@ -221,7 +222,8 @@ def fit(
     states where it loses more are corrected).
     ``danger``: ``[N, A]``, the actions whose branch crashes where another action's does
     not; the loss adds ``danger_weight`` times the probability the network gives them,
-    an expected crash that weighs the states where one action crashes.
+    an expected crash that weighs the states where one action crashes. ``seed``: the
+    fresh network's initial weights and the order of the states.
     Returns the figures and the fitted network.
     """
     best = (scores >= scores.amax(-1, keepdim=True) - 1e-6).float()
@@ -234,7 +236,7 @@ def fit(
         target = torch.where(keep[:, None], own.softmax(-1), target)
         print(f"(corrected: {1 - float(keep[train].float().mean()):.1%} of the fitted states)")
     mean, std = x[train].mean(0), x[train].std(0) + 1e-6
-    torch.manual_seed(0)
+    torch.manual_seed(seed)
     net = net or nn.Sequential(
         _Standardise(mean, std),
         nn.Linear(x.shape[1], width),
@@ -244,7 +246,7 @@ def fit(
         nn.Linear(width, scores.shape[1]),
     )
     optim = torch.optim.Adam(net.parameters(), lr=1e-3)
-    order = torch.Generator().manual_seed(1)
+    order = torch.Generator().manual_seed(1 + seed)
     regret = scores.amax(-1, keepdim=True) - scores
     for _ in range(epochs):
         for rows in train[torch.randperm(len(train), generator=order)].split(256):

@@ -1,14 +1,16 @@
 """Is cloning the search short of states, of width, or of a loss? Learning curves.
 
     T=runs/<run>/last.pt
-    python benchmarks/lab/search_clone_scale.py label --tail $T --worlds 10000 \
+    python benchmarks/lab/search_clone_scale.py label --tail $T --worlds 10000 \\
         --seed 100000 --native --out <dir>/labels_100000.pt       # one process a seed range
-    python benchmarks/lab/search_clone_scale.py fit --tail $T --labels <dir>/labels_*.pt \
+    python benchmarks/lab/search_clone_scale.py fit --tail $T --labels <dir>/labels_*.pt \\
         --fractions 0.0625 0.25 1 --widths 256 1024 [--danger-weights 0 100] --drive 1000
-    python benchmarks/lab/search_clone_scale.py dagger --tail $T --labels <dir>/labels_*.pt \
-        --danger-weights 100 --rounds 3 --worlds 4000 --epsilon 0.1 --seed 200000 \
+    python benchmarks/lab/search_clone_scale.py dagger --tail $T --labels <dir>/labels_*.pt \\
+        --danger-weights 100 --rounds 3 --worlds 4000 --epsilon 0.1 --seed 200000 \\
         --native --drive 1000 --out <dagger dir>
-    python benchmarks/lab/search_clone_scale.py heldout --tail $T \
+    python benchmarks/lab/search_clone_scale.py ensemble --tail $T --labels <dir>/labels_*.pt \\
+        --test <a label file of other seeds> --members 3 --danger-weights 100 --out <dir>
+    python benchmarks/lab/search_clone_scale.py heldout --tail $T \\
         --net <dagger dir>/round_3.pt --episodes 1000 --seed 150000
 
 ``label`` lets the search (every action tried, then ``--horizon - 1`` greedy steps of
@@ -38,8 +40,11 @@ network (``label_inputs.drive``).
 
 ``dagger`` fits every label so far (at the first width and danger weight), saves the
 fit as ``round_<r>.pt``, drives it as ``--drive`` does, and labels ``--worlds`` episodes
-of its own driving from ``--seed`` on, round after round. ``heldout`` drives a saved fit
-on highway-env itself, paired against the run and always-SLOWER.
+of its own driving from ``--seed`` on, round after round. ``ensemble`` fits
+``--members`` networks on every label, one seed each, and scores each and the mean of
+their logits on ``--test``, a label file of episodes that none of them saw: if the
+mean errs much less than its members, their errors are the fit's variance. ``heldout``
+drives a saved fit on highway-env itself, paired against the run and always-SLOWER.
 """
 
 from __future__ import annotations
@@ -110,13 +115,16 @@ def errors(logits: torch.Tensor, scores: torch.Tensor, crashed: torch.Tensor) ->
 
 
 def load_labels(paths: list[str]) -> dict[str, torch.Tensor]:
-    """The label files pooled; their seed ranges must be disjoint."""
+    """The label files pooled; their seed ranges (``seeds``, ``[files, 2]``) must be disjoint."""
     files = [torch.load(path) for path in paths]
     ranges = sorted(tuple(f["seeds"].tolist()) for f in files)
     for (_, end), (begin, _) in zip(ranges, ranges[1:], strict=False):
         if begin < end:
             raise SystemExit(f"label files share seeds: {ranges}")
-    return {key: torch.cat([f[key] for f in files]) for key in ("observation", "scores", "crashed")}
+    pooled = {
+        key: torch.cat([f[key] for f in files]) for key in ("observation", "scores", "crashed")
+    }
+    return pooled | {"seeds": torch.tensor(ranges)}
 
 
 def fit_curve(args: argparse.Namespace) -> None:
@@ -188,6 +196,68 @@ def dagger(args: argparse.Namespace) -> None:
         torch.save(new, files[-1])
 
 
+class MeanLogits(nn.Module):
+    """Several fits as one network: the mean of their logits."""
+
+    def __init__(self, nets: list[nn.Module]) -> None:
+        super().__init__()
+        self.nets = nn.ModuleList(nets)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.stack([net(x) for net in self.nets]).mean(0)
+
+
+def ensemble(args: argparse.Namespace) -> None:
+    """``args.members`` fits of every label, one seed each, scored alone and as their mean.
+
+    The scores are on the label file ``args.test``, whose episodes no fit saw; the mean
+    of the logits drives as ``--drive`` does. If the members err on different states,
+    their mean errs less: the errors are the fit's variance, not what the network can
+    represent.
+    """
+    torch.set_num_threads(args.threads)
+    labels, held = load_labels(args.labels), load_labels([args.test])
+    begin, end = held["seeds"][0].tolist()
+    if any(b < end and begin < e for b, e in labels["seeds"].tolist()):
+        raise SystemExit(f"{args.test} shares seeds with the fitted labels")
+    x, scores, crashed = labels["observation"].flatten(1), labels["scores"], labels["crashed"]
+    danger = (crashed & ~crashed.all(-1, keepdim=True)).float()
+    every = torch.arange(len(scores))
+    epochs = min(args.epochs, max(1, round(args.max_steps * 256 / len(every))))
+    tx, ts, tc = held["observation"].flatten(1), held["scores"], held["crashed"]
+    cfg = OmegaConf.create(load_checkpoint(args.tail)["config"])["env"]
+    run = _RunLogits(load_run_policy(args.tail, cfg, make_env(cfg)), held["observation"].shape[1:])
+    print(f"{len(tx)} held-out states of seeds {begin}..{end - 1}\n")
+    print("| network | states fitted | minutes | accuracy | regret | > 1 | crash error |")
+    print("|---|---|---|---|---|---|---|")
+    with torch.no_grad():
+        print(_row("the run, greedy", "-", 0.0, errors(run(tx), ts, tc)))
+    nets = []
+    for seed in range(args.members):
+        start = time.perf_counter()
+        _, net = fit(
+            x,
+            scores,
+            every,
+            every[:1],
+            epochs,
+            width=args.widths[0],
+            danger=danger,
+            danger_weight=args.danger_weights[0],
+            seed=seed,
+        )
+        torch.save(net, f"{args.out}/member_{seed}.pt")
+        nets.append(net)
+        minutes = (time.perf_counter() - start) / 60
+        with torch.no_grad():
+            print(_row(f"member, seed {seed}", len(every), minutes, errors(net(tx), ts, tc)))
+    mean = MeanLogits(nets)
+    with torch.no_grad():
+        print(_row(f"mean of {len(nets)} members", len(every), 0.0, errors(mean(tx), ts, tc)))
+    if args.drive:
+        drive(str(cfg.scenario), args.tail, mean, args.drive)
+
+
 def heldout(args: argparse.Namespace) -> None:
     """The fit ``args.net`` on highway-env itself, paired against the run and always-SLOWER."""
     cfg = OmegaConf.create(load_checkpoint(args.tail)["config"])["env"]
@@ -222,7 +292,7 @@ def _row(name: str, fitted: object, minutes: float, e: dict[str, float]) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("stage", choices=["label", "fit", "dagger", "heldout"])
+    parser.add_argument("stage", choices=["label", "fit", "dagger", "ensemble", "heldout"])
     parser.add_argument("--tail", required=True, help="the run whose greedy tails the search takes")
     parser.add_argument("--worlds", type=int, default=8000)
     parser.add_argument("--chunk", type=int, default=1000)
@@ -233,6 +303,8 @@ def main() -> None:
     parser.add_argument("--out", help="label: the file of labels; dagger: a folder")
     parser.add_argument("--rounds", type=int, default=3, help="dagger: rounds")
     parser.add_argument("--net", help="heldout: a fit that dagger saved (round_<r>.pt)")
+    parser.add_argument("--members", type=int, default=3, help="ensemble: fits, one seed each")
+    parser.add_argument("--test", help="ensemble: a label file of episodes no fit saw")
     parser.add_argument("--episodes", type=int, default=1000, help="heldout: highway-env episodes")
     parser.add_argument("--workers", type=int, default=2, help="heldout: processes")
     parser.add_argument("--labels", nargs="+", help="fit: label files")
@@ -253,6 +325,8 @@ def main() -> None:
         fit_curve(args)
     elif args.stage == "dagger":
         dagger(args)
+    elif args.stage == "ensemble":
+        ensemble(args)
     else:
         heldout(args)
 

@@ -47,6 +47,14 @@ def test_label_files_pool_and_refuse_shared_seeds(tmp_path):
     b = _labels(tmp_path / "b.pt", [110, 120], 3)
     pooled = search_clone_scale.load_labels([b, a])
     assert pooled["observation"].shape == (7, 2, 3) and pooled["crashed"].shape == (7, 5)
+    assert pooled["seeds"].tolist() == [[100, 110], [110, 120]]
     c = _labels(tmp_path / "c.pt", [115, 130], 2)
     with pytest.raises(SystemExit, match="share seeds"):
         search_clone_scale.load_labels([a, b, c])
+
+
+def test_mean_logits_average_the_members():
+    first, second = torch.nn.Linear(2, 3), torch.nn.Linear(2, 3)
+    x = torch.tensor([[1.0, -2.0]])
+    mean = search_clone_scale.MeanLogits([first, second])
+    assert torch.allclose(mean(x), (first(x) + second(x)) / 2)
