@@ -259,7 +259,8 @@ def ensemble(args: argparse.Namespace) -> None:
 
 
 def heldout(args: argparse.Namespace) -> None:
-    """The fit ``args.net`` on highway-env itself, paired against the run and always-SLOWER."""
+    """The fit ``args.net`` (several: their mean logits) on highway-env itself, paired
+    against the run and always-SLOWER."""
     cfg = OmegaConf.create(load_checkpoint(args.tail)["config"])["env"]
     highway = make_env(cfg)
     policies = {
@@ -267,7 +268,9 @@ def heldout(args: argparse.Namespace) -> None:
             "slower", make_layout(highway), int(highway.action_spec.n)
         ),
         "the run, greedy": DeterministicActor(load_run_policy(args.tail, cfg, highway)),
-        "the fit, greedy": _Greedy(torch.load(args.net, weights_only=False)),
+        "the fit, greedy": _Greedy(
+            MeanLogits([torch.load(path, weights_only=False) for path in args.net])
+        ),
     }
     results = {}
     for name, policy in policies.items():
@@ -302,7 +305,9 @@ def main() -> None:
     parser.add_argument("--native", action="store_true", help="label on the C++ substeps")
     parser.add_argument("--out", help="label: the file of labels; dagger: a folder")
     parser.add_argument("--rounds", type=int, default=3, help="dagger: rounds")
-    parser.add_argument("--net", help="heldout: a fit that dagger saved (round_<r>.pt)")
+    parser.add_argument(
+        "--net", nargs="+", help="heldout: fits that dagger or ensemble saved (several: their mean)"
+    )
     parser.add_argument("--members", type=int, default=3, help="ensemble: fits, one seed each")
     parser.add_argument("--test", help="ensemble: a label file of episodes no fit saw")
     parser.add_argument("--episodes", type=int, default=1000, help="heldout: highway-env episodes")
