@@ -57,7 +57,7 @@ import warnings
 import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
 from label_inputs import _Greedy, _RunLogits, drive, fit, labelled_states
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
 from torchrl_grpo.modules.actors import DeterministicActor
@@ -136,7 +136,7 @@ def fit_curve(args: argparse.Namespace) -> None:
     n = len(scores)
     split = torch.randperm(n, generator=torch.Generator().manual_seed(0))
     test, pool = split[: n // 10], split[n // 10 :]
-    cfg = OmegaConf.create(load_checkpoint(args.tail)["config"])["env"]
+    cfg = _env_of(args.tail)
     run = _RunLogits(load_run_policy(args.tail, cfg, make_env(cfg)), obs.shape[1:])
     with torch.no_grad():
         own = errors(run(x[test]), scores[test], crashed[test])
@@ -147,13 +147,12 @@ def fit_curve(args: argparse.Namespace) -> None:
     print("| network | states fitted | minutes | accuracy | regret | > 1 | crash error |")
     print("|---|---|---|---|---|---|---|")
     print(_row("the run, greedy", "-", 0.0, own))
-    danger = (crashed & ~crashed.all(-1, keepdim=True)).float()
+    danger = _danger(crashed)
     grid = itertools.product(args.widths, args.danger_weights, args.fractions)
     for width, weight, fraction in grid:
         fitted = pool[: int(fraction * len(pool))]
         start = time.perf_counter()
-        # Past --max-steps updates of 256 states, a larger set gets fewer epochs.
-        epochs = min(args.epochs, max(1, round(args.max_steps * 256 / len(fitted))))
+        epochs = _epochs(args, len(fitted))
         _, net = fit(
             x, scores, fitted, test, epochs, width=width, danger=danger, danger_weight=weight
         )
@@ -170,30 +169,39 @@ def dagger(args: argparse.Namespace) -> None:
     """Rounds of DAgger: fit every label so far, drive the fit, label the states it visits."""
     torch.set_num_threads(args.threads)
     files = list(args.labels)
+    cfg = _env_of(args.tail)
     for round_ in range(1, args.rounds + 1):
-        labels = load_labels(files)
-        x, scores, crashed = labels["observation"].flatten(1), labels["scores"], labels["crashed"]
-        danger = (crashed & ~crashed.all(-1, keepdim=True)).float()
-        every = torch.arange(len(scores))
-        epochs = min(args.epochs, max(1, round(args.max_steps * 256 / len(every))))
-        _, net = fit(
-            x,
-            scores,
-            every,
-            every,
-            epochs,
-            width=args.widths[0],
-            danger=danger,
-            danger_weight=args.danger_weights[0],
-        )
+        net, states, epochs = _fit_every(args, load_labels(files))
         torch.save(net, f"{args.out}/round_{round_}.pt")
-        print(f"round {round_}: fitted {len(every)} states ({epochs} epochs)", flush=True)
-        cfg = OmegaConf.create(load_checkpoint(args.tail)["config"])["env"]
-        drive(str(cfg.scenario), args.tail, net, args.drive)
+        print(f"round {round_}: fitted {states} states ({epochs} epochs)", flush=True)
+        if args.drive:
+            drive(str(cfg.scenario), args.tail, net, args.drive)
         seed = args.seed + (round_ - 1) * args.worlds
         new = label_range(args, seed, args.worlds, _Greedy(net))
         files.append(f"{args.out}/labels_{seed}.pt")
         torch.save(new, files[-1])
+
+
+def _fit_every(
+    args: argparse.Namespace, labels: dict[str, torch.Tensor], seed: int = 0
+) -> tuple[nn.Module, int, int]:
+    """A fresh fit of every labelled state (at the first width and danger weight); the fit,
+    the number of states and of epochs."""
+    x, scores = labels["observation"].flatten(1), labels["scores"]
+    every = torch.arange(len(scores))
+    epochs = _epochs(args, len(every))
+    _, net = fit(
+        x,
+        scores,
+        every,
+        every[:1],
+        epochs,
+        width=args.widths[0],
+        danger=_danger(labels["crashed"]),
+        danger_weight=args.danger_weights[0],
+        seed=seed,
+    )
+    return net, len(every), epochs
 
 
 class MeanLogits(nn.Module):
@@ -220,12 +228,8 @@ def ensemble(args: argparse.Namespace) -> None:
     begin, end = held["seeds"][0].tolist()
     if any(b < end and begin < e for b, e in labels["seeds"].tolist()):
         raise SystemExit(f"{args.test} shares seeds with the fitted labels")
-    x, scores, crashed = labels["observation"].flatten(1), labels["scores"], labels["crashed"]
-    danger = (crashed & ~crashed.all(-1, keepdim=True)).float()
-    every = torch.arange(len(scores))
-    epochs = min(args.epochs, max(1, round(args.max_steps * 256 / len(every))))
     tx, ts, tc = held["observation"].flatten(1), held["scores"], held["crashed"]
-    cfg = OmegaConf.create(load_checkpoint(args.tail)["config"])["env"]
+    cfg = _env_of(args.tail)
     run = _RunLogits(load_run_policy(args.tail, cfg, make_env(cfg)), held["observation"].shape[1:])
     print(f"{len(tx)} held-out states of seeds {begin}..{end - 1}\n")
     print("| network | states fitted | minutes | accuracy | regret | > 1 | crash error |")
@@ -235,25 +239,15 @@ def ensemble(args: argparse.Namespace) -> None:
     nets = []
     for seed in range(args.members):
         start = time.perf_counter()
-        _, net = fit(
-            x,
-            scores,
-            every,
-            every[:1],
-            epochs,
-            width=args.widths[0],
-            danger=danger,
-            danger_weight=args.danger_weights[0],
-            seed=seed,
-        )
+        net, states, _ = _fit_every(args, labels, seed)
         torch.save(net, f"{args.out}/member_{seed}.pt")
         nets.append(net)
         minutes = (time.perf_counter() - start) / 60
         with torch.no_grad():
-            print(_row(f"member, seed {seed}", len(every), minutes, errors(net(tx), ts, tc)))
+            print(_row(f"member, seed {seed}", states, minutes, errors(net(tx), ts, tc)))
     mean = MeanLogits(nets)
     with torch.no_grad():
-        print(_row(f"mean of {len(nets)} members", len(every), 0.0, errors(mean(tx), ts, tc)))
+        print(_row(f"mean of {len(nets)} members", states, 0.0, errors(mean(tx), ts, tc)))
     if args.drive:
         drive(str(cfg.scenario), args.tail, mean, args.drive)
 
@@ -261,7 +255,7 @@ def ensemble(args: argparse.Namespace) -> None:
 def heldout(args: argparse.Namespace) -> None:
     """The fit ``args.net`` (several: their mean logits) on highway-env itself, paired
     against the run and always-SLOWER."""
-    cfg = OmegaConf.create(load_checkpoint(args.tail)["config"])["env"]
+    cfg = _env_of(args.tail)
     highway = make_env(cfg)
     policies = {
         "always-SLOWER": baseline_policy(
@@ -284,6 +278,21 @@ def heldout(args: argparse.Namespace) -> None:
         )
     for other in ("always-SLOWER", "the run, greedy"):
         print(f"- {compare_paired(results['the fit, greedy'], results[other])}")
+
+
+def _danger(crashed: torch.Tensor) -> torch.Tensor:
+    # The actions whose branch crashes where another action's does not.
+    return (crashed & ~crashed.all(-1, keepdim=True)).float()
+
+
+def _epochs(args: argparse.Namespace, states: int) -> int:
+    # Past --max-steps updates of 256 states, a larger set gets fewer epochs.
+    return min(args.epochs, max(1, round(args.max_steps * 256 / states)))
+
+
+def _env_of(tail: str) -> DictConfig:
+    # The run's env config: its scenario and its observation.
+    return OmegaConf.create(load_checkpoint(tail)["config"])["env"]
 
 
 def _row(name: str, fitted: object, minutes: float, e: dict[str, float]) -> str:
