@@ -46,6 +46,7 @@ def test_refusals_name_the_problem(scenario, on, match):
         evaluate_search(cfg, DeterministicActor, 2, episodes=1, seed=0, on=on)
 
 
+@pytest.mark.slow  # 21 s of highway-env steps; the default suite keeps its 10 minutes
 def test_on_highway_env_it_plans_in_float64_where_float32_crashes():
     # roundabout-v0, seed 40048, the search over always-SLOWER to the episode's end: the
     # float32 planner's branches drift from highway-env's float64 episode on the ring and
