@@ -114,9 +114,8 @@ def errors(logits: torch.Tensor, scores: torch.Tensor, crashed: torch.Tensor) ->
     }
 
 
-def load_labels(paths: list[str]) -> dict[str, torch.Tensor]:
-    """The label files pooled; their seed ranges (``seeds``, ``[files, 2]``) must be disjoint."""
-    files = [torch.load(path) for path in paths]
+def pool(files: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """Label sets pooled; their seed ranges (``seeds``, ``[sets, 2]``) must be disjoint."""
     ranges = sorted(tuple(f["seeds"].tolist()) for f in files)
     for (_, end), (begin, _) in zip(ranges, ranges[1:], strict=False):
         if begin < end:
@@ -125,6 +124,11 @@ def load_labels(paths: list[str]) -> dict[str, torch.Tensor]:
         key: torch.cat([f[key] for f in files]) for key in ("observation", "scores", "crashed")
     }
     return pooled | {"seeds": torch.tensor(ranges)}
+
+
+def load_labels(paths: list[str]) -> dict[str, torch.Tensor]:
+    """The label files pooled (:func:`pool`)."""
+    return pool([torch.load(path) for path in paths])
 
 
 def fit_curve(args: argparse.Namespace) -> None:
@@ -137,16 +141,11 @@ def fit_curve(args: argparse.Namespace) -> None:
     split = torch.randperm(n, generator=torch.Generator().manual_seed(0))
     test, pool = split[: n // 10], split[n // 10 :]
     cfg = _env_of(args.tail)
-    run = _RunLogits(load_run_policy(args.tail, cfg, make_env(cfg)), obs.shape[1:])
-    with torch.no_grad():
-        own = errors(run(x[test]), scores[test], crashed[test])
     print(
         f"{n} states, {len(test)} held out; the search's best set crashes on "
         f"{float(crashed.gather(1, scores.argmax(-1, keepdim=True)).float().mean()):.2%}\n"
     )
-    print("| network | states fitted | minutes | accuracy | regret | > 1 | crash error |")
-    print("|---|---|---|---|---|---|---|")
-    print(_row("the run, greedy", "-", 0.0, own))
+    _table_head(args.tail, cfg, obs[test], scores[test], crashed[test])
     danger = _danger(crashed)
     grid = itertools.product(args.widths, args.danger_weights, args.fractions)
     for width, weight, fraction in grid:
@@ -168,18 +167,17 @@ def fit_curve(args: argparse.Namespace) -> None:
 def dagger(args: argparse.Namespace) -> None:
     """Rounds of DAgger: fit every label so far, drive the fit, label the states it visits."""
     torch.set_num_threads(args.threads)
-    files = list(args.labels)
+    sets = [torch.load(path) for path in args.labels]
     cfg = _env_of(args.tail)
     for round_ in range(1, args.rounds + 1):
-        net, states, epochs = _fit_every(args, load_labels(files))
+        net, states, epochs = _fit_every(args, pool(sets))
         torch.save(net, f"{args.out}/round_{round_}.pt")
         print(f"round {round_}: fitted {states} states ({epochs} epochs)", flush=True)
         if args.drive:
             drive(str(cfg.scenario), args.tail, net, args.drive)
         seed = args.seed + (round_ - 1) * args.worlds
-        new = label_range(args, seed, args.worlds, _Greedy(net))
-        files.append(f"{args.out}/labels_{seed}.pt")
-        torch.save(new, files[-1])
+        sets.append(label_range(args, seed, args.worlds, _Greedy(net)))
+        torch.save(sets[-1], f"{args.out}/labels_{seed}.pt")
 
 
 def _fit_every(
@@ -230,12 +228,8 @@ def ensemble(args: argparse.Namespace) -> None:
         raise SystemExit(f"{args.test} shares seeds with the fitted labels")
     tx, ts, tc = held["observation"].flatten(1), held["scores"], held["crashed"]
     cfg = _env_of(args.tail)
-    run = _RunLogits(load_run_policy(args.tail, cfg, make_env(cfg)), held["observation"].shape[1:])
     print(f"{len(tx)} held-out states of seeds {begin}..{end - 1}\n")
-    print("| network | states fitted | minutes | accuracy | regret | > 1 | crash error |")
-    print("|---|---|---|---|---|---|---|")
-    with torch.no_grad():
-        print(_row("the run, greedy", "-", 0.0, errors(run(tx), ts, tc)))
+    _table_head(args.tail, cfg, held["observation"], ts, tc)
     nets = []
     for seed in range(args.members):
         start = time.perf_counter()
@@ -295,6 +289,17 @@ def _env_of(tail: str) -> DictConfig:
     return OmegaConf.create(load_checkpoint(tail)["config"])["env"]
 
 
+def _table_head(
+    tail: str, cfg: DictConfig, obs: torch.Tensor, scores: torch.Tensor, crashed: torch.Tensor
+) -> None:
+    # The table's header, and its first row: the run's own network on the held-out states.
+    run = _RunLogits(load_run_policy(tail, cfg, make_env(cfg)), obs.shape[1:])
+    print("| network | states fitted | minutes | accuracy | regret | > 1 | crash error |")
+    print("|---|---|---|---|---|---|---|")
+    with torch.no_grad():
+        print(_row("the run, greedy", "-", 0.0, errors(run(obs.flatten(1)), scores, crashed)))
+
+
 def _row(name: str, fitted: object, minutes: float, e: dict[str, float]) -> str:
     return (
         f"| {name} | {fitted} | {minutes:.1f} | {e['accuracy']:.3f} | {e['regret']:.3f} | "
@@ -312,7 +317,7 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, default=8)
     parser.add_argument("--seed", type=int, default=70_000)
     parser.add_argument("--native", action="store_true", help="label on the C++ substeps")
-    parser.add_argument("--out", help="label: the file of labels; dagger: a folder")
+    parser.add_argument("--out", help="label: the file of labels; dagger, ensemble: a folder")
     parser.add_argument("--rounds", type=int, default=3, help="dagger: rounds")
     parser.add_argument(
         "--net", nargs="+", help="heldout: fits that dagger or ensemble saved (several: their mean)"
@@ -321,7 +326,7 @@ def main() -> None:
     parser.add_argument("--test", help="ensemble: a label file of episodes no fit saw")
     parser.add_argument("--episodes", type=int, default=1000, help="heldout: highway-env episodes")
     parser.add_argument("--workers", type=int, default=2, help="heldout: processes")
-    parser.add_argument("--labels", nargs="+", help="fit: label files")
+    parser.add_argument("--labels", nargs="+", help="fit, dagger, ensemble: label files")
     parser.add_argument("--fractions", type=float, nargs="+", default=[0.0625, 0.25, 1.0])
     parser.add_argument("--widths", type=int, nargs="+", default=[256, 1024])
     parser.add_argument("--epochs", type=int, default=40)
@@ -330,7 +335,9 @@ def main() -> None:
     )
     parser.add_argument("--max-steps", type=int, default=20_000, help="updates a fit at most")
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--drive", type=int, default=0, help="episodes each width's fit drives")
+    parser.add_argument(
+        "--drive", type=int, default=0, help="tensor-simulator episodes a fit drives"
+    )
     args = parser.parse_args()
     if args.stage == "label":
         torch.set_num_threads(1)
