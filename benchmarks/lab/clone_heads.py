@@ -1,0 +1,240 @@
+"""Does the network's form close the clone's crash errors? Its inputs and a crash head.
+
+    T=runs/<run>/last.pt
+    python benchmarks/lab/clone_heads.py fit --tail $T --labels <dir>/labels_*.pt \\
+        --trunks flat scene attention --crash-weights 0 1 --aversions 0 3 10 \\
+        [--danger-weights 0 100] [--drive 1000 --act-aversion 3] [--out <dir>]
+    python benchmarks/lab/clone_heads.py dagger --tail $T --labels <dir>/labels_*.pt \\
+        --trunks scene --crash-weights 1 --act-aversion 3 --rounds 3 --worlds 4000 \\
+        --seed 200000 --native --drive 1000 --out <dagger dir>
+
+The labels are ``search_clone_scale.py label``'s: at each state the run's observation,
+every action's branch return under the search, and whether that branch crashed. Its
+fits, over the flat table, err into crashes ten times as often as the run whose search
+they clone, and a weight on the expected crash levels their errors at 0.35% of the
+states. Two things the run has and those fits lack:
+
+* **inputs**: the run reads driving features of the scene (gaps, closing speeds, room
+  to change lane), not the table alone; an attention network shares one function of a
+  vehicle across the rows (``clone_nets.make_trunk``);
+* **a crash head**: the run's net has a second output per action, its chance of
+  crashing, and acts on ``policy + 3 log(1 - p_crash)``. Here the head is fitted to the
+  search's crash flags (binary cross-entropy, ``--crash-weights`` of it beside the
+  cross-entropy to the search's best set).
+
+``fit`` holds out a tenth of the pooled states (the split of ``search_clone_scale.py
+fit``), fits every trunk, crash weight and danger weight on the rest, and scores the
+fits on the held-out states at every ``--aversions`` (and ``--margins``: the actions
+whose crash chance exceeds the smallest by more bar), beside the run. ``--drive N``
+drives each fit at ``--act-aversion`` (and ``--act-margin``) over ``N``
+tensor-simulator episodes from highway-env's starts of seeds 40000... ``dagger`` is
+``search_clone_scale.py dagger`` with these nets: it fits every label so far at the
+first trunk and weights, drives, and labels ``--worlds`` episodes of its own driving.
+``drive --net <out>/<fit>.pt`` drives a saved fit as ``--drive`` does, at other
+weights; ``search_clone_scale.py heldout --net <out>/<fit>.pt`` drives it on
+highway-env.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import time
+import warnings
+
+import _path  # noqa: F401  (benchmarks/ on sys.path)
+import torch
+from clone_nets import CloneNet, make_trunk
+from label_inputs import _Greedy, drive
+from search_clone_scale import (
+    _danger,
+    _env_of,
+    _epochs,
+    _row,
+    _table_head,
+    errors,
+    label_range,
+    load_labels,
+    pool,
+)
+from torch.nn import functional as F
+
+from torchrl_grpo.training import make_env
+from torchrl_grpo.training.env_builder import make_layout
+
+warnings.filterwarnings("ignore")
+
+
+def fit_net(
+    net: CloneNet,
+    labels: dict[str, torch.Tensor],
+    rows: torch.Tensor,
+    epochs: int,
+    danger_weight: float,
+    crash_weight: float,
+    seed: int = 0,
+    cosine: bool = False,
+) -> CloneNet:
+    """Fits ``net`` on ``labels[rows]``: the best set's cross-entropy, the expected crash
+    times ``danger_weight`` and the crash head's cross-entropy times ``crash_weight``.
+
+    Adam at 1e-3, ``epochs`` passes of 256 states a step; ``cosine``: the rate decays to
+    0 along a cosine over the passes."""
+    x, scores, crashed = labels["observation"].flatten(1), labels["scores"], labels["crashed"]
+    best = (scores >= scores.amax(-1, keepdim=True) - 1e-6).float()
+    target = best / best.sum(-1, keepdim=True)
+    danger = _danger(crashed)
+    optim = torch.optim.Adam(net.parameters(), lr=1e-3)
+    steps = epochs * -(-len(rows) // 256)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optim, steps) if cosine else None
+    order = torch.Generator().manual_seed(1 + seed)
+    for _ in range(epochs):
+        for batch in rows[torch.randperm(len(rows), generator=order)].split(256):
+            logits, crash = net.heads(x[batch])
+            log_p = logits.log_softmax(-1)
+            loss = -(target[batch] * log_p).sum(-1).mean()
+            if danger_weight:
+                loss = loss + danger_weight * (log_p.exp() * danger[batch]).sum(-1).mean()
+            if crash is not None:
+                flags = crashed[batch].float()
+                loss = loss + crash_weight * F.binary_cross_entropy_with_logits(crash, flags)
+            optim.zero_grad()
+            loss.backward()
+            optim.step()
+            if schedule is not None:
+                schedule.step()
+    return net
+
+
+def new_net(
+    args: argparse.Namespace, trunk: str, crash_weight: float, x: torch.Tensor, seed: int
+) -> CloneNet:
+    """A fresh :class:`CloneNet` (a crash head where ``crash_weight`` > 0)."""
+    torch.manual_seed(seed)
+    layout = make_layout(make_env(_env_of(args.tail)))
+    body = make_trunk(trunk, layout, x, args.width, args.embed)
+    return CloneNet(body, args.width, int(args.actions), crash_head=crash_weight > 0)
+
+
+def _name(trunk: str, crash_weight: float, danger_weight: float) -> str:
+    name = trunk + (f", crash head {crash_weight:g}" if crash_weight else "")
+    return name + (f", danger weight {danger_weight:g}" if danger_weight else "")
+
+
+def _acting(net: CloneNet, args: argparse.Namespace) -> CloneNet:
+    net.aversion, net.margin = args.act_aversion, args.act_margin
+    return net
+
+
+def fit_grid(args: argparse.Namespace) -> None:
+    """Every trunk, crash weight and danger weight, scored at every aversion and margin."""
+    torch.set_num_threads(args.threads)
+    labels = load_labels(args.labels)
+    obs, scores, crashed = labels["observation"], labels["scores"], labels["crashed"]
+    x, n = obs.flatten(1), len(scores)
+    args.actions = scores.shape[1]
+    split = torch.randperm(n, generator=torch.Generator().manual_seed(0))
+    test, fitted = split[: n // 10], split[n // 10 :]
+    cfg = _env_of(args.tail)
+    print(f"{n} states, {len(test)} held out\n")
+    _table_head(args.tail, cfg, obs[test], scores[test], crashed[test])
+    epochs = _epochs(args, len(fitted))
+    grid = itertools.product(args.trunks, args.crash_weights, args.danger_weights)
+    for trunk, crash_weight, danger_weight in grid:
+        start = time.perf_counter()
+        net = new_net(args, trunk, crash_weight, x[fitted], seed=0)
+        fit_net(net, labels, fitted, epochs, danger_weight, crash_weight, cosine=args.cosine)
+        minutes = (time.perf_counter() - start) / 60
+        name = _name(trunk, crash_weight, danger_weight)
+        acts = [(0.0, None)] if net.crash is None else _acts(args)
+        with torch.no_grad():
+            logits, crash = net.heads(x[test])
+            for aversion, margin in acts:
+                net.aversion, net.margin = aversion, margin
+                figures = errors(net(x[test]), scores[test], crashed[test])
+                how = "" if net.crash is None else f", aversion {aversion:g}"
+                how += "" if margin is None else f", margin {margin:g}"
+                print(_row(name + how, len(fitted), minutes, figures), flush=True)
+        if args.out:
+            file = name.replace(", ", "_").replace(" ", "-")
+            torch.save(_acting(net, args), f"{args.out}/{file}.pt")
+        if args.drive:
+            drive(str(cfg.scenario), args.tail, _acting(net, args), args.drive)
+
+
+def _acts(args: argparse.Namespace) -> list[tuple[float, float | None]]:
+    margins: list[float | None] = [None, *args.margins]
+    return list(itertools.product(args.aversions, margins))
+
+
+def dagger(args: argparse.Namespace) -> None:
+    """Rounds of DAgger with the first trunk and weights (``search_clone_scale.py dagger``)."""
+    torch.set_num_threads(args.threads)
+    sets = [torch.load(path) for path in args.labels]
+    cfg = _env_of(args.tail)
+    trunk, crash_weight = args.trunks[0], args.crash_weights[0]
+    danger_weight = args.danger_weights[0]
+    for round_ in range(1, args.rounds + 1):
+        if round_ == 1 and args.first:
+            # A fit of these labels made already (by ``fit``) stands for the first round.
+            net = _acting(torch.load(args.first, weights_only=False), args)
+        else:
+            labels = pool(sets)
+            args.actions = labels["scores"].shape[1]
+            every = torch.arange(len(labels["scores"]))
+            epochs = _epochs(args, len(every))
+            net = new_net(args, trunk, crash_weight, labels["observation"].flatten(1), seed=0)
+            fit_net(net, labels, every, epochs, danger_weight, crash_weight, cosine=args.cosine)
+            net = _acting(net, args)
+            torch.save(net, f"{args.out}/round_{round_}.pt")
+            name = _name(trunk, crash_weight, danger_weight)
+            print(f"round {round_}: {name}, fitted {len(every)} states ({epochs} epochs)")
+            if args.drive:
+                drive(str(cfg.scenario), args.tail, net, args.drive)
+        seed = args.seed + (round_ - 1) * args.worlds
+        sets.append(label_range(args, seed, args.worlds, _Greedy(net)))
+        torch.save(sets[-1], f"{args.out}/labels_{seed}.pt")
+
+
+def drive_saved(args: argparse.Namespace) -> None:
+    """Drives the saved fit ``args.net`` at ``--act-aversion`` and ``--act-margin``."""
+    torch.set_num_threads(args.threads)
+    net = _acting(torch.load(args.net, weights_only=False), args)
+    drive(str(_env_of(args.tail).scenario), args.tail, net, args.drive)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("stage", choices=["fit", "dagger", "drive"])
+    parser.add_argument("--tail", required=True, help="the run whose search made the labels")
+    parser.add_argument("--labels", nargs="+", help="fit, dagger: label files")
+    parser.add_argument("--net", help="drive: a saved fit")
+    parser.add_argument("--trunks", nargs="+", default=["flat", "scene", "attention"])
+    parser.add_argument("--width", type=int, default=256)
+    parser.add_argument("--embed", type=int, default=64, help="attention: the embeddings' width")
+    parser.add_argument("--cosine", action="store_true", help="the rate decays along a cosine")
+    parser.add_argument("--crash-weights", type=float, nargs="+", default=[0.0, 1.0])
+    parser.add_argument("--danger-weights", type=float, nargs="+", default=[0.0])
+    parser.add_argument("--aversions", type=float, nargs="+", default=[0.0, 3.0, 10.0])
+    parser.add_argument("--margins", type=float, nargs="*", default=[])
+    parser.add_argument("--act-aversion", type=float, default=3.0, help="how a saved fit acts")
+    parser.add_argument("--act-margin", type=float, default=None)
+    parser.add_argument("--epochs", type=int, default=40)
+    parser.add_argument("--max-steps", type=int, default=20_000, help="updates a fit at most")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--drive", type=int, default=0, help="tensor-simulator episodes")
+    parser.add_argument("--out", help="fit: where the fits go; dagger: a folder")
+    parser.add_argument("--rounds", type=int, default=3, help="dagger: rounds")
+    parser.add_argument("--first", help="dagger: a saved fit of the labels, for the first round")
+    parser.add_argument("--worlds", type=int, default=4000, help="dagger: episodes a round")
+    parser.add_argument("--seed", type=int, default=200_000, help="dagger: the first seed")
+    parser.add_argument("--epsilon", type=float, default=0.1, help="dagger: random actions")
+    parser.add_argument("--chunk", type=int, default=1000)
+    parser.add_argument("--horizon", type=int, default=8)
+    parser.add_argument("--native", action="store_true", help="dagger: label on the C++ substeps")
+    args = parser.parse_args()
+    {"fit": fit_grid, "dagger": dagger, "drive": drive_saved}[args.stage](args)
+
+
+if __name__ == "__main__":
+    main()

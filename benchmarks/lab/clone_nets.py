@@ -1,0 +1,155 @@
+"""Networks for cloning the search: three inputs, and a crash head beside the policy.
+
+Each :class:`CloneNet` maps the flat Kinematics table ``[N, V * F]`` (what
+``search_clone_scale.py`` fits and drives) to the logits of the action it would take.
+Its trunk reads the table one of three ways (:func:`make_trunk`):
+
+* ``flat``: an MLP over the standardised table, as ``label_inputs.fit``;
+* ``scene``: the same MLP over the table and the 18 driving features of
+  :class:`~torchrl_grpo.modules.SceneFeatures` (gaps, closing speeds, room to change
+  lane), the features the runs' own networks read;
+* ``attention``: the ego-attention network (one encoder shared by every vehicle,
+  :class:`~torchrl_grpo.modules.networks.EgoAttentionNet`), which learns one function of
+  a vehicle for all the rows, whatever order the distance puts them in.
+
+With a crash head the net has a second output per action: the logit of the chance that
+the action's branch crashes within the horizon, fitted to the search's crash flags. It
+acts on ``policy + aversion * log(1 - p_crash)``, as the runs' crash heads do, and bars
+the actions whose ``p_crash`` exceeds the smallest by more than ``margin``.
+
+Example:
+    >>> from torchrl_grpo.modules.kinematics_table import KinematicsLayout
+    >>> x = torch.zeros(8, 25)
+    >>> net = CloneNet(make_trunk("scene", KinematicsLayout(), x, 32), 32, 5, crash_head=True)
+    >>> net.aversion = 3.0
+    >>> net(x).shape, net.heads(x)[1].shape
+    (torch.Size([8, 5]), torch.Size([8, 5]))
+"""
+
+from __future__ import annotations
+
+import torch
+from label_inputs import _Standardise
+from torch import nn
+from torch.nn import functional as F
+
+from torchrl_grpo.modules.kinematics_table import KinematicsLayout
+from torchrl_grpo.modules.networks import EgoAttentionNet
+from torchrl_grpo.modules.scene_features import SceneFeatures
+
+TRUNKS = ("flat", "scene", "attention")
+
+
+class _Table(nn.Module):
+    """The flat table back as ``[N, V, F]`` rows, its feature columns standardised.
+
+    The presence column stays 0 or 1: the attention masks absent vehicles with it.
+    """
+
+    def __init__(self, layout: KinematicsLayout, x: torch.Tensor) -> None:
+        super().__init__()
+        self.shape = (layout.n_vehicles, layout.n_features)
+        rows = x.reshape(-1, *self.shape)
+        present = rows[..., layout.index("presence")] > 0.5
+        mean, std = rows[present].mean(0), rows[present].std(0) + 1e-6
+        keep = torch.arange(self.shape[1]) == layout.index("presence")
+        self.register_buffer("mean", torch.where(keep, 0.0, mean))
+        self.register_buffer("std", torch.where(keep, 1.0, std))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return (x.reshape(-1, *self.shape) - self.mean) / self.std
+
+
+class _SceneAndTable(nn.Module):
+    """The driving features beside the standardised flat table."""
+
+    def __init__(self, layout: KinematicsLayout, x: torch.Tensor) -> None:
+        super().__init__()
+        self.shape = (layout.n_vehicles, layout.n_features)
+        self.scene = SceneFeatures(layout)
+        self.table = _Standardise(x.mean(0), x.std(0) + 1e-6)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        scene = self.scene(x.reshape(-1, *self.shape))
+        return torch.cat([scene, self.table(x)], -1)
+
+
+def _mlp(in_features: int, width: int) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Linear(in_features, width), nn.Tanh(), nn.Linear(width, width), nn.Tanh()
+    )
+
+
+def make_trunk(
+    kind: str, layout: KinematicsLayout, x: torch.Tensor, width: int, embed: int = 64
+) -> nn.Module:
+    """A trunk from the flat table ``[N, V * F]`` to ``[N, width]`` hidden units.
+
+    Args:
+        kind: ``flat``, ``scene`` or ``attention`` (the module's docstring).
+        layout: the observation's layout.
+        x: the states to be fitted, for the standardisation.
+        width: the hidden units.
+        embed: ``attention``: the width of the vehicles' embeddings and of the encoder.
+    """
+    if kind == "flat":
+        return nn.Sequential(_Standardise(x.mean(0), x.std(0) + 1e-6), _mlp(x.shape[1], width))
+    if kind == "scene":
+        return nn.Sequential(
+            _SceneAndTable(layout, x), _mlp(SceneFeatures.n_features + x.shape[1], width)
+        )
+    if kind == "attention":
+        attention = EgoAttentionNet(
+            layout.n_features,
+            width,
+            embed_dim=embed,
+            num_heads=4,
+            encoder_cells=(embed,),
+            decoder_cells=(width,),
+            presence_index=layout.index("presence"),
+        )
+        return nn.Sequential(_Table(layout, x), attention, nn.Tanh())
+    raise ValueError(f"unknown trunk {kind!r}; expected one of {TRUNKS}")
+
+
+class CloneNet(nn.Module):
+    """A trunk, the policy's logits and optionally a crash head (the module's docstring).
+
+    Args:
+        trunk: from the flat table to ``width`` hidden units (:func:`make_trunk`).
+        width: the trunk's output size.
+        actions: the number of actions.
+        crash_head: whether to add the crash head.
+    """
+
+    def __init__(self, trunk: nn.Module, width: int, actions: int, crash_head: bool) -> None:
+        super().__init__()
+        self.trunk = trunk
+        self.policy = nn.Linear(width, actions)
+        self.crash = nn.Linear(width, actions) if crash_head else None
+        self.aversion = 0.0
+        self.margin: float | None = None
+
+    def heads(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """The policy's logits and the crash logits (``None`` without a crash head)."""
+        hidden = self.trunk(x)
+        return self.policy(hidden), None if self.crash is None else self.crash(hidden)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """The logits the net acts on: the policy's, weighed and barred by the crash head."""
+        logits, crash = self.heads(x)
+        return act_logits(logits, crash, self.aversion, self.margin)
+
+
+def act_logits(
+    logits: torch.Tensor, crash: torch.Tensor | None, aversion: float, margin: float | None
+) -> torch.Tensor:
+    """``logits + aversion * log(1 - p_crash)``, the actions beyond ``margin`` barred."""
+    if crash is None:
+        return logits
+    acted = logits + aversion * F.logsigmoid(-crash)
+    if margin is not None:
+        p = crash.sigmoid()
+        barred = p > p.amin(-1, keepdim=True) + margin
+        acted = acted.masked_fill(barred, float("-inf"))
+    return acted

@@ -1,0 +1,75 @@
+"""clone_nets' acting rule and trunks, and clone_heads' fit, against hand-computed figures."""
+
+import math
+
+import clone_heads
+import clone_nets
+import pytest
+import torch
+
+from torchrl_grpo.modules.kinematics_table import KinematicsLayout
+
+pytestmark = pytest.mark.experimental
+
+
+def test_the_crash_head_weighs_and_bars_actions_as_written():
+    # p_crash = 0.5 and 0.9: with aversion 1 the logits become 0 + log 0.5 and
+    # 1 + log 0.1, so the first action wins although the policy prefers the second.
+    logits = torch.tensor([[0.0, 1.0]])
+    crash = torch.tensor([[0.0, math.log(9.0)]])
+    acted = clone_nets.act_logits(logits, crash, aversion=1.0, margin=None)
+    assert acted.tolist()[0] == pytest.approx([math.log(0.5), 1.0 + math.log(0.1)])
+    assert clone_nets.act_logits(logits, None, 5.0, 0.1).tolist() == logits.tolist()
+    # A margin of 0.3 bars the action whose p_crash exceeds the smallest by 0.4.
+    barred = clone_nets.act_logits(logits, crash, aversion=0.0, margin=0.3)
+    assert barred[0, 0] == 0.0 and barred[0, 1] == float("-inf")
+    assert clone_nets.act_logits(logits, crash, 0.0, 0.5).tolist() == logits.tolist()
+
+
+def _tables(n: int, layout: KinematicsLayout, generator: torch.Generator) -> torch.Tensor:
+    rows = torch.randn(n, layout.n_vehicles, layout.n_features, generator=generator)
+    rows[..., 0] = (torch.rand(n, layout.n_vehicles, generator=generator) < 0.7).float()
+    rows[:, 0, 0] = 1.0
+    return rows.flatten(1)
+
+
+def test_the_attention_reads_the_other_vehicles_as_a_set_and_keeps_presence():
+    layout = KinematicsLayout()
+    x = _tables(64, layout, torch.Generator().manual_seed(0))
+    trunk = clone_nets.make_trunk("attention", layout, x, 16)
+    rows = x.reshape(64, 5, 5)
+    assert torch.equal(trunk[0](x)[..., 0], rows[..., 0])  # presence is not standardised
+    shuffled = rows[:, [0, 3, 1, 4, 2]].flatten(1)  # the ego first, the others reordered
+    assert torch.allclose(trunk(x), trunk(shuffled), atol=1e-6)
+    absent = rows.clone()
+    absent[:, 1:, 1:] = torch.where(absent[:, 1:, :1] > 0.5, absent[:, 1:, 1:], 7.0)
+    assert torch.allclose(trunk(x), trunk(absent.flatten(1)), atol=1e-6)
+    flat = clone_nets.make_trunk("flat", layout, x, 16)
+    assert not torch.allclose(flat(x), flat(shuffled), atol=1e-3)
+    scene = clone_nets.make_trunk("scene", layout, x, 16)
+    assert scene[0](x).shape == (64, 18 + 25) and scene(x).shape == (64, 16)
+
+
+def test_the_fit_learns_the_best_set_and_the_crash_chance():
+    # Inputs that say nothing, so each head can only learn the labels' frequencies: the
+    # best set is action 1 in every state, and the branches of actions 0, 1 and 2 crash
+    # in an eighth, a half and a quarter of them. The cross-entropy to the best set is
+    # smallest at p(1) = 1; the crash head's binary cross-entropy at the frequencies.
+    n = 512
+    generator = torch.Generator().manual_seed(1)
+    crashed = torch.zeros(n, 3, dtype=torch.bool)
+    for action, share in enumerate((8, 2, 4)):
+        crashed[torch.randperm(n, generator=generator)[: n // share], action] = True
+    labels = {
+        "observation": torch.zeros(n, 5, 5),
+        "scores": torch.tensor([0.0, 1.0, 0.5]).expand(n, 3).clone(),
+        "crashed": crashed,
+    }
+    layout = KinematicsLayout()
+    trunk = clone_nets.make_trunk("flat", layout, labels["observation"].flatten(1), 8)
+    net = clone_nets.CloneNet(trunk, 8, 3, crash_head=True)
+    clone_heads.fit_net(net, labels, torch.arange(n), 400, 0.0, 1.0)
+    with torch.no_grad():
+        logits, crash = net.heads(labels["observation"][:1].flatten(1))
+    assert logits.softmax(-1)[0, 1] > 0.98
+    assert crash.sigmoid()[0].tolist() == pytest.approx([0.125, 0.5, 0.25], abs=0.01)
