@@ -10,7 +10,9 @@ Its trunk reads the table one of three ways (:func:`make_trunk`):
   lane), the features the runs' own networks read;
 * ``attention``: the ego-attention network (one encoder shared by every vehicle,
   :class:`~torchrl_grpo.modules.networks.EgoAttentionNet`), which learns one function of
-  a vehicle for all the rows, whatever order the distance puts them in.
+  a vehicle for all the rows, whatever order the distance puts them in;
+* ``transformer``: two layers of self-attention among the vehicles before the ego reads
+  them out, so that a car's reaction to the car ahead of it can be composed.
 
 With a crash head the net has a second output per action: the logit of the chance that
 the action's branch crashes within the horizon, fitted to the search's crash flags. It
@@ -37,7 +39,7 @@ from torchrl_grpo.modules.kinematics_table import KinematicsLayout
 from torchrl_grpo.modules.networks import EgoAttentionNet
 from torchrl_grpo.modules.scene_features import SceneFeatures
 
-TRUNKS = ("flat", "scene", "attention")
+TRUNKS = ("flat", "scene", "attention", "transformer")
 
 
 class _Table(nn.Module):
@@ -74,6 +76,35 @@ class _SceneAndTable(nn.Module):
         return torch.cat([scene, self.table(x)], -1)
 
 
+class _VehicleTransformer(nn.Module):
+    """Layers of self-attention among the vehicles, then the ego's row and their mean.
+
+    A car's next seconds depend on the car ahead of it (IDM follows its leader), and that
+    one's on the next: a single query from the ego weighs the vehicles but cannot compose
+    such chains; layers of attention among them can.
+    """
+
+    def __init__(self, layout: KinematicsLayout, embed: int, width: int, layers: int) -> None:
+        super().__init__()
+        self.presence = layout.index("presence")
+        self.encoder = nn.Sequential(
+            nn.Linear(layout.n_features, embed), nn.ReLU(), nn.Linear(embed, embed)
+        )
+        layer = nn.TransformerEncoderLayer(
+            embed, 4, dim_feedforward=2 * embed, dropout=0.0, batch_first=True
+        )
+        self.layers = nn.TransformerEncoder(layer, layers, enable_nested_tensor=False)
+        self.decoder = nn.Sequential(nn.Linear(2 * embed, width), nn.Tanh())
+
+    def forward(self, rows: torch.Tensor) -> torch.Tensor:
+        absent = rows[..., self.presence] < 0.5
+        absent[:, 0] = False  # the ego is always there, also in the zero rows of padding
+        hidden = self.layers(self.encoder(rows), src_key_padding_mask=absent)
+        present = (~absent).unsqueeze(-1).float()
+        mean = (hidden * present).sum(1) / present.sum(1)
+        return self.decoder(torch.cat([hidden[:, 0], mean], -1))
+
+
 def _mlp(in_features: int, width: int) -> nn.Sequential:
     return nn.Sequential(
         nn.Linear(in_features, width), nn.Tanh(), nn.Linear(width, width), nn.Tanh()
@@ -86,11 +117,12 @@ def make_trunk(
     """A trunk from the flat table ``[N, V * F]`` to ``[N, width]`` hidden units.
 
     Args:
-        kind: ``flat``, ``scene`` or ``attention`` (the module's docstring).
+        kind: ``flat``, ``scene``, ``attention`` or ``transformer`` (the module's
+            docstring).
         layout: the observation's layout.
         x: the states to be fitted, for the standardisation.
         width: the hidden units.
-        embed: ``attention``: the width of the vehicles' embeddings and of the encoder.
+        embed: ``attention``, ``transformer``: the width of the vehicles' embeddings.
     """
     if kind == "flat":
         return nn.Sequential(_Standardise(x.mean(0), x.std(0) + 1e-6), _mlp(x.shape[1], width))
@@ -109,6 +141,8 @@ def make_trunk(
             presence_index=layout.index("presence"),
         )
         return nn.Sequential(_Table(layout, x), attention, nn.Tanh())
+    if kind == "transformer":
+        return nn.Sequential(_Table(layout, x), _VehicleTransformer(layout, embed, width, 2))
     raise ValueError(f"unknown trunk {kind!r}; expected one of {TRUNKS}")
 
 

@@ -33,21 +33,34 @@ def _tables(n: int, layout: KinematicsLayout, generator: torch.Generator) -> tor
     return rows.flatten(1)
 
 
-def test_the_attention_reads_the_other_vehicles_as_a_set_and_keeps_presence():
+@pytest.mark.parametrize("kind", ["attention", "transformer"])
+def test_the_attention_trunks_read_the_other_vehicles_as_a_set_and_keep_presence(kind):
     layout = KinematicsLayout()
     x = _tables(64, layout, torch.Generator().manual_seed(0))
-    trunk = clone_nets.make_trunk("attention", layout, x, 16)
+    torch.manual_seed(0)
+    trunk = clone_nets.make_trunk(kind, layout, x, 16, embed=16)
     rows = x.reshape(64, 5, 5)
     assert torch.equal(trunk[0](x)[..., 0], rows[..., 0])  # presence is not standardised
     shuffled = rows[:, [0, 3, 1, 4, 2]].flatten(1)  # the ego first, the others reordered
-    assert torch.allclose(trunk(x), trunk(shuffled), atol=1e-6)
+    assert torch.allclose(trunk(x), trunk(shuffled), atol=1e-5)
     absent = rows.clone()
     absent[:, 1:, 1:] = torch.where(absent[:, 1:, :1] > 0.5, absent[:, 1:, 1:], 7.0)
-    assert torch.allclose(trunk(x), trunk(absent.flatten(1)), atol=1e-6)
+    assert torch.allclose(trunk(x), trunk(absent.flatten(1)), atol=1e-5)
+    ego_moved = rows.clone()
+    ego_moved[:, 0, 1] += 1.0
+    assert not torch.allclose(trunk(x), trunk(ego_moved.flatten(1)), atol=1e-3)
+
+
+def test_the_flat_and_scene_trunks():
+    layout = KinematicsLayout()
+    x = _tables(64, layout, torch.Generator().manual_seed(0))
+    shuffled = x.reshape(64, 5, 5)[:, [0, 3, 1, 4, 2]].flatten(1)
     flat = clone_nets.make_trunk("flat", layout, x, 16)
-    assert not torch.allclose(flat(x), flat(shuffled), atol=1e-3)
+    assert not torch.allclose(flat(x), flat(shuffled), atol=1e-3)  # the order is an input
     scene = clone_nets.make_trunk("scene", layout, x, 16)
     assert scene[0](x).shape == (64, 18 + 25) and scene(x).shape == (64, 16)
+    with pytest.raises(ValueError, match="unknown trunk 'mlp'"):
+        clone_nets.make_trunk("mlp", layout, x, 16)
 
 
 def test_the_fit_learns_the_best_set_and_the_crash_chance():
