@@ -2,11 +2,15 @@
 
     T=runs/<run>/last.pt
     python benchmarks/lab/clone_heads.py fit --tail $T --labels <dir>/labels_*.pt \\
-        --trunks flat scene attention --crash-weights 0 1 --aversions 0 3 10 \\
-        [--danger-weights 0 100] [--drive 1000 --act-aversion 3] [--out <dir>]
+        --trunks flat scene attention --crash-weights 0 1 --aversions 0 3 10 30 \\
+        [--margins 0.02] [--max-steps 60000 --cosine] [--drive 1000 --act-aversion 30] \\
+        [--out <fits>]
+    python benchmarks/lab/clone_heads.py drive --tail $T --net <fits>/<fit>.pt \\
+        --act-aversion 100 --drive 1000
     python benchmarks/lab/clone_heads.py dagger --tail $T --labels <dir>/labels_*.pt \\
-        --trunks scene --crash-weights 1 --act-aversion 3 --rounds 3 --worlds 4000 \\
-        --seed 200000 --native --drive 1000 --out <dagger dir>
+        --trunks attention --crash-weights 1 --max-steps 60000 --cosine --act-aversion 100 \\
+        [--first <fits>/<fit>.pt] --rounds 3 --worlds 4000 --seed 200000 --native \\
+        --drive 1000 --out <dagger dir>
 
 The labels are ``search_clone_scale.py label``'s: at each state the run's observation,
 every action's branch return under the search, and whether that branch crashed. Its
@@ -25,11 +29,14 @@ states. Two things the run has and those fits lack:
 ``fit`` holds out a tenth of the pooled states (the split of ``search_clone_scale.py
 fit``), fits every trunk, crash weight and danger weight on the rest, and scores the
 fits on the held-out states at every ``--aversions`` (and ``--margins``: the actions
-whose crash chance exceeds the smallest by more bar), beside the run. ``--drive N``
+whose crash chance exceeds the smallest by more bar), beside the run. A fit runs
+``--epochs`` passes of 256 states a step, at most ``--max-steps`` steps, Adam at 1e-3
+(``--cosine``: decaying to 0 on a cosine). ``--drive N``
 drives each fit at ``--act-aversion`` (and ``--act-margin``) over ``N``
 tensor-simulator episodes from highway-env's starts of seeds 40000... ``dagger`` is
 ``search_clone_scale.py dagger`` with these nets: it fits every label so far at the
-first trunk and weights, drives, and labels ``--worlds`` episodes of its own driving.
+first trunk and weights, drives, and labels ``--worlds`` episodes of its own driving
+(``--first``: a fit of the given labels made already stands for the first round).
 ``drive --net <out>/<fit>.pt`` drives a saved fit as ``--drive`` does, at other
 weights; ``search_clone_scale.py heldout --net <out>/<fit>.pt`` drives it on
 highway-env.
