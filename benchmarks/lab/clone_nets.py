@@ -165,8 +165,11 @@ class CloneNet(nn.Module):
         self.margin: float | None = None
 
     def heads(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """The policy's logits and the crash logits (``None`` without a crash head)."""
-        hidden = self.trunk(x)
+        """The policy's logits and the crash logits (``None`` without a crash head), each
+        ``[*batch, actions]`` for ``x`` of ``[*batch, V * F]`` (an unbatched env's ``[V * F]``
+        gives ``[actions]``)."""
+        hidden = self.trunk(x.reshape(-1, x.shape[-1]))
+        hidden = hidden.reshape(*x.shape[:-1], hidden.shape[-1])
         return self.policy(hidden), None if self.crash is None else self.crash(hidden)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

@@ -86,3 +86,15 @@ def test_the_fit_learns_the_best_set_and_the_crash_chance():
         logits, crash = net.heads(labels["observation"][:1].flatten(1))
     assert logits.softmax(-1)[0, 1] > 0.98
     assert crash.sigmoid()[0].tolist() == pytest.approx([0.125, 0.5, 0.25], abs=0.01)
+
+
+@pytest.mark.parametrize("kind", ["flat", "scene", "attention", "transformer"])
+def test_an_unbatched_table_gives_one_action_as_a_batched_one_does(kind):
+    # An unbatched env's observation flattens to [V * F]; its action must have no batch
+    # dimension, or the env refuses it (found driving a fit on highway-env).
+    layout = KinematicsLayout()
+    x = _tables(8, layout, torch.Generator().manual_seed(2))
+    net = clone_nets.CloneNet(clone_nets.make_trunk(kind, layout, x, 16), 16, 5, True)
+    net.aversion = 3.0
+    assert net(x[3]).shape == (5,) and net(x.reshape(2, 4, 25)).shape == (2, 4, 5)
+    assert torch.allclose(net(x[3]), net(x)[3], atol=1e-6)
