@@ -51,7 +51,7 @@ import warnings
 
 import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
-from clone_nets import CloneNet, make_trunk
+from clone_nets import TRUNKS, CloneNet, make_trunk
 from label_inputs import _Greedy, drive
 from search_clone_scale import (
     _danger,
@@ -155,7 +155,6 @@ def fit_grid(args: argparse.Namespace) -> None:
         name = _name(trunk, crash_weight, danger_weight)
         acts = [(0.0, None)] if net.crash is None else _acts(args)
         with torch.no_grad():
-            logits, crash = net.heads(x[test])
             for aversion, margin in acts:
                 net.aversion, net.margin = aversion, margin
                 figures = errors(net(x[test]), scores[test], crashed[test])
@@ -216,9 +215,11 @@ def main() -> None:
     parser.add_argument("--tail", required=True, help="the run whose search made the labels")
     parser.add_argument("--labels", nargs="+", help="fit, dagger: label files")
     parser.add_argument("--net", help="drive: a saved fit")
-    parser.add_argument("--trunks", nargs="+", default=["flat", "scene", "attention"])
+    parser.add_argument(
+        "--trunks", nargs="+", choices=TRUNKS, default=["flat", "scene", "attention"]
+    )
     parser.add_argument("--width", type=int, default=256)
-    parser.add_argument("--embed", type=int, default=64, help="attention: the embeddings' width")
+    parser.add_argument("--embed", type=int, default=64, help="the vehicles' embeddings")
     parser.add_argument("--cosine", action="store_true", help="the rate decays along a cosine")
     parser.add_argument("--crash-weights", type=float, nargs="+", default=[0.0, 1.0])
     parser.add_argument("--danger-weights", type=float, nargs="+", default=[0.0])

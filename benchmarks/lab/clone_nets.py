@@ -1,8 +1,8 @@
-"""Networks for cloning the search: three inputs, and a crash head beside the policy.
+"""Networks for cloning the search: four trunks, and a crash head beside the policy.
 
 Each :class:`CloneNet` maps the flat Kinematics table ``[N, V * F]`` (what
 ``search_clone_scale.py`` fits and drives) to the logits of the action it would take.
-Its trunk reads the table one of three ways (:func:`make_trunk`):
+Its trunk reads the table one of four ways (:func:`make_trunk`):
 
 * ``flat``: an MLP over the standardised table, as ``label_inputs.fit``;
 * ``scene``: the same MLP over the table and the 18 driving features of
