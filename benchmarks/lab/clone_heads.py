@@ -7,6 +7,8 @@
         [--out <fits>]
     python benchmarks/lab/clone_heads.py drive --tail $T --net <fits>/<fit>.pt \\
         --act-aversion 100 --drive 1000
+    python benchmarks/lab/clone_heads.py score --tail $T --labels <dir>/labels_*.pt \\
+        --net <fits>/<fit>.pt --aversions 30 100
     python benchmarks/lab/clone_heads.py dagger --tail $T --labels <dir>/labels_*.pt \\
         --trunks attention --crash-weights 1 --max-steps 60000 --cosine --act-aversion 100 \\
         [--first <fits>/<fit>.pt] --rounds 3 --worlds 4000 --seed 200000 --native \\
@@ -37,9 +39,10 @@ tensor-simulator episodes from highway-env's starts of seeds 40000... ``dagger``
 ``search_clone_scale.py dagger`` with these nets: it fits every label so far at the
 first trunk and weights, drives, and labels ``--worlds`` episodes of its own driving
 (``--first``: a fit of the given labels made already stands for the first round).
-``drive --net <out>/<fit>.pt`` drives a saved fit as ``--drive`` does, at other
-weights; ``search_clone_scale.py heldout --net <out>/<fit>.pt`` drives it on
-highway-env.
+``drive --net <out>/<fit>.pt`` drives a saved fit (several: their mean logits) as
+``--drive`` does, at other weights; ``score --net <fits>`` scores saved fits on the
+held-out and on fitted states, beside the run with and without its crash head.
+``search_clone_scale.py heldout --net <out>/<fit>.pt`` drives a fit on highway-env.
 """
 
 from __future__ import annotations
@@ -54,6 +57,7 @@ import torch
 from clone_nets import TRUNKS, CloneNet, make_trunk
 from label_inputs import _Greedy, drive
 from search_clone_scale import (
+    MeanLogits,
     _danger,
     _env_of,
     _epochs,
@@ -66,8 +70,10 @@ from search_clone_scale import (
 )
 from torch.nn import functional as F
 
+from torchrl_grpo.modules.crash_head import CrashHead
 from torchrl_grpo.training import make_env
 from torchrl_grpo.training.env_builder import make_layout
+from torchrl_grpo.training.pretrained import load_run_policy
 
 warnings.filterwarnings("ignore")
 
@@ -203,18 +209,49 @@ def dagger(args: argparse.Namespace) -> None:
 
 
 def drive_saved(args: argparse.Namespace) -> None:
-    """Drives the saved fit ``args.net`` at ``--act-aversion`` and ``--act-margin``."""
+    """Drives the saved fits ``args.net`` (several: their mean logits) at
+    ``--act-aversion`` and ``--act-margin``."""
     torch.set_num_threads(args.threads)
-    net = _acting(torch.load(args.net, weights_only=False), args)
-    drive(str(_env_of(args.tail).scenario), args.tail, net, args.drive)
+    nets = [_acting(torch.load(path, weights_only=False), args) for path in args.net]
+    drive(str(_env_of(args.tail).scenario), args.tail, MeanLogits(nets), args.drive)
+
+
+def score(args: argparse.Namespace) -> None:
+    """The saved fits ``args.net`` at every aversion, on the held-out tenth of ``fit``'s
+    split and on 50,000 of its fitted states (the same errors on both: the fit underfits);
+    the run with its crash head and its policy logits alone."""
+    torch.set_num_threads(args.threads)
+    labels = load_labels(args.labels)
+    obs, scores, crashed = labels["observation"], labels["scores"], labels["crashed"]
+    n = len(scores)
+    split = torch.randperm(n, generator=torch.Generator().manual_seed(0))
+    sets = {"held out": split[: n // 10], "fitted": split[n // 10 :][:50_000]}
+    cfg = _env_of(args.tail)
+    run = load_run_policy(args.tail, cfg, make_env(cfg))
+    head = next(m for m in run.modules() if isinstance(m, CrashHead))
+    for where, rows in sets.items():
+        x, s, c = obs[rows], scores[rows], crashed[rows]
+        print(f"\n{len(rows)} {where} states\n")
+        print("| network | states fitted | minutes | accuracy | regret | > 1 | crash error |")
+        print("|---|---|---|---|---|---|---|")
+        with torch.no_grad():
+            print(_row("the run, greedy", "-", 0.0, errors(head(x), s, c)))
+            policy = head.net(x)[..., : head.n_actions]
+            print(_row("the run's policy logits alone", "-", 0.0, errors(policy, s, c)))
+            for path in args.net:
+                net = torch.load(path, weights_only=False)
+                for aversion in args.aversions:
+                    net.aversion, net.margin = aversion, None
+                    name = f"{path}, aversion {aversion:g}"
+                    print(_row(name, "-", 0.0, errors(net(x.flatten(1)), s, c)))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("stage", choices=["fit", "dagger", "drive"])
+    parser.add_argument("stage", choices=["fit", "dagger", "drive", "score"])
     parser.add_argument("--tail", required=True, help="the run whose search made the labels")
     parser.add_argument("--labels", nargs="+", help="fit, dagger: label files")
-    parser.add_argument("--net", help="drive: a saved fit")
+    parser.add_argument("--net", nargs="+", help="drive, score: saved fits")
     parser.add_argument(
         "--trunks", nargs="+", choices=TRUNKS, default=["flat", "scene", "attention"]
     )
@@ -241,7 +278,8 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, default=8)
     parser.add_argument("--native", action="store_true", help="dagger: label on the C++ substeps")
     args = parser.parse_args()
-    {"fit": fit_grid, "dagger": dagger, "drive": drive_saved}[args.stage](args)
+    stages = {"fit": fit_grid, "dagger": dagger, "drive": drive_saved, "score": score}
+    stages[args.stage](args)
 
 
 if __name__ == "__main__":
