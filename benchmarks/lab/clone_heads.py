@@ -56,6 +56,7 @@ import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
 from clone_nets import TRUNKS, CloneNet, make_trunk
 from label_inputs import _Greedy, drive
+from omegaconf import DictConfig
 from search_clone_scale import (
     MeanLogits,
     _danger,
@@ -64,6 +65,7 @@ from search_clone_scale import (
     _row,
     _table_head,
     errors,
+    held_out_split,
     label_range,
     load_labels,
     pool,
@@ -71,6 +73,7 @@ from search_clone_scale import (
 from torch.nn import functional as F
 
 from torchrl_grpo.modules.crash_head import CrashHead
+from torchrl_grpo.modules.kinematics_table import KinematicsLayout
 from torchrl_grpo.training import make_env
 from torchrl_grpo.training.env_builder import make_layout
 from torchrl_grpo.training.pretrained import load_run_policy
@@ -120,13 +123,22 @@ def fit_net(
 
 
 def new_net(
-    args: argparse.Namespace, trunk: str, crash_weight: float, x: torch.Tensor, seed: int
+    args: argparse.Namespace,
+    layout: KinematicsLayout,
+    trunk: str,
+    crash_weight: float,
+    x: torch.Tensor,
+    actions: int,
 ) -> CloneNet:
-    """A fresh :class:`CloneNet` (a crash head where ``crash_weight`` > 0)."""
-    torch.manual_seed(seed)
-    layout = make_layout(make_env(_env_of(args.tail)))
+    """A fresh :class:`CloneNet` (a crash head where ``crash_weight`` > 0), seeded with 0."""
+    torch.manual_seed(0)
     body = make_trunk(trunk, layout, x, args.width, args.embed)
-    return CloneNet(body, args.width, int(args.actions), crash_head=crash_weight > 0)
+    return CloneNet(body, args.width, actions, crash_head=crash_weight > 0)
+
+
+def _layout(cfg: DictConfig) -> KinematicsLayout:
+    # The run's observation layout, which the trunks read.
+    return make_layout(make_env(cfg))
 
 
 def _name(trunk: str, crash_weight: float, danger_weight: float) -> str:
@@ -144,18 +156,17 @@ def fit_grid(args: argparse.Namespace) -> None:
     torch.set_num_threads(args.threads)
     labels = load_labels(args.labels)
     obs, scores, crashed = labels["observation"], labels["scores"], labels["crashed"]
-    x, n = obs.flatten(1), len(scores)
-    args.actions = scores.shape[1]
-    split = torch.randperm(n, generator=torch.Generator().manual_seed(0))
-    test, fitted = split[: n // 10], split[n // 10 :]
+    x = obs.flatten(1)
+    test, fitted = held_out_split(len(scores))
     cfg = _env_of(args.tail)
-    print(f"{n} states, {len(test)} held out\n")
+    layout = _layout(cfg)
+    print(f"{len(scores)} states, {len(test)} held out\n")
     _table_head(args.tail, cfg, obs[test], scores[test], crashed[test])
     epochs = _epochs(args, len(fitted))
     grid = itertools.product(args.trunks, args.crash_weights, args.danger_weights)
     for trunk, crash_weight, danger_weight in grid:
         start = time.perf_counter()
-        net = new_net(args, trunk, crash_weight, x[fitted], seed=0)
+        net = new_net(args, layout, trunk, crash_weight, x[fitted], scores.shape[1])
         fit_net(net, labels, fitted, epochs, danger_weight, crash_weight, cosine=args.cosine)
         minutes = (time.perf_counter() - start) / 60
         name = _name(trunk, crash_weight, danger_weight)
@@ -167,11 +178,12 @@ def fit_grid(args: argparse.Namespace) -> None:
                 how = "" if net.crash is None else f", aversion {aversion:g}"
                 how += "" if margin is None else f", margin {margin:g}"
                 print(_row(name + how, len(fitted), minutes, figures), flush=True)
+        net = _acting(net, args)
         if args.out:
             file = name.replace(", ", "_").replace(" ", "-")
-            torch.save(_acting(net, args), f"{args.out}/{file}.pt")
+            torch.save(net, f"{args.out}/{file}.pt")
         if args.drive:
-            drive(str(cfg.scenario), args.tail, _acting(net, args), args.drive)
+            drive(str(cfg.scenario), args.tail, net, args.drive)
 
 
 def _acts(args: argparse.Namespace) -> list[tuple[float, float | None]]:
@@ -184,6 +196,7 @@ def dagger(args: argparse.Namespace) -> None:
     torch.set_num_threads(args.threads)
     sets = [torch.load(path) for path in args.labels]
     cfg = _env_of(args.tail)
+    layout = _layout(cfg)
     trunk, crash_weight = args.trunks[0], args.crash_weights[0]
     danger_weight = args.danger_weights[0]
     for round_ in range(1, args.rounds + 1):
@@ -192,10 +205,10 @@ def dagger(args: argparse.Namespace) -> None:
             net = _acting(torch.load(args.first, weights_only=False), args)
         else:
             labels = pool(sets)
-            args.actions = labels["scores"].shape[1]
             every = torch.arange(len(labels["scores"]))
             epochs = _epochs(args, len(every))
-            net = new_net(args, trunk, crash_weight, labels["observation"].flatten(1), seed=0)
+            x, actions = labels["observation"].flatten(1), labels["scores"].shape[1]
+            net = new_net(args, layout, trunk, crash_weight, x, actions)
             fit_net(net, labels, every, epochs, danger_weight, crash_weight, cosine=args.cosine)
             net = _acting(net, args)
             torch.save(net, f"{args.out}/round_{round_}.pt")
@@ -218,24 +231,20 @@ def drive_saved(args: argparse.Namespace) -> None:
 
 def score(args: argparse.Namespace) -> None:
     """The saved fits ``args.net`` at every aversion, on the held-out tenth of ``fit``'s
-    split and on 50,000 of its fitted states (the same errors on both: the fit underfits);
-    the run with its crash head and its policy logits alone."""
+    split and on 50,000 of its fitted states (equal errors on both: the fit underfits);
+    the run, and its policy logits alone, without its crash head."""
     torch.set_num_threads(args.threads)
     labels = load_labels(args.labels)
     obs, scores, crashed = labels["observation"], labels["scores"], labels["crashed"]
-    n = len(scores)
-    split = torch.randperm(n, generator=torch.Generator().manual_seed(0))
-    sets = {"held out": split[: n // 10], "fitted": split[n // 10 :][:50_000]}
+    test, fitted = held_out_split(len(scores))
     cfg = _env_of(args.tail)
     run = load_run_policy(args.tail, cfg, make_env(cfg))
     head = next(m for m in run.modules() if isinstance(m, CrashHead))
-    for where, rows in sets.items():
+    for where, rows in {"held out": test, "fitted": fitted[:50_000]}.items():
         x, s, c = obs[rows], scores[rows], crashed[rows]
         print(f"\n{len(rows)} {where} states\n")
-        print("| network | states fitted | minutes | accuracy | regret | > 1 | crash error |")
-        print("|---|---|---|---|---|---|---|")
+        _table_head(args.tail, cfg, x, s, c)
         with torch.no_grad():
-            print(_row("the run, greedy", "-", 0.0, errors(head(x), s, c)))
             policy = head.net(x)[..., : head.n_actions]
             print(_row("the run's policy logits alone", "-", 0.0, errors(policy, s, c)))
             for path in args.net:

@@ -126,6 +126,12 @@ def pool(files: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
     return pooled | {"seeds": torch.tensor(ranges)}
 
 
+def held_out_split(n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The states ``fit`` holds out (a tenth, drawn with seed 0) and the rest, in order."""
+    split = torch.randperm(n, generator=torch.Generator().manual_seed(0))
+    return split[: n // 10], split[n // 10 :]
+
+
 def load_labels(paths: list[str]) -> dict[str, torch.Tensor]:
     """The label files pooled (:func:`pool`)."""
     return pool([torch.load(path) for path in paths])
@@ -138,8 +144,7 @@ def fit_curve(args: argparse.Namespace) -> None:
     obs, scores, crashed = labels["observation"], labels["scores"], labels["crashed"]
     x = obs.flatten(1)
     n = len(scores)
-    split = torch.randperm(n, generator=torch.Generator().manual_seed(0))
-    test, pool = split[: n // 10], split[n // 10 :]
+    test, pool = held_out_split(n)
     cfg = _env_of(args.tail)
     print(
         f"{n} states, {len(test)} held out; the search's best set crashes on "
