@@ -6,7 +6,7 @@
         [--margins 0.02] [--max-steps 60000 --cosine] [--drive 1000 --act-aversion 30] \\
         [--out <fits>]
     python benchmarks/lab/clone_heads.py drive --tail $T --net <fits>/<fit>.pt \\
-        --act-aversion 100 --drive 1000
+        --act-aversion 100 [300 1000] --drive 1000
     python benchmarks/lab/clone_heads.py score --tail $T --labels <dir>/labels_*.pt \\
         --net <fits>/<fit>.pt --aversions 30 100
     python benchmarks/lab/clone_heads.py dagger --tail $T --labels <dir>/labels_*.pt \\
@@ -40,7 +40,8 @@ tensor-simulator episodes from highway-env's starts of seeds 40000... ``dagger``
 first trunk and weights, drives, and labels ``--worlds`` episodes of its own driving
 (``--first``: a fit of the given labels made already stands for the first round).
 ``drive --net <out>/<fit>.pt`` drives a saved fit (several: their mean logits) as
-``--drive`` does, at other weights; ``score --net <fits>`` scores saved fits on the
+``--drive`` does, at other weights (several ``--act-aversion``: each, over the same
+episodes, the run driven once); ``score --net <fits>`` scores saved fits on the
 held-out and on fitted states, beside the run with and without its crash head.
 ``search_clone_scale.py heldout --net <out>/<fit>.pt`` drives a fit on highway-env.
 """
@@ -55,7 +56,7 @@ import warnings
 import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
 from clone_nets import TRUNKS, CloneNet, make_trunk
-from label_inputs import _Greedy, drive
+from label_inputs import _Greedy, drive, searched_policy
 from omegaconf import DictConfig
 from search_clone_scale import (
     MeanLogits,
@@ -77,6 +78,8 @@ from torchrl_grpo.modules.kinematics_table import KinematicsLayout
 from torchrl_grpo.training import make_env
 from torchrl_grpo.training.env_builder import make_layout
 from torchrl_grpo.training.pretrained import load_run_policy
+from torchrl_grpo.training.results import EvalResult, compare_paired
+from torchrl_grpo.training.transfer import evaluate_on_tensor
 
 warnings.filterwarnings("ignore")
 
@@ -146,8 +149,10 @@ def _name(trunk: str, crash_weight: float, danger_weight: float) -> str:
     return name + (f", danger weight {danger_weight:g}" if danger_weight else "")
 
 
-def _acting(net: CloneNet, args: argparse.Namespace) -> CloneNet:
-    net.aversion, net.margin = args.act_aversion, args.act_margin
+def _acting(net: CloneNet, args: argparse.Namespace, aversion: float | None = None) -> CloneNet:
+    # How a fit acts: at ``aversion``, else the first of ``--act-aversion``.
+    net.aversion = args.act_aversion[0] if aversion is None else aversion
+    net.margin = args.act_margin
     return net
 
 
@@ -222,11 +227,24 @@ def dagger(args: argparse.Namespace) -> None:
 
 
 def drive_saved(args: argparse.Namespace) -> None:
-    """Drives the saved fits ``args.net`` (several: their mean logits) at
-    ``--act-aversion`` and ``--act-margin``."""
+    """Drives the saved fits ``args.net`` (several: their mean logits) at each of
+    ``--act-aversion`` (and ``--act-margin``), beside the run, over the same episodes."""
     torch.set_num_threads(args.threads)
-    nets = [_acting(torch.load(path, weights_only=False), args) for path in args.net]
-    drive(str(_env_of(args.tail).scenario), args.tail, MeanLogits(nets), args.drive)
+    cfg, _, run = searched_policy("", args.tail)
+    kw = {"episodes": args.drive, "seed": 40_000}
+    base = evaluate_on_tensor(cfg, run, name="the run, greedy", **kw)
+    print(f"- {base.name}: {_summary(base)}")
+    nets = [torch.load(path, weights_only=False) for path in args.net]
+    for aversion in args.act_aversion:
+        acting = MeanLogits([_acting(net, args, aversion) for net in nets])
+        name = f"the fit at aversion {aversion:g}"
+        fitted = evaluate_on_tensor(cfg, _Greedy(acting), name=name, **kw)
+        print(f"- {name}: {_summary(fitted)}; {compare_paired(fitted, base)}", flush=True)
+
+
+def _summary(result: EvalResult) -> str:
+    s = result.summary()
+    return f"{s['return']:.2f} / {s['crash_rate']:.2%} over {len(result.returns)} episodes"
 
 
 def score(args: argparse.Namespace) -> None:
@@ -271,7 +289,13 @@ def main() -> None:
     parser.add_argument("--danger-weights", type=float, nargs="+", default=[0.0])
     parser.add_argument("--aversions", type=float, nargs="+", default=[0.0, 3.0, 10.0])
     parser.add_argument("--margins", type=float, nargs="*", default=[])
-    parser.add_argument("--act-aversion", type=float, default=3.0, help="how a saved fit acts")
+    parser.add_argument(
+        "--act-aversion",
+        type=float,
+        nargs="+",
+        default=[3.0],
+        help="how a saved fit acts; drive: several, each driven",
+    )
     parser.add_argument("--act-margin", type=float, default=None)
     parser.add_argument("--epochs", type=int, default=40)
     parser.add_argument("--max-steps", type=int, default=20_000, help="updates a fit at most")
@@ -287,6 +311,8 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, default=8)
     parser.add_argument("--native", action="store_true", help="dagger: label on the C++ substeps")
     args = parser.parse_args()
+    if args.stage != "drive" and len(args.act_aversion) > 1:
+        parser.error(f"{args.stage} acts at one --act-aversion, not {args.act_aversion}")
     stages = {"fit": fit_grid, "dagger": dagger, "drive": drive_saved, "score": score}
     stages[args.stage](args)
 

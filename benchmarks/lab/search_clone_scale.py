@@ -11,7 +11,7 @@
     python benchmarks/lab/search_clone_scale.py ensemble --tail $T --labels <dir>/labels_*.pt \\
         --test <a label file of other seeds> --members 3 --danger-weights 100 --out <dir>
     python benchmarks/lab/search_clone_scale.py heldout --tail $T \\
-        --net <dagger dir>/round_3.pt --episodes 1000 --seed 150000
+        --net <dagger dir>/round_3.pt --episodes 1000 --seed 150000 [--aversion 200]
 
 ``label`` lets the search (every action tried, then ``--horizon - 1`` greedy steps of
 the ``--tail`` run, rows of the tensor simulator, from the whole state) drive
@@ -261,9 +261,7 @@ def heldout(args: argparse.Namespace) -> None:
             "slower", make_layout(highway), int(highway.action_spec.n)
         ),
         "the run, greedy": DeterministicActor(load_run_policy(args.tail, cfg, highway)),
-        "the fit, greedy": _Greedy(
-            MeanLogits([torch.load(path, weights_only=False) for path in args.net])
-        ),
+        "the fit, greedy": _Greedy(MeanLogits([_load_fit(path, args) for path in args.net])),
     }
     results = {}
     for name, policy in policies.items():
@@ -277,6 +275,16 @@ def heldout(args: argparse.Namespace) -> None:
         )
     for other in ("always-SLOWER", "the run, greedy"):
         print(f"- {compare_paired(results['the fit, greedy'], results[other])}")
+
+
+def _load_fit(path: str, args: argparse.Namespace) -> nn.Module:
+    # A saved fit; ``--aversion`` sets how one with a crash head (clone_heads.py) acts.
+    net = torch.load(path, weights_only=False)
+    if args.aversion is not None:
+        if getattr(net, "crash", None) is None:
+            raise SystemExit(f"{path} has no crash head for --aversion to weigh")
+        net.aversion = args.aversion
+    return net
 
 
 def _danger(crashed: torch.Tensor) -> torch.Tensor:
@@ -331,6 +339,9 @@ def main() -> None:
     parser.add_argument("--test", help="ensemble: a label file of episodes no fit saw")
     parser.add_argument("--episodes", type=int, default=1000, help="heldout: highway-env episodes")
     parser.add_argument("--workers", type=int, default=2, help="heldout: processes")
+    parser.add_argument(
+        "--aversion", type=float, help="heldout: how fits with a crash head act (their own)"
+    )
     parser.add_argument("--labels", nargs="+", help="fit, dagger, ensemble: label files")
     parser.add_argument("--fractions", type=float, nargs="+", default=[0.0625, 0.25, 1.0])
     parser.add_argument("--widths", type=int, nargs="+", default=[256, 1024])

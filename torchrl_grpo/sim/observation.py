@@ -25,7 +25,7 @@ import torch
 from torchrl_grpo.sim.params import HighwayParams
 from torchrl_grpo.sim.state import Vehicles
 
-__all__ = ["FEATURES", "observe"]
+__all__ = ["FEATURES", "observe", "shown_vehicles"]
 
 #: The Kinematics features this simulator computes.
 FEATURES = ("presence", "x", "y", "vx", "vy", "heading", "cos_h", "sin_h")
@@ -59,6 +59,24 @@ def observe(v: Vehicles, params: HighwayParams) -> torch.Tensor:
     Example:
         >>> # see the module's example
     """
+    order, shown = shown_vehicles(v, params)
+    return kinematics_table(v, params, order, shown)
+
+
+def shown_vehicles(v: Vehicles, params: HighwayParams) -> tuple[torch.Tensor, torch.Tensor]:
+    """Which vehicles the table's rows ``1..`` show: their indices in the vehicle table
+    ``[B, vehicles_count - 1]`` and whether each row holds one (the module's docstring).
+
+    Example:
+        >>> import torch
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> from torchrl_grpo.sim.state import empty_world
+        >>> v = empty_world(1, 3, torch.float64).vehicles
+        >>> v = v._replace(x=torch.tensor([[100.0, 500.0, 130.0]], dtype=torch.float64))
+        >>> order, shown = shown_vehicles(v, tensor_params("highway-fast-v0"))
+        >>> order.tolist(), shown.tolist()  # vehicle 1 is out of sight (400 m ahead)
+        ([[2, 0, 1]], [[True, False, False]])
+    """
     obs = params.observation
     dx = v.x - v.x[:, :1]
     dy = v.y - v.y[:, :1]
@@ -68,8 +86,7 @@ def observe(v: Vehicles, params: HighwayParams) -> torch.Tensor:
         visible = visible & (-2 * params.vehicle.length < dx)
     key = torch.where(visible, dx.abs(), torch.full_like(dx, float("inf")))
     order = torch.argsort(key, dim=-1, stable=True)[:, : obs.vehicles_count - 1]
-    shown = visible.gather(1, order)
-    return kinematics_table(v, params, order, shown)
+    return order, visible.gather(1, order)
 
 
 def kinematics_table(v: Vehicles, params, order: torch.Tensor, shown: torch.Tensor) -> torch.Tensor:
