@@ -45,6 +45,7 @@ from tensordict import TensorDictBase
 from torchrl_grpo.envs import tensor_params
 from torchrl_grpo.modules.kinematics_table import KinematicsLayout
 from torchrl_grpo.sim.observation import shown_vehicles
+from torchrl_grpo.sim.params import HighwayParams
 from torchrl_grpo.sim.state import world_from_tensordict
 from torchrl_grpo.training import make_env
 from torchrl_grpo.training.env_builder import make_layout
@@ -55,7 +56,7 @@ warnings.filterwarnings("ignore")
 HIDDEN = ("target_speed", "timer", "lane_change")
 
 
-def hidden_rows(state: TensorDictBase, params, rows: int) -> torch.Tensor:
+def hidden_rows(state: TensorDictBase, params: HighwayParams, rows: int) -> torch.Tensor:
     """``[N, rows, 3]``: the :data:`HIDDEN` state of the vehicle each row of the
     observation shows (row 0 the ego), zeros where a row shows none."""
     v = world_from_tensordict(state).vehicles
@@ -93,15 +94,19 @@ def label(args: argparse.Namespace) -> None:
 
 def _inputs(
     labels: dict[str, torch.Tensor], layout: KinematicsLayout
-) -> dict[str, tuple[torch.Tensor, KinematicsLayout]]:
-    # The three tables a fit reads, each with the layout its trunk reads it by.
+) -> dict[str, tuple[str, torch.Tensor, KinematicsLayout]]:
+    # The three tables a fit reads: a file name, the table, the layout its trunk reads.
     obs, hidden = labels["observation"], labels["hidden"]
     wider = dataclasses.replace(layout, features=layout.features + HIDDEN)
     ego = torch.cat([hidden[:, :1], torch.zeros_like(hidden[:, 1:])], 1)
     return {
-        "the observation": (obs, layout),
-        "+ the ego's hidden state": (torch.cat([obs, ego], -1), wider),
-        "+ every shown vehicle's hidden state": (torch.cat([obs, hidden], -1), wider),
+        "the observation": ("observation", obs, layout),
+        "+ the ego's hidden state": ("ego_hidden", torch.cat([obs, ego], -1), wider),
+        "+ every shown vehicle's hidden state": (
+            "every_hidden",
+            torch.cat([obs, hidden], -1),
+            wider,
+        ),
     }
 
 
@@ -117,7 +122,7 @@ def fit(args: argparse.Namespace) -> None:
     print("| input, aversion | states fitted | minutes | accuracy | regret | > 1 | crash error |")
     print("|---|---|---|---|---|---|---|")
     first = None
-    for name, (table, table_layout) in _inputs(labels, layout).items():
+    for name, (file, table, table_layout) in _inputs(labels, layout).items():
         start = time.perf_counter()
         x = table.flatten(1)
         torch.manual_seed(0)
@@ -135,7 +140,7 @@ def fit(args: argparse.Namespace) -> None:
                     how = f"{name}, aversion {aversion:g}, {where}"
                     print(_row(how, len(fitted), minutes, figures), flush=True)
         if args.out:
-            torch.save(net, f"{args.out}/{name.split()[-2]}.pt")
+            torch.save(net, f"{args.out}/{file}.pt")
         first = first or (net, x)
     net, x = first
     calibration(net, x[test], scores[test], crashed[test], args.act_aversion)
