@@ -73,9 +73,8 @@ def label(args: argparse.Namespace) -> None:
     """``search_clone_scale.py label``'s labels, with :func:`hidden_rows` of each state."""
     cfg = _env_of(args.tail)
     params = tensor_params(str(cfg.scenario), OmegaConf.to_container(cfg.config))
-    parts: dict[str, list[torch.Tensor]] = {
-        "observation": [], "scores": [], "crashed": [], "hidden": []
-    }  # fmt: skip
+    keys = ("observation", "scores", "crashed", "hidden")
+    parts: dict[str, list[torch.Tensor]] = {key: [] for key in keys}
     start = time.perf_counter()
     for first in range(args.seed, args.seed + args.worlds, args.chunk):
         count = min(args.chunk, args.seed + args.worlds - first)
@@ -121,7 +120,7 @@ def fit(args: argparse.Namespace) -> None:
     print(f"{len(scores)} states, {len(test)} held out\n")
     print("| input, aversion | states fitted | minutes | accuracy | regret | > 1 | crash error |")
     print("|---|---|---|---|---|---|---|")
-    first = None
+    fits = []
     for name, (file, table, table_layout) in _inputs(labels, layout).items():
         start = time.perf_counter()
         x = table.flatten(1)
@@ -141,8 +140,8 @@ def fit(args: argparse.Namespace) -> None:
                     print(_row(how, len(fitted), minutes, figures), flush=True)
         if args.out:
             torch.save(net, f"{args.out}/{file}.pt")
-        first = first or (net, x)
-    net, x = first
+        fits.append((net, x))
+    net, x = fits[0]  # the observation's fit
     calibration(net, x[test], scores[test], crashed[test], args.act_aversion)
 
 
