@@ -340,7 +340,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=1000, help="heldout: highway-env episodes")
     parser.add_argument("--workers", type=int, default=2, help="heldout: processes")
     parser.add_argument(
-        "--aversion", type=float, help="heldout: how fits with a crash head act (their own)"
+        "--aversion", type=float, help="heldout: how fits with a crash head act (default: as saved)"
     )
     parser.add_argument("--labels", nargs="+", help="fit, dagger, ensemble: label files")
     parser.add_argument("--fractions", type=float, nargs="+", default=[0.0625, 0.25, 1.0])

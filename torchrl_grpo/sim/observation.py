@@ -64,8 +64,15 @@ def observe(v: Vehicles, params: HighwayParams) -> torch.Tensor:
 
 
 def shown_vehicles(v: Vehicles, params: HighwayParams) -> tuple[torch.Tensor, torch.Tensor]:
-    """Which vehicles the table's rows ``1..`` show: their indices in the vehicle table
-    ``[B, vehicles_count - 1]`` and whether each row holds one (the module's docstring).
+    """Which vehicles the rows ``1..`` of the table show (the module's docstring).
+
+    Args:
+        v: the vehicle table.
+        params: the constants (``params.observation`` describes the table).
+
+    Returns:
+        The shown vehicles' indices in the vehicle table, ``[B, <= vehicles_count - 1]``,
+        and whether each of those rows holds one.
 
     Example:
         >>> import torch
