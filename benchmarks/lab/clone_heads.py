@@ -49,6 +49,7 @@ held-out and on fitted states, beside the run with and without its crash head.
 from __future__ import annotations
 
 import argparse
+import copy
 import itertools
 import time
 import warnings
@@ -56,7 +57,7 @@ import warnings
 import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
 from clone_nets import TRUNKS, CloneNet, make_trunk
-from label_inputs import _Greedy, drive, searched_policy
+from label_inputs import _Greedy, drive
 from omegaconf import DictConfig
 from search_clone_scale import (
     MeanLogits,
@@ -78,8 +79,6 @@ from torchrl_grpo.modules.kinematics_table import KinematicsLayout
 from torchrl_grpo.training import make_env
 from torchrl_grpo.training.env_builder import make_layout
 from torchrl_grpo.training.pretrained import load_run_policy
-from torchrl_grpo.training.results import EvalResult, compare_paired
-from torchrl_grpo.training.transfer import evaluate_on_tensor
 
 warnings.filterwarnings("ignore")
 
@@ -230,21 +229,15 @@ def drive_saved(args: argparse.Namespace) -> None:
     """Drives the saved fits ``args.net`` (several: their mean logits) at each of
     ``--act-aversion`` (and ``--act-margin``), beside the run, over the same episodes."""
     torch.set_num_threads(args.threads)
-    cfg, _, run = searched_policy("", args.tail)
-    kw = {"episodes": args.drive, "seed": 40_000}
-    base = evaluate_on_tensor(cfg, run, name="the run, greedy", **kw)
-    print(f"- {base.name}: {_summary(base)}")
     nets = [torch.load(path, weights_only=False) for path in args.net]
-    for aversion in args.act_aversion:
-        acting = MeanLogits([_acting(net, args, aversion) for net in nets])
-        name = f"the fit at aversion {aversion:g}"
-        fitted = evaluate_on_tensor(cfg, _Greedy(acting), name=name, **kw)
-        print(f"- {name}: {_summary(fitted)}; {compare_paired(fitted, base)}", flush=True)
-
-
-def _summary(result: EvalResult) -> str:
-    s = result.summary()
-    return f"{s['return']:.2f} / {s['crash_rate']:.2%} over {len(result.returns)} episodes"
+    # A copy of the nets for each aversion: the drives share none of their acting weights.
+    fits = {
+        f"the fit at aversion {aversion:g}": MeanLogits(
+            [_acting(copy.deepcopy(net), args, aversion) for net in nets]
+        )
+        for aversion in args.act_aversion
+    }
+    drive(str(_env_of(args.tail).scenario), args.tail, fits, args.drive)
 
 
 def score(args: argparse.Namespace) -> None:

@@ -35,11 +35,10 @@ import warnings
 
 import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
-from clone_heads import fit_net
-from clone_nets import CloneNet, make_trunk
-from label_inputs import labelled_states
+from clone_heads import fit_net, new_net
+from clone_nets import CloneNet
 from omegaconf import OmegaConf
-from search_clone_scale import _env_of, _epochs, _row, errors, held_out_split
+from search_clone_scale import _env_of, _epochs, _row, errors, held_out_split, label_range
 from tensordict import TensorDictBase
 
 from torchrl_grpo.envs import tensor_params
@@ -56,8 +55,8 @@ warnings.filterwarnings("ignore")
 HIDDEN = ("target_speed", "timer", "lane_change")
 
 
-def hidden_rows(state: TensorDictBase, params: HighwayParams, rows: int) -> torch.Tensor:
-    """``[N, rows, 3]``: the :data:`HIDDEN` state of the vehicle each row of the
+def hidden_rows(state: TensorDictBase, params: HighwayParams) -> torch.Tensor:
+    """``[N, vehicles_count, 3]``: the :data:`HIDDEN` state of the vehicle each row of the
     observation shows (row 0 the ego), zeros where a row shows none."""
     v = world_from_tensordict(state).vehicles
     order, shown = shown_vehicles(v, params)
@@ -66,28 +65,17 @@ def hidden_rows(state: TensorDictBase, params: HighwayParams, rows: int) -> torc
     columns = torch.stack([v.target_speed, v.timer, (v.target_lane - v.lane).to(v.x.dtype)], -1)
     hidden = columns.gather(1, index.unsqueeze(-1).expand(-1, -1, len(HIDDEN))).float()
     hidden = hidden * held.unsqueeze(-1)
-    return torch.cat([hidden, hidden.new_zeros(len(hidden), rows - hidden.shape[1], 3)], 1)
+    pad = params.observation.vehicles_count - hidden.shape[1]
+    return torch.cat([hidden, hidden.new_zeros(len(hidden), pad, len(HIDDEN))], 1)
 
 
 def label(args: argparse.Namespace) -> None:
     """``search_clone_scale.py label``'s labels, with :func:`hidden_rows` of each state."""
     cfg = _env_of(args.tail)
     params = tensor_params(str(cfg.scenario), OmegaConf.to_container(cfg.config))
-    keys = ("observation", "scores", "crashed", "hidden")
-    parts: dict[str, list[torch.Tensor]] = {key: [] for key in keys}
-    start = time.perf_counter()
-    for first in range(args.seed, args.seed + args.worlds, args.chunk):
-        count = min(args.chunk, args.seed + args.worlds - first)
-        _, obs, states, scores, crashed = labelled_states(
-            "", args.tail, count, args.epsilon, args.horizon, first, native=args.native
-        )
-        hidden = hidden_rows(states, params, obs.shape[1])
-        for key, value in zip(parts, (obs.float(), scores, crashed, hidden), strict=True):
-            parts[key].append(value)
-        minutes = (time.perf_counter() - start) / 60
-        print(f"seeds {args.seed}..{first + count - 1}: {minutes:.1f} min", flush=True)
-    labels = {key: torch.cat(value) for key, value in parts.items()}
-    labels["seeds"] = torch.tensor([args.seed, args.seed + args.worlds])
+    labels = label_range(
+        args, args.seed, args.worlds, extra=lambda states: {"hidden": hidden_rows(states, params)}
+    )
     torch.save(labels, args.out)
 
 
@@ -124,9 +112,7 @@ def fit(args: argparse.Namespace) -> None:
     for name, (file, table, table_layout) in _inputs(labels, layout).items():
         start = time.perf_counter()
         x = table.flatten(1)
-        torch.manual_seed(0)
-        trunk = make_trunk("attention", table_layout, x[fitted], args.width)
-        net = CloneNet(trunk, args.width, scores.shape[1], crash_head=True)
+        net = new_net(args, table_layout, "attention", 1.0, x[fitted], scores.shape[1])
         tabled = {"observation": table, "scores": scores, "crashed": crashed}
         fit_net(net, tabled, fitted, epochs, 0.0, 1.0, cosine=True)
         minutes = (time.perf_counter() - start) / 60
@@ -184,6 +170,7 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, default=8)
     parser.add_argument("--native", action="store_true", help="label on the C++ substeps")
     parser.add_argument("--width", type=int, default=256)
+    parser.add_argument("--embed", type=int, default=64, help="the vehicles' embeddings")
     parser.add_argument("--epochs", type=int, default=40)
     parser.add_argument("--max-steps", type=int, default=20_000, help="updates a fit at most")
     parser.add_argument("--aversions", type=float, nargs="+", default=[30.0, 100.0, 300.0])

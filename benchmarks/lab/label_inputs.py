@@ -309,17 +309,18 @@ class _Greedy(nn.Module):
 
 
 def drive(
-    scenario: str, tail: str, net: nn.Module, episodes: int, config: dict | None = None
+    scenario: str, tail: str, net: nn.Module | dict, episodes: int, config: dict | None = None
 ) -> None:
-    """The fit's greedy episodes beside the searched policy's own, on the tensor simulator."""
+    """The fit's greedy episodes beside the searched policy's own, on the tensor simulator
+    (``net`` a dict: each named fit over the same episodes, the policy driven once)."""
+    fits = net if isinstance(net, dict) else {"the fit of its search, greedy": net}
     cfg, _, base_policy = searched_policy(scenario, tail, config)
     kw = {"episodes": episodes, "seed": 40_000}
     base = evaluate_on_tensor(cfg, base_policy, name=f"{tail}, greedy", **kw)
-    fitted = evaluate_on_tensor(cfg, _Greedy(net), name="the fit of its search, greedy", **kw)
-    for res in (base, fitted):
-        s = res.summary()
-        print(f"- {res.name}: {s['return']:.2f} / {s['crash_rate']:.1%} over {episodes} episodes")
-    print(f"- {compare_paired(fitted, base)}")
+    fitted = [evaluate_on_tensor(cfg, _Greedy(f), name=n, **kw) for n, f in fits.items()]
+    for res in (base, *fitted):
+        s, paired = res.summary(), "" if res is base else f"; {compare_paired(res, base)}"
+        print(f"- {res.name}: {s['return']:.2f} / {s['crash_rate']:.2%} over {episodes}{paired}")
 
 
 def main() -> None:

@@ -53,11 +53,13 @@ import argparse
 import itertools
 import time
 import warnings
+from collections.abc import Callable
 
 import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
 from label_inputs import _Greedy, _RunLogits, drive, fit, labelled_states
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
 from torch import nn
 
 from torchrl_grpo.modules.actors import DeterministicActor
@@ -72,29 +74,36 @@ warnings.filterwarnings("ignore")
 
 
 def label_range(
-    args: argparse.Namespace, seed: int, worlds: int, behaviour: nn.Module | None = None
+    args: argparse.Namespace,
+    seed: int,
+    worlds: int,
+    behaviour: nn.Module | None = None,
+    extra: Callable[[TensorDictBase], dict[str, torch.Tensor]] | None = None,
 ) -> dict[str, torch.Tensor]:
-    """The labelled states of ``worlds`` episodes from ``seed`` on, ``args.chunk`` at a time."""
-    parts: dict[str, list[torch.Tensor]] = {"observation": [], "scores": [], "crashed": []}
+    """The labelled states of ``worlds`` episodes from ``seed`` on, ``args.chunk`` at a time.
+
+    ``extra``: more columns, computed from each chunk's full states (kept only for it)."""
+    parts: dict[str, list[torch.Tensor]] = {}
     start = time.perf_counter()
     for first in range(seed, seed + worlds, args.chunk):
         count = min(args.chunk, seed + worlds - first)
-        scenario, obs, _, scores, crashed = labelled_states(
+        scenario, obs, states, scores, crashed = labelled_states(
             "",
             args.tail,
             count,
             args.epsilon,
             args.horizon,
             first,
-            keep_states=False,
+            keep_states=extra is not None,
             native=args.native,
             behaviour=behaviour,
         )
-        for key, value in zip(parts, (obs.float(), scores, crashed), strict=True):
-            parts[key].append(value)
-        states = sum(len(s) for s in parts["scores"])
+        columns = {"observation": obs.float(), "scores": scores, "crashed": crashed}
+        for key, value in (columns | (extra(states) if extra else {})).items():
+            parts.setdefault(key, []).append(value)
+        done = sum(len(s) for s in parts["scores"])
         minutes = (time.perf_counter() - start) / 60
-        print(f"{scenario}: seeds {seed}..{first + count - 1}, {states} states, {minutes:.1f} min")
+        print(f"{scenario}: seeds {seed}..{first + count - 1}, {done} states, {minutes:.1f} min")
     labels = {key: torch.cat(value) for key, value in parts.items()}
     labels["seeds"] = torch.tensor([seed, seed + worlds])
     return labels

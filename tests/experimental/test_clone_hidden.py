@@ -28,7 +28,7 @@ def test_each_row_holds_the_hidden_state_of_the_vehicle_the_observation_shows():
     state = world_to_tensordict(world._replace(vehicles=v))
     observation = {"type": "Kinematics", "see_behind": True}  # as the clone's run
     params = tensor_params("highway-fast-v0", {"observation": observation})
-    rows = clone_hidden.hidden_rows(state, params, rows=5)
+    rows = clone_hidden.hidden_rows(state, params)
     expected = [
         [30.0, 0.0, 1.0],  # the ego: its set-point, its timer, one lane to the left
         [23.0, 0.3, 0.0],  # vehicle 3
