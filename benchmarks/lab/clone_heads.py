@@ -33,7 +33,9 @@ fit``), fits every trunk, crash weight and danger weight on the rest, and scores
 fits on the held-out states at every ``--aversions`` (and ``--margins``: the actions
 whose crash chance exceeds the smallest by more bar), beside the run. A fit runs
 ``--epochs`` passes of 256 states a step, at most ``--max-steps`` steps, Adam at 1e-3
-(``--cosine``: decaying to 0 on a cosine). ``--drive N``
+(``--cosine``: decaying to 0 on a cosine; ``--lr``: another rate). ``--layers`` sets the
+transformer's depth; ``--init`` starts each fit from a saved fit instead of a fresh
+net. ``--drive N``
 drives each fit at ``--act-aversion`` (and ``--act-margin``) over ``N``
 tensor-simulator episodes from highway-env's starts of seeds 40000... ``dagger`` is
 ``search_clone_scale.py dagger`` with these nets: it fits every label so far at the
@@ -92,17 +94,18 @@ def fit_net(
     crash_weight: float,
     seed: int = 0,
     cosine: bool = False,
+    lr: float = 1e-3,
 ) -> CloneNet:
     """Fits ``net`` on ``labels[rows]``: the best set's cross-entropy, the expected crash
     times ``danger_weight`` and the crash head's cross-entropy times ``crash_weight``.
 
-    Adam at 1e-3, ``epochs`` passes of 256 states a step; ``cosine``: the rate decays to
-    0 along a cosine over the passes."""
+    Adam at ``lr``, ``epochs`` passes of 256 states a step; ``cosine``: the rate decays
+    to 0 along a cosine over the passes."""
     x, scores, crashed = labels["observation"].flatten(1), labels["scores"], labels["crashed"]
     best = (scores >= scores.amax(-1, keepdim=True) - 1e-6).float()
     target = best / best.sum(-1, keepdim=True)
     danger = _danger(crashed)
-    optim = torch.optim.Adam(net.parameters(), lr=1e-3)
+    optim = torch.optim.Adam(net.parameters(), lr=lr)
     steps = epochs * -(-len(rows) // 256)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optim, steps) if cosine else None
     order = torch.Generator().manual_seed(1 + seed)
@@ -132,9 +135,13 @@ def new_net(
     x: torch.Tensor,
     actions: int,
 ) -> CloneNet:
-    """A fresh :class:`CloneNet` (a crash head where ``crash_weight`` > 0), seeded with 0."""
+    """A fresh :class:`CloneNet` (a crash head where ``crash_weight`` > 0), seeded with 0;
+    with ``--init``, that saved fit instead, to be fitted further."""
+    if args.init:
+        # Its standardisation stays the one of the states it was first fitted on.
+        return torch.load(args.init, weights_only=False)
     torch.manual_seed(0)
-    body = make_trunk(trunk, layout, x, args.width, args.embed)
+    body = make_trunk(trunk, layout, x, args.width, args.embed, args.layers)
     return CloneNet(body, args.width, actions, crash_head=crash_weight > 0)
 
 
@@ -171,7 +178,9 @@ def fit_grid(args: argparse.Namespace) -> None:
     for trunk, crash_weight, danger_weight in grid:
         start = time.perf_counter()
         net = new_net(args, layout, trunk, crash_weight, x[fitted], scores.shape[1])
-        fit_net(net, labels, fitted, epochs, danger_weight, crash_weight, cosine=args.cosine)
+        fit_net(
+            net, labels, fitted, epochs, danger_weight, crash_weight, cosine=args.cosine, lr=args.lr
+        )
         minutes = (time.perf_counter() - start) / 60
         name = _name(trunk, crash_weight, danger_weight)
         acts = [(0.0, None)] if net.crash is None else _acts(args)
@@ -213,7 +222,16 @@ def dagger(args: argparse.Namespace) -> None:
             epochs = _epochs(args, len(every))
             x, actions = labels["observation"].flatten(1), labels["scores"].shape[1]
             net = new_net(args, layout, trunk, crash_weight, x, actions)
-            fit_net(net, labels, every, epochs, danger_weight, crash_weight, cosine=args.cosine)
+            fit_net(
+                net,
+                labels,
+                every,
+                epochs,
+                danger_weight,
+                crash_weight,
+                cosine=args.cosine,
+                lr=args.lr,
+            )
             net = _acting(net, args)
             torch.save(net, f"{args.out}/round_{round_}.pt")
             name = _name(trunk, crash_weight, danger_weight)
@@ -277,6 +295,9 @@ def main() -> None:
     )
     parser.add_argument("--width", type=int, default=256)
     parser.add_argument("--embed", type=int, default=64, help="the vehicles' embeddings")
+    parser.add_argument("--layers", type=int, default=2, help="transformer: attention layers")
+    parser.add_argument("--lr", type=float, default=1e-3, help="Adam's rate")
+    parser.add_argument("--init", help="fit, dagger: a saved fit to fit further, not a fresh one")
     parser.add_argument("--cosine", action="store_true", help="the rate decays along a cosine")
     parser.add_argument("--crash-weights", type=float, nargs="+", default=[0.0, 1.0])
     parser.add_argument("--danger-weights", type=float, nargs="+", default=[0.0])
@@ -306,6 +327,9 @@ def main() -> None:
     args = parser.parse_args()
     if args.stage != "drive" and len(args.act_aversion) > 1:
         parser.error(f"{args.stage} acts at one --act-aversion, not {args.act_aversion}")
+    grid = len(args.trunks) * len(args.crash_weights) * len(args.danger_weights)
+    if args.init and args.stage == "fit" and grid > 1:
+        parser.error("--init fits one saved net: give one trunk, crash weight and danger weight")
     stages = {"fit": fit_grid, "dagger": dagger, "drive": drive_saved, "score": score}
     stages[args.stage](args)
 

@@ -11,8 +11,9 @@ Its trunk reads the table one of four ways (:func:`make_trunk`):
 * ``attention``: the ego-attention network (one encoder shared by every vehicle,
   :class:`~torchrl_grpo.modules.networks.EgoAttentionNet`), which learns one function of
   a vehicle for all the rows, whatever order the distance puts them in;
-* ``transformer``: two layers of self-attention among the vehicles before the ego reads
-  them out, so that a car's reaction to the car ahead of it can be composed.
+* ``transformer``: layers of self-attention among the vehicles (two unless told)
+  before the ego reads them out, so that a car's reaction to the car ahead of it can
+  be composed.
 
 With a crash head the net has a second output per action: the logit of the chance that
 the action's branch crashes within the horizon, fitted to the search's crash flags. It
@@ -112,7 +113,12 @@ def _mlp(in_features: int, width: int) -> nn.Sequential:
 
 
 def make_trunk(
-    kind: str, layout: KinematicsLayout, x: torch.Tensor, width: int, embed: int = 64
+    kind: str,
+    layout: KinematicsLayout,
+    x: torch.Tensor,
+    width: int,
+    embed: int = 64,
+    layers: int = 2,
 ) -> nn.Module:
     """A trunk from the flat table ``[N, V * F]`` to ``[N, width]`` hidden units.
 
@@ -123,6 +129,7 @@ def make_trunk(
         x: the states to be fitted, for the standardisation.
         width: the hidden units.
         embed: ``attention``, ``transformer``: the width of the vehicles' embeddings.
+        layers: ``transformer``: its layers of self-attention.
     """
     if kind == "flat":
         return nn.Sequential(_Standardise(x.mean(0), x.std(0) + 1e-6), _mlp(x.shape[1], width))
@@ -142,7 +149,7 @@ def make_trunk(
         )
         return nn.Sequential(_Table(layout, x), attention, nn.Tanh())
     if kind == "transformer":
-        return nn.Sequential(_Table(layout, x), _VehicleTransformer(layout, embed, width, 2))
+        return nn.Sequential(_Table(layout, x), _VehicleTransformer(layout, embed, width, layers))
     raise ValueError(f"unknown trunk {kind!r}; expected one of {TRUNKS}")
 
 

@@ -1,5 +1,6 @@
 """clone_nets' acting rule and trunks, and clone_heads' fit, against hand-computed figures."""
 
+import argparse
 import math
 
 import clone_heads
@@ -98,3 +99,34 @@ def test_an_unbatched_table_gives_one_action_as_a_batched_one_does(kind):
     net.aversion = 3.0
     assert net(x[3]).shape == (5,) and net(x.reshape(2, 4, 25)).shape == (2, 4, 5)
     assert torch.allclose(net(x[3]), net(x)[3], atol=1e-6)
+
+
+def test_the_transformer_has_the_layers_asked_for():
+    layout = KinematicsLayout()
+    x = _tables(8, layout, torch.Generator().manual_seed(3))
+    for layers in (1, 3):
+        trunk = clone_nets.make_trunk("transformer", layout, x, 16, embed=16, layers=layers)
+        assert len(trunk[1].layers.layers) == layers
+
+
+def test_a_fit_from_a_saved_fit_starts_from_its_weights(tmp_path):
+    # --init: the saved net itself comes back, and a fit at rate 0 leaves it bitwise as
+    # saved, so what a further fit changes is the fitting alone.
+    layout = KinematicsLayout()
+    x = _tables(64, layout, torch.Generator().manual_seed(4))
+    torch.manual_seed(0)
+    saved = clone_nets.CloneNet(clone_nets.make_trunk("flat", layout, x, 8), 8, 5, True)
+    torch.save(saved, tmp_path / "fit.pt")
+    args = argparse.Namespace(init=str(tmp_path / "fit.pt"))
+    net = clone_heads.new_net(args, layout, "transformer", 1.0, x, 5)
+    before = {k: v.clone() for k, v in net.state_dict().items()}
+    assert all(torch.equal(before[k], v) for k, v in saved.state_dict().items())
+    labels = {
+        "observation": x.reshape(64, 5, 5),
+        "scores": torch.rand(64, 5, generator=torch.Generator().manual_seed(5)),
+        "crashed": torch.zeros(64, 5, dtype=torch.bool),
+    }
+    clone_heads.fit_net(net, labels, torch.arange(64), 2, 0.0, 1.0, lr=0.0)
+    assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
+    clone_heads.fit_net(net, labels, torch.arange(64), 2, 0.0, 1.0, lr=1e-2)
+    assert not torch.equal(before["policy.weight"], net.state_dict()["policy.weight"])
