@@ -11,7 +11,8 @@
     python benchmarks/lab/search_clone_scale.py ensemble --tail $T --labels <dir>/labels_*.pt \\
         --test <a label file of other seeds> --members 3 --danger-weights 100 --out <dir>
     python benchmarks/lab/search_clone_scale.py heldout --tail $T \\
-        --net <dagger dir>/round_3.pt --episodes 1000 --seed 150000 [--aversion 200]
+        --net <dagger dir>/round_3.pt --episodes 1000 --seed 150000 [--aversion 200] \\
+        [--ppo <PPO run>/last.pt]
 
 ``label`` lets the search (every action tried, then ``--horizon - 1`` greedy steps of
 the ``--tail`` run, rows of the tensor simulator, from the whole state) drive
@@ -262,16 +263,21 @@ def ensemble(args: argparse.Namespace) -> None:
 
 def heldout(args: argparse.Namespace) -> None:
     """The fit ``args.net`` (several: their mean logits) on highway-env itself, paired
-    against the run and always-SLOWER."""
+    against always-SLOWER, the rule policy, the run and ``--ppo`` (a PPO run of the same
+    observation)."""
     cfg = _env_of(args.tail)
     highway = make_env(cfg)
+    layout, actions = make_layout(highway), int(highway.action_spec.n)
     policies = {
-        "always-SLOWER": baseline_policy(
-            "slower", make_layout(highway), int(highway.action_spec.n)
-        ),
+        "always-SLOWER": baseline_policy("slower", layout, actions),
+        "the rule policy": baseline_policy("rule", layout, actions),
         "the run, greedy": DeterministicActor(load_run_policy(args.tail, cfg, highway)),
-        "the fit, greedy": _Greedy(MeanLogits([_load_fit(path, args) for path in args.net])),
     }
+    if args.ppo:
+        policies["PPO, greedy"] = DeterministicActor(
+            load_run_policy(args.ppo, cfg, highway, role="--ppo")
+        )
+    policies["the fit, greedy"] = _Greedy(MeanLogits([_load_fit(p, args) for p in args.net]))
     results = {}
     for name, policy in policies.items():
         results[name], _ = evaluate(
@@ -282,7 +288,7 @@ def heldout(args: argparse.Namespace) -> None:
             f"- {name}: {summary['return']:.2f} ± {summary['return_sem']:.2f} / "
             f"{summary['crash_rate']:.1%} on highway-env, seeds {args.seed}.."
         )
-    for other in ("always-SLOWER", "the run, greedy"):
+    for other in list(policies)[:-1]:
         print(f"- {compare_paired(results['the fit, greedy'], results[other])}")
 
 
@@ -348,6 +354,7 @@ def main() -> None:
     parser.add_argument("--test", help="ensemble: a label file of episodes no fit saw")
     parser.add_argument("--episodes", type=int, default=1000, help="heldout: highway-env episodes")
     parser.add_argument("--workers", type=int, default=2, help="heldout: processes")
+    parser.add_argument("--ppo", help="heldout: a PPO run's last.pt, of the run's observation")
     parser.add_argument(
         "--aversion", type=float, help="heldout: how fits with a crash head act (default: as saved)"
     )

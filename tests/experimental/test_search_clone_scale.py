@@ -1,8 +1,16 @@
 """search_clone_scale's error measures and label pooling, against hand-computed figures."""
 
+import argparse
+
+import clone_nets
 import pytest
 import search_clone_scale
 import torch
+
+from torchrl_grpo.modules.kinematics_table import KinematicsLayout
+from torchrl_grpo.training import compose_config, make_env, make_policy
+from torchrl_grpo.training.checkpoint import save_checkpoint
+from torchrl_grpo.training.config import to_container
 
 pytestmark = pytest.mark.experimental
 
@@ -58,3 +66,31 @@ def test_mean_logits_average_the_members():
     x = torch.tensor([[1.0, -2.0]])
     mean = search_clone_scale.MeanLogits([first, second])
     assert torch.allclose(mean(x), (first(x) + second(x)) / 2)
+
+
+def _run(path, overrides: list[str]) -> str:
+    # A checkpoint as a training run writes it, untrained: what heldout reads of a run.
+    cfg = compose_config(["experiment=smoke", "model=mlp", *overrides])
+    policy = make_policy(cfg.model, make_env(cfg.env, seed=0))
+    state = {"config": to_container(cfg), "policy": policy.state_dict()}
+    return str(save_checkpoint(state, path))
+
+
+def test_heldout_pairs_the_fit_against_every_baseline_and_refuses_another_ppo(tmp_path, capsys):
+    tail = _run(tmp_path / "run.pt", [])
+    ppo = _run(tmp_path / "ppo.pt", ["seed=1"])
+    layout = KinematicsLayout()
+    x = torch.zeros(4, layout.n_vehicles * layout.n_features)
+    fit = clone_nets.CloneNet(clone_nets.make_trunk("flat", layout, x, 8), 8, 5, True)
+    torch.save(fit, tmp_path / "fit.pt")
+    args = argparse.Namespace(
+        tail=tail, net=[str(tmp_path / "fit.pt")], ppo=ppo, aversion=100.0,
+        episodes=2, seed=0, workers=1,
+    )  # fmt: skip
+    search_clone_scale.heldout(args)
+    out = capsys.readouterr().out
+    for name in ("always-SLOWER", "the rule policy", "the run, greedy", "PPO, greedy"):
+        assert f"- {name}: " in out and f"vs {name}: return" in out
+    args.ppo = _run(tmp_path / "other.pt", ["+env.config.lanes_count=4"])
+    with pytest.raises(ValueError, match="--ppo"):
+        search_clone_scale.heldout(args)
