@@ -95,9 +95,12 @@ def fit_net(
     seed: int = 0,
     cosine: bool = False,
     lr: float = 1e-3,
+    regret_weight: float = 0.0,
 ) -> CloneNet:
     """Fits ``net`` on ``labels[rows]``: the best set's cross-entropy, the expected crash
-    times ``danger_weight`` and the crash head's cross-entropy times ``crash_weight``.
+    times ``danger_weight``, the crash head's cross-entropy times ``crash_weight`` and the
+    expected regret (what the policy's choice loses to the best branch) times
+    ``regret_weight``.
 
     Adam at ``lr``, ``epochs`` passes of 256 states a step; ``cosine``: the rate decays
     to 0 along a cosine over the passes."""
@@ -105,6 +108,7 @@ def fit_net(
     best = (scores >= scores.amax(-1, keepdim=True) - 1e-6).float()
     target = best / best.sum(-1, keepdim=True)
     danger = _danger(crashed)
+    gap = scores.amax(-1, keepdim=True) - scores
     optim = torch.optim.Adam(net.parameters(), lr=lr)
     steps = epochs * -(-len(rows) // 256)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optim, steps) if cosine else None
@@ -116,6 +120,8 @@ def fit_net(
             loss = -(target[batch] * log_p).sum(-1).mean()
             if danger_weight:
                 loss = loss + danger_weight * (log_p.exp() * danger[batch]).sum(-1).mean()
+            if regret_weight:
+                loss = loss + regret_weight * (log_p.exp() * gap[batch]).sum(-1).mean()
             if crash is not None:
                 flags = crashed[batch].float()
                 loss = loss + crash_weight * F.binary_cross_entropy_with_logits(crash, flags)
@@ -179,7 +185,15 @@ def fit_grid(args: argparse.Namespace) -> None:
         start = time.perf_counter()
         net = new_net(args, layout, trunk, crash_weight, x[fitted], scores.shape[1])
         fit_net(
-            net, labels, fitted, epochs, danger_weight, crash_weight, cosine=args.cosine, lr=args.lr
+            net,
+            labels,
+            fitted,
+            epochs,
+            danger_weight,
+            crash_weight,
+            cosine=args.cosine,
+            lr=args.lr,
+            regret_weight=args.regret_weight,
         )
         minutes = (time.perf_counter() - start) / 60
         name = _name(trunk, crash_weight, danger_weight)
@@ -231,6 +245,7 @@ def dagger(args: argparse.Namespace) -> None:
                 crash_weight,
                 cosine=args.cosine,
                 lr=args.lr,
+                regret_weight=args.regret_weight,
             )
             net = _acting(net, args)
             torch.save(net, f"{args.out}/round_{round_}.pt")
@@ -301,6 +316,7 @@ def main() -> None:
     parser.add_argument("--cosine", action="store_true", help="the rate decays along a cosine")
     parser.add_argument("--crash-weights", type=float, nargs="+", default=[0.0, 1.0])
     parser.add_argument("--danger-weights", type=float, nargs="+", default=[0.0])
+    parser.add_argument("--regret-weight", type=float, default=0.0, help="the expected regret")
     parser.add_argument("--aversions", type=float, nargs="+", default=[0.0, 3.0, 10.0])
     parser.add_argument("--margins", type=float, nargs="*", default=[])
     parser.add_argument(
