@@ -130,3 +130,28 @@ def test_a_fit_from_a_saved_fit_starts_from_its_weights(tmp_path):
     assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
     clone_heads.fit_net(net, labels, torch.arange(64), 2, 0.0, 1.0, lr=1e-2)
     assert not torch.equal(before["policy.weight"], net.state_dict()["policy.weight"])
+
+
+def test_the_regret_weight_tilts_the_fit_towards_the_cheap_mistake():
+    # Inputs that say nothing; action 0 is best in half the states, where action 1 loses
+    # 10, and action 1 in the other half, where action 0 loses 0.1. The cross-entropy
+    # alone settles at p0 = 1/2. With weight w the loss in p0 is
+    # -ln(p0)/2 - ln(1 - p0)/2 + w (0.05 p0 + 5 (1 - p0)), smallest where
+    # 1/(2 (1 - p0)) - 1/(2 p0) = 4.95 w: p0 = 0.99 at w = 10 (hand-solved).
+    n = 256
+    scores = torch.zeros(n, 2)
+    scores[: n // 2, 1] = -10.0
+    scores[n // 2 :, 0] = -0.1
+    labels = {
+        "observation": torch.zeros(n, 5, 5),
+        "scores": scores,
+        "crashed": torch.zeros(n, 2, dtype=torch.bool),
+    }
+    layout = KinematicsLayout()
+    for weight, p0 in ((0.0, 0.5), (10.0, 0.99)):
+        trunk = clone_nets.make_trunk("flat", layout, labels["observation"].flatten(1), 8)
+        net = clone_nets.CloneNet(trunk, 8, 2, crash_head=False)
+        clone_heads.fit_net(net, labels, torch.arange(n), 1500, 0.0, 0.0, regret_weight=weight)
+        with torch.no_grad():
+            p = net(labels["observation"][:1].flatten(1)).softmax(-1)[0, 0]
+        assert float(p) == pytest.approx(p0, abs=0.01)
