@@ -35,7 +35,7 @@ whose crash chance exceeds the smallest by more bar), beside the run. A fit runs
 ``--epochs`` passes of 256 states a step, at most ``--max-steps`` steps, Adam at 1e-3
 (``--cosine``: decaying to 0 on a cosine; ``--lr``: another rate). ``--layers`` sets the
 transformer's depth; ``--init`` starts each fit from a saved fit instead of a fresh
-net. ``--drive N``
+net; ``--regret-weight`` adds the policy's expected regret to the loss. ``--drive N``
 drives each fit at ``--act-aversion`` (and ``--act-margin``) over ``N``
 tensor-simulator episodes from highway-env's starts of seeds 40000... ``dagger`` is
 ``search_clone_scale.py dagger`` with these nets: it fits every label so far at the
