@@ -151,6 +151,12 @@ def new_net(
     return CloneNet(body, args.width, actions, crash_head=crash_weight > 0)
 
 
+def _fit(args: argparse.Namespace, net: CloneNet, *weights: object) -> CloneNet:
+    # fit_net at the command line's rate, schedule and regret weight.
+    kwargs = {"cosine": args.cosine, "lr": args.lr, "regret_weight": args.regret_weight}
+    return fit_net(net, *weights, **kwargs)
+
+
 def _layout(cfg: DictConfig) -> KinematicsLayout:
     # The run's observation layout, which the trunks read.
     return make_layout(make_env(cfg))
@@ -184,17 +190,7 @@ def fit_grid(args: argparse.Namespace) -> None:
     for trunk, crash_weight, danger_weight in grid:
         start = time.perf_counter()
         net = new_net(args, layout, trunk, crash_weight, x[fitted], scores.shape[1])
-        fit_net(
-            net,
-            labels,
-            fitted,
-            epochs,
-            danger_weight,
-            crash_weight,
-            cosine=args.cosine,
-            lr=args.lr,
-            regret_weight=args.regret_weight,
-        )
+        _fit(args, net, labels, fitted, epochs, danger_weight, crash_weight)
         minutes = (time.perf_counter() - start) / 60
         name = _name(trunk, crash_weight, danger_weight)
         acts = [(0.0, None)] if net.crash is None else _acts(args)
@@ -236,17 +232,7 @@ def dagger(args: argparse.Namespace) -> None:
             epochs = _epochs(args, len(every))
             x, actions = labels["observation"].flatten(1), labels["scores"].shape[1]
             net = new_net(args, layout, trunk, crash_weight, x, actions)
-            fit_net(
-                net,
-                labels,
-                every,
-                epochs,
-                danger_weight,
-                crash_weight,
-                cosine=args.cosine,
-                lr=args.lr,
-                regret_weight=args.regret_weight,
-            )
+            _fit(args, net, labels, every, epochs, danger_weight, crash_weight)
             net = _acting(net, args)
             torch.save(net, f"{args.out}/round_{round_}.pt")
             name = _name(trunk, crash_weight, danger_weight)
