@@ -151,10 +151,10 @@ def new_net(
     return CloneNet(body, args.width, actions, crash_head=crash_weight > 0)
 
 
-def _fit(args: argparse.Namespace, net: CloneNet, *weights: object) -> CloneNet:
+def _fit(args: argparse.Namespace, net: CloneNet, *fit_args: object) -> CloneNet:
     # fit_net at the command line's rate, schedule and regret weight.
     kwargs = {"cosine": args.cosine, "lr": args.lr, "regret_weight": args.regret_weight}
-    return fit_net(net, *weights, **kwargs)
+    return fit_net(net, *fit_args, **kwargs)
 
 
 def _layout(cfg: DictConfig) -> KinematicsLayout:
