@@ -114,3 +114,38 @@ def test_make_network():
     assert isinstance(net, EgoAttentionNet)
     with pytest.raises(ValueError, match="Unknown"):
         make_network("cnn", n_vehicles=V, n_features=F, out_features=2)  # type: ignore[arg-type]
+
+
+def test_the_vehicle_transformer_ignores_the_order_and_the_features_of_absent_vehicles():
+    from torchrl_grpo.modules import VehicleTransformer
+
+    torch.manual_seed(0)
+    net = VehicleTransformer(n_features=5, out_features=3, presence_index=0, embed_dim=16, width=8)
+    obs = torch.randn(4, 6, 5)
+    obs[..., 0] = torch.tensor([1.0, 1.0, 1.0, 0.0, 1.0, 0.0])  # rows 3 and 5 absent
+    net.standardise_from(obs)
+    out = net(obs)
+    shuffled = obs[:, [0, 4, 2, 1, 5, 3]]  # the ego stays first
+    torch.testing.assert_close(net(shuffled), out)
+    noise = obs.clone()
+    noise[:, 3, 1:] += 10.0
+    torch.testing.assert_close(net(noise), out)
+    changed = obs.clone()
+    changed[:, 1, 1:] += 1.0  # a present vehicle moves: the output does too
+    assert not torch.allclose(net(changed), out)
+    # The statistics are those of the present rows; the presence column stays as it is.
+    present = obs.reshape(-1, 5)[obs.reshape(-1, 5)[:, 0] > 0.5]
+    torch.testing.assert_close(net.mean[1:], present[:, 1:].mean(0))
+    assert (float(net.mean[0]), float(net.std[0])) == (0.0, 1.0)
+
+
+def test_the_vehicle_transformer_names_a_bad_table_or_size():
+    from torchrl_grpo.modules import VehicleTransformer
+
+    with pytest.raises(ValueError, match="num_heads=3 must divide embed_dim=16"):
+        VehicleTransformer(5, 3, presence_index=0, embed_dim=16, num_heads=3)
+    net = VehicleTransformer(5, 3, presence_index=0, embed_dim=16)
+    with pytest.raises(ValueError, match=r"shape \[\*batch, V, 5\], got \(2, 4\)"):
+        net(torch.zeros(2, 4))
+    with pytest.raises(ValueError, match="at least two present vehicle rows"):
+        net.standardise_from(torch.zeros(3, 4, 5))

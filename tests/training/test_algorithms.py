@@ -24,6 +24,7 @@ from torchrl_grpo.training import (
     register_configs,
 )
 from torchrl_grpo.training.algos.registry import ALGORITHMS, algorithm_for
+from torchrl_grpo.training.algos.search_distill import SearchDistill
 
 
 @dataclass
@@ -118,6 +119,7 @@ def test_the_registry_names_every_built_in_algorithm():
         "grpo_episode": GRPO,
         "ppo": PPO,
         "distill": TeacherDistill,
+        "search_distill": SearchDistill,
     }
     # By name, or by schema when the name is not set yet.
     assert algorithm_for(OmegaConf.create({"name": "grpo_episode"})) is GRPO

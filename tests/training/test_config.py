@@ -12,6 +12,7 @@ from train_setup import CONF, LAB_RUN, compose_config
 from torchrl_grpo.experimental.grpo_lab import GRPOLabConfig
 from torchrl_grpo.training import DistillConfig
 from torchrl_grpo.training.algos.registry import with_fixed_settings
+from torchrl_grpo.training.algos.search_distill import SearchDistillConfig
 from torchrl_grpo.training.config import (
     GRPOConfig,
     PPOConfig,
@@ -32,7 +33,7 @@ def _options(group: str) -> list[str]:
 )
 def test_every_group_option_composes(group, option):
     # The distillation has no default teachers: a path is enough to compose and check.
-    teachers = ["algo.teachers=[runs/a/last.pt]"] if option == "distill" else []
+    teachers = ["algo.teachers=[runs/a/last.pt]"] if "distill" in option else []
     cfg = compose_config([f"{group}={option}", *teachers])
     check_config(cfg)
     assert OmegaConf.to_container(cfg, resolve=True)  # every interpolation resolves
@@ -40,7 +41,12 @@ def test_every_group_option_composes(group, option):
         assert env_name(cfg.env.scenario) == option
     if group == "algo":
         assert str(cfg.algo.name) == option
-        schemas = {"ppo": PPOConfig, "distill": DistillConfig, "grpo_lab": GRPOLabConfig}
+        schemas = {
+            "ppo": PPOConfig,
+            "distill": DistillConfig,
+            "search_distill": SearchDistillConfig,
+            "grpo_lab": GRPOLabConfig,
+        }
         schema = schemas.get(option, GRPOConfig)
         assert OmegaConf.get_type(cfg.algo) is schema
 
@@ -163,12 +169,14 @@ def test_intersection_groups_enumerate_its_three_actions(overrides, group_size, 
     assert (cfg.algo.group_size, cfg.algo.tail_policy) == (group_size, tail_policy)
 
 
-@pytest.mark.parametrize("algo", ["grpo_branch", "grpo_episode", "ppo", "distill"])
+@pytest.mark.parametrize(
+    "algo", ["grpo_branch", "grpo_episode", "ppo", "distill", "search_distill"]
+)
 def test_rollout_follows_the_algorithm(algo):
     cfg = compose_config([f"algo={algo}"])
     expected = OmegaConf.load(CONF / "rollout" / f"{algo}.yaml")
     assert cfg.rollout.num_workers == expected.num_workers
-    if algo in ("ppo", "distill"):  # batches of steps: no group shape
+    if algo in ("ppo", "distill", "search_distill"):  # batches of steps: no group shape
         assert "horizon" not in cfg.rollout
         assert cfg.rollout.frames_per_batch == expected.frames_per_batch
     elif algo == "grpo_episode":
@@ -282,7 +290,13 @@ def _leaf_keys(node: dict, prefix: str = "") -> list[str]:
 
 @pytest.mark.parametrize(
     "overrides,count",
-    [([], 47), (["algo=grpo_episode"], 47), (["algo=ppo"], 43), (["algo=distill"], 43)],
+    [
+        ([], 47),
+        (["algo=grpo_episode"], 47),
+        (["algo=ppo"], 43),
+        (["algo=distill"], 43),
+        (["experiment=search_student"], 48),
+    ],
 )
 def test_a_run_composes_at_most_fifty_keys(overrides, count):
     keys = _leaf_keys(OmegaConf.to_container(compose_config(overrides)))

@@ -38,7 +38,7 @@ def test_misspelt_key_fails_naming_it(override, key):
     [
         ("algo.group_size=eight", "group_size"),
         ("algo.tail_policy=rules", "tail_policy"),
-        ("model.kind=transformer", "kind"),
+        ("model.kind=lstm", "kind"),
         ("logger=csv", None),
     ],
 )

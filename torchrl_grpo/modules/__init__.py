@@ -16,6 +16,7 @@ from torchrl_grpo.modules.scripted.actions import (
 from torchrl_grpo.modules.scripted.policies import RulePolicy
 from torchrl_grpo.modules.scripted.policy_registry import SCRIPTED_POLICIES, make_scripted_policy
 from torchrl_grpo.modules.scripted.scene import Driver, Scene
+from torchrl_grpo.modules.vehicle_transformer import VehicleTransformer
 
 __all__ = [
     "META_ACTIONS",
@@ -32,6 +33,7 @@ __all__ = [
     "RulePolicy",
     "Scene",
     "SceneMLP",
+    "VehicleTransformer",
     "ScriptedPolicy",
     "make_discrete_actor",
     "make_scripted_policy",

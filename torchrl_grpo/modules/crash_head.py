@@ -146,13 +146,20 @@ class CrashHead(nn.Module):
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         """The policy's logits ``[*batch, n_actions]``."""
-        logits, crash = self._split(observation)
+        return self.acted(*self._split(observation))
+
+    def acted(self, logits: torch.Tensor, crash: torch.Tensor) -> torch.Tensor:
+        """The logits the policy acts on, from the network's own and the crash logits."""
         if self.aversion != 0:
             logits = logits + self.aversion * nn.functional.logsigmoid(-crash.detach())
         if self.margin is None or not _GREEDY.get():
             return logits
         floor = logits.detach().amin(-1, keepdim=True) - BARRED
         return torch.where(self._allowed(crash), logits, floor)
+
+    def heads(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The network's own policy logits (no aversion, no bar) and the crash logits."""
+        return self._split(observation)
 
     def crash_logits(self, observation: torch.Tensor) -> torch.Tensor:
         """The logit of each action's crash probability, ``[*batch, n_actions]``."""

@@ -15,9 +15,11 @@ import torch
 from torch import nn
 from torchrl.modules import MLP
 
+from torchrl_grpo.modules.vehicle_transformer import VehicleTransformer
+
 __all__ = ["EgoAttentionNet", "KinematicsMLP", "NetworkKind", "make_network"]
 
-NetworkKind = Literal["mlp", "ego_attention"]
+NetworkKind = Literal["mlp", "ego_attention", "transformer"]
 
 
 class KinematicsMLP(nn.Module):
@@ -193,7 +195,8 @@ def make_network(
 
     Args:
         kind: ``"mlp"`` for :class:`KinematicsMLP`, ``"ego_attention"`` for
-            :class:`EgoAttentionNet`.
+            :class:`EgoAttentionNet`, ``"transformer"`` for
+            :class:`~torchrl_grpo.modules.vehicle_transformer.VehicleTransformer`.
         n_vehicles: rows V of the observation.
         n_features: columns F of the observation.
         out_features: size of the output.
@@ -211,7 +214,11 @@ def make_network(
         return KinematicsMLP(n_vehicles, n_features, out_features, **kwargs)
     if kind == "ego_attention":
         return EgoAttentionNet(n_features, out_features, n_vehicles=n_vehicles, **kwargs)
-    raise ValueError(f"Unknown network kind {kind!r}; expected 'mlp' or 'ego_attention'.")
+    if kind == "transformer":
+        return VehicleTransformer(n_features, out_features, **kwargs)
+    raise ValueError(
+        f"Unknown network kind {kind!r}; expected 'mlp', 'ego_attention' or 'transformer'."
+    )
 
 
 def _check_table(observation: torch.Tensor, n_features: int, n_vehicles: int | None) -> None:

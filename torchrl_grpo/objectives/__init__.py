@@ -4,7 +4,8 @@ Also the group fits of enumerated groups' action comparisons: the regression of 
 advantages (``AdvantageRegressionLoss``) and the policy's expected regret at each root
 (``GroupRegretLoss``, with the per-root targets of ``group_targets.py``). And the loss of
 a crash head (``CrashHeadLoss``) and the distillation of trained teachers into one policy
-(``TeacherDistillLoss``, and ``TeacherCrashLoss`` for their crash heads). What the
+(``TeacherDistillLoss``, and ``TeacherCrashLoss`` for their crash heads), and the fit
+of the lookahead search's labels (``SearchLabelLoss``). What the
 losses share (the crash labels and tail survival of ``survival.py``, the ``Literal``
 choices) is imported from its module.
 """
@@ -17,6 +18,7 @@ from torchrl_grpo.objectives.kl import kl_estimate
 from torchrl_grpo.objectives.reference import ReferenceSync
 from torchrl_grpo.objectives.regression import AdvantageRegressionLoss
 from torchrl_grpo.objectives.regret_fit import GroupRegretLoss
+from torchrl_grpo.objectives.search_label_loss import SearchLabelLoss
 from torchrl_grpo.objectives.teacher_losses import TeacherCrashLoss, TeacherDistillLoss
 
 __all__ = [
@@ -27,6 +29,7 @@ __all__ = [
     "GroupRelativeAdvantage",
     "HorizonBootstrap",
     "ReferenceSync",
+    "SearchLabelLoss",
     "TeacherCrashLoss",
     "TeacherDistillLoss",
     "kl_estimate",

@@ -49,6 +49,7 @@ from torchrl_grpo.training.group_schemas import (
     RayRolloutConfig,
     RolloutConfig,
     StepRolloutConfig,
+    TransformerModelConfig,
 )
 from torchrl_grpo.training.resolvers import CONF_DIR, register_resolvers
 from torchrl_grpo.training.retired_keys import (
@@ -229,6 +230,7 @@ _SHARED_SCHEMAS: tuple[tuple[str, str, type], ...] = (
     ("env", "base_env", EnvConfig),
     ("model", "base_mlp_model", MLPModelConfig),
     ("model", "base_attention_model", AttentionModelConfig),
+    ("model", "base_transformer_model", TransformerModelConfig),
     ("rollout", "base_group_rollout", GroupRolloutConfig),
     ("rollout", "base_ray_rollout", RayRolloutConfig),
     ("rollout", "base_step_rollout", StepRolloutConfig),

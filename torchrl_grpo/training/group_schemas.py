@@ -24,6 +24,7 @@ __all__ = [
     "RayRolloutConfig",
     "RolloutConfig",
     "StepRolloutConfig",
+    "TransformerModelConfig",
     "collects_on_ray",
 ]
 
@@ -44,7 +45,7 @@ class ModelConfig:
         >>> cfg.kind == "scene"
         True
         >>> try:
-        ...     cfg.kind = "transformer"
+        ...     cfg.kind = "lstm"
         ... except Exception as err:
         ...     print(type(err).__name__)
         ValidationError
@@ -74,12 +75,24 @@ class AttentionModelConfig(ModelConfig):
     decoder_cells: list[int] = field(default_factory=lambda: [64, 64])
 
 
+@dataclass
+class TransformerModelConfig(ModelConfig):
+    """``model=transformer``: layers of self-attention among the observed vehicles."""
+
+    kind: ModelKind = ModelKind.transformer
+    embed_dim: int = 64
+    num_heads: int = 4
+    layers: int = 2
+    width: int = 256
+
+
 #: Each of the core's network kinds' schema (a registered kind brings its own:
 #: :func:`~torchrl_grpo.training.model_builder.register_network_kind`).
 MODEL_SCHEMAS: dict[str, type[ModelConfig]] = {
     "mlp": MLPModelConfig,
     "scene": MLPModelConfig,
     "ego_attention": AttentionModelConfig,
+    "transformer": TransformerModelConfig,
 }
 
 

@@ -156,6 +156,17 @@ def make_net(model_cfg: DictConfig, env: EnvBase, out_features: int) -> nn.Modul
         return make_feature_mlp(SceneMLP, model_cfg, env, out_features)
     if kind == "mlp":
         kwargs = {"num_cells": list(model_cfg.num_cells)}
+    elif kind == "transformer":
+        layout = make_layout(env)
+        if layout is None or "presence" not in layout.features:
+            raise ValueError(
+                "model.kind=transformer masks absent vehicles by the presence feature of "
+                "highway-env's Kinematics observation; this env observes something else"
+            )
+        kwargs = {
+            "presence_index": layout.index("presence"),
+            **{key: int(model_cfg[key]) for key in ("embed_dim", "num_heads", "layers", "width")},
+        }
     else:
         kwargs = {
             "embed_dim": int(model_cfg.embed_dim),

@@ -74,7 +74,7 @@ def teacher_configs(
             teacher = compose_config(overrides, conf_dir=conf_dir)
         except Exception as err:  # Hydra's errors name the key; say which teacher
             raise ValueError(f"algo.teacher_runs[{index}] ({spec!r}): {err}") from err
-        if str(teacher.algo.name) == "distill":
+        if teacher.algo.get("teacher_runs") is not None:
             raise ValueError(f"algo.teacher_runs[{index}] ({spec!r}) is a distillation itself")
         out.append((folder, teacher))
     return out
@@ -137,9 +137,9 @@ def train_with_teachers(
 ) -> TrainResult:
     """Train the teachers of ``algo.teacher_runs`` that are not done, then the student.
 
-    The student (``cfg``, an ``algo=distill`` config) learns from ``algo.teachers`` plus
-    the teacher runs' checkpoints, in ``run_dir``; a student checkpoint there without
-    ``done.json`` is resumed.
+    The student (``cfg``, an ``algo=distill`` or ``algo=search_distill`` config) learns
+    from ``algo.teachers`` plus the teacher runs' checkpoints, in ``run_dir``; a student
+    checkpoint there without ``done.json`` is resumed.
 
     Args:
         cfg: the student's config.
@@ -183,7 +183,8 @@ def train_with_teachers(
                     return result
         paths = [str(path) for path in cfg.algo.get("teachers") or []]
         paths += [str(folder / "last.pt") for folder, _ in teachers]
-        student = OmegaConf.merge(cfg, {"algo": {"teachers": paths}})
+        # The student's config names its teachers' checkpoints: the runs are done.
+        student = OmegaConf.merge(cfg, {"algo": {"teachers": paths, "teacher_runs": []}})
         if (run_dir / "last.pt").exists() and not (run_dir / DONE).exists():
             student.resume = str(run_dir / "last.pt")
         return _train(student, run_dir, [*hooks, _PipelineBar(bar)])

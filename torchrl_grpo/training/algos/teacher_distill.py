@@ -14,19 +14,16 @@ by ``algo.crash_head_coeff``); every teacher must then have one.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, Literal, get_args
+from dataclasses import dataclass
+from typing import Literal, get_args
 
-import torch
 from omegaconf import MISSING, DictConfig
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, ValueOperator
 
 from torchrl_grpo.objectives.teacher_losses import TeacherCrashLoss, TeacherDistillLoss
-from torchrl_grpo.training.algos.base import AlgoConfig
-from torchrl_grpo.training.algos.episodes import TrunkEpisodes
-from torchrl_grpo.training.algos.labelled import LabelledStates
+from torchrl_grpo.training.algos.labelled_fit import LabelledFit, LabelledFitConfig
 from torchrl_grpo.training.algos.registry import register_algorithm
 from torchrl_grpo.training.choices import choice_enum
 from torchrl_grpo.training.metrics import PhaseTimer
@@ -44,18 +41,11 @@ DistillName = choice_enum("DistillName", DistillVariant, "The distillation.", mo
 
 
 @dataclass
-class DistillConfig(AlgoConfig):
+class DistillConfig(LabelledFitConfig):
     """``algo=distill``: the student fits the teachers' mean logits on its own states.
 
-    ``teachers`` are checkpoints of runs on the same scenario and env config;
-    ``teacher_runs`` are runs to train first, each its overrides in one string
-    (:mod:`~torchrl_grpo.training.teacher_runs`, ``experiment=best``), trained
-    ``teacher_processes`` at a time;
-    ``replay_frames`` is how many labelled states are kept (the oldest go first);
-    ``max_minibatches`` of ``minibatch_size`` states are drawn from them per batch
-    (``null``: ``epochs`` passes over all of them, a cost that grows with what is kept);
-    ``crash_head_coeff`` weighs the fit of the teachers' crash heads (with
-    ``model.crash_head``).
+    The keys of :class:`~torchrl_grpo.training.algos.labelled_fit.LabelledFitConfig`;
+    ``crash_head_coeff`` weighs the fit of the teachers' crash heads.
 
     Example:
         >>> from omegaconf import OmegaConf
@@ -66,19 +56,11 @@ class DistillConfig(AlgoConfig):
     """
 
     name: DistillName = MISSING
-    teachers: list[str] = field(default_factory=list)
-    teacher_runs: list[str] = field(default_factory=list)
-    teacher_processes: int = 1
-    replay_frames: int = 1_000_000
-    entropy_coeff: float = 0.0
-    epochs: int = 1
     minibatch_size: int = 1024
-    max_minibatches: int | None = 200
-    crash_head_coeff: float = 1.0
 
 
 @register_algorithm
-class TeacherDistill(TrunkEpisodes):
+class TeacherDistill(LabelledFit):
     """DAgger with the teachers' soft labels, on the student's own trunks.
 
     Example:
@@ -106,11 +88,10 @@ class TeacherDistill(TrunkEpisodes):
         self.teachers = load_teachers(
             list(cfg.algo.teachers), cfg.env, env, crash_key=crash_key
         ).to(cfg.device)
-        self.replay = LabelledStates(int(cfg.algo.replay_frames))
 
     @classmethod
     def check_config(cls, cfg: DictConfig) -> None:
-        """Also refuses no teachers, teacher_processes < 1 and a replay under a minibatch."""
+        """Also refuses no teachers."""
         super().check_config(cfg)
         algo = cfg.algo
         if not algo.teachers and not algo.get("teacher_runs"):
@@ -118,15 +99,6 @@ class TeacherDistill(TrunkEpisodes):
                 "algo=distill needs algo.teachers: the checkpoints whose policies it "
                 "distils, e.g. algo.teachers=[runs/a/last.pt,runs/b/last.pt] (or "
                 "algo.teacher_runs, runs to train first: experiment=best)"
-            )
-        if algo.teacher_processes < 1:
-            raise ValueError(
-                f"algo.teacher_processes must be at least 1 (got {algo.teacher_processes})"
-            )
-        if algo.replay_frames < algo.minibatch_size:
-            raise ValueError(
-                f"algo.replay_frames ({algo.replay_frames}) must hold at least one "
-                f"minibatch (algo.minibatch_size={algo.minibatch_size})"
             )
 
     @classmethod
@@ -147,22 +119,4 @@ class TeacherDistill(TrunkEpisodes):
         """Label the batch's states, keep them, then train on minibatches of all kept."""
         with timer("teacher"):
             data = self.teachers(batch.reshape(-1).select(*self.policy.in_keys))
-        self.replay.extend(data)
-        kept = len(self.replay)
-        algo = self.cfg.algo
-        rows = self.replay.rows
-        if algo.max_minibatches is not None:
-            # Drawn with replacement: a fixed cost per batch, however many states are kept.
-            draws = int(algo.minibatch_size) * int(algo.max_minibatches)
-            rows = rows[torch.randint(kept, (min(draws, kept),))]
-        with timer("update"):
-            stats = self.optimise(rows)
-        stats["train/replay_steps"] = float(kept)
-        return stats
-
-    def state_dict(self) -> dict[str, Any]:  # noqa: D102
-        return {**super().state_dict(), "replay": self.replay.state_dict()}
-
-    def load_state_dict(self, checkpoint: dict[str, Any], source: str = "") -> None:  # noqa: D102
-        super().load_state_dict(checkpoint, source)
-        self.replay.load_state_dict(checkpoint["replay"])
+        return self.fit_kept(data, timer)
