@@ -69,7 +69,7 @@ def config_choices(*groups: str, conf_dir: str | Path | None = None) -> str:
 
     Example:
         >>> print(config_choices().splitlines()[0])
-        algo: distill, grpo_branch, grpo_episode, grpo_lab, ppo
+        algo: distill, grpo_branch, grpo_episode, grpo_lab, ppo, search_distill
         >>> print(config_choices("env"))
         env: highway, highway_fast, intersection, merge, roundabout
     """
