@@ -140,6 +140,7 @@ def test_resume_of_a_search_distillation_continues_exactly(run, tmp_path):
     assert any(not torch.equal(a[k], c[k]) for k in a)  # the control: it can fail
 
 
+@pytest.mark.slow  # the pipeline itself is tested in test_teacher_runs.py
 def test_one_command_trains_the_searched_run_then_the_student(tmp_path):
     teacher = "experiment=smoke env.backend=tensor env.num_envs=16 experiment.total_frames=40"
     cfg = compose_config(
@@ -159,7 +160,9 @@ def test_one_command_trains_the_searched_run_then_the_student(tmp_path):
     saved = load_checkpoint(result.checkpoint)["config"]["algo"]
     assert saved["teachers"] == [str(tmp_path / "teachers" / "0" / "last.pt")]
     assert saved["teacher_runs"] == []
-    # A distillation cannot be one of the runs it learns from.
+
+
+def test_a_search_distillation_cannot_be_the_run_it_searches_over(tmp_path):
     nested = compose_config([*TINY, *STUDENT, f"algo.teacher_runs=['{' '.join(STUDENT)}']"])
     with pytest.raises(ValueError, match=r"algo.teacher_runs\[0\] .* is a distillation itself"):
         train_with_teachers(nested, tmp_path / "nested")

@@ -82,6 +82,7 @@ def test_experiment_best_composes_nine_teachers_of_the_documented_recipe(tmp_pat
         teacher_configs(compose_config([*STUDENT, "algo.teacher_runs=['algo.nope=1']"]), tmp_path)
 
 
+@pytest.mark.slow  # two whole pipelines; the next test runs the teachers' processes too
 def test_teachers_in_two_processes_train_the_same_weights_as_one_after_another(tmp_path):
     # Each forked teacher runs with cores // 2 torch threads; the sequential control runs
     # with as many, so the two differ only in where the teachers train.
