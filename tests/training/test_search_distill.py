@@ -140,7 +140,7 @@ def test_resume_of_a_search_distillation_continues_exactly(run, tmp_path):
     assert any(not torch.equal(a[k], c[k]) for k in a)  # the control: it can fail
 
 
-@pytest.mark.slow  # the pipeline itself is tested in test_teacher_runs.py
+@pytest.mark.slow  # train_with_teachers runs fast in test_teacher_runs.py (with algo=distill)
 def test_one_command_trains_the_searched_run_then_the_student(tmp_path):
     teacher = "experiment=smoke env.backend=tensor env.num_envs=16 experiment.total_frames=40"
     cfg = compose_config(
