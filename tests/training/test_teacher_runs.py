@@ -36,6 +36,14 @@ def test_the_teachers_train_first_and_the_student_learns_from_their_checkpoints(
     # Two seeds: two different teachers (the control that the runs are distinct).
     a, b = (load_checkpoint(f / "last.pt")["policy"] for f in teachers)
     assert any(not torch.equal(a[k], b[k]) for k in a)
+    # The same command again trains nothing: the student resumes at its end.
+    counted = _CountIterations()
+    again = train_with_teachers(compose_config(_student(20, 20)), tmp_path, hooks=[counted])
+    rerun = load_checkpoint(tmp_path / "last.pt")
+    assert counted.iterations == 0 and again.frames == result.frames
+    assert (rerun["frames"], rerun["iteration"]) == (student["frames"], student["iteration"])
+    for key, value in student["policy"].items():
+        assert torch.equal(rerun["policy"][key], value), key
 
 
 @pytest.mark.slow  # 13 s: three stages trained twice
@@ -52,6 +60,18 @@ def test_a_rerun_skips_finished_teachers_and_resumes_the_unfinished_one(tmp_path
     resumed = load_checkpoint(tmp_path / "teachers" / "1" / "last.pt")
     assert resumed["frames"] >= 200 and resumed["iteration"] > stopped["iteration"]
     assert (tmp_path / "teachers" / "1" / DONE).exists() and (tmp_path / DONE).exists()
+
+
+class _CountIterations(Hook):
+    def __init__(self):
+        self.iterations = 0
+
+    def due(self, trainer, batch):
+        return True
+
+    def on_iteration(self, trainer, batch, result):
+        self.iterations += 1
+        return {}
 
 
 class _StopTeacher(Hook):

@@ -7,7 +7,9 @@ learns from their checkpoints and ends with the final evaluation on highway-env.
 
 A stage is done when its folder holds ``done.json``. Run the same command again after
 an interruption: the finished teachers are skipped, an unfinished one resumes from its
-``last.pt``, and so does the student. One progress bar spans every stage's frames.
+``last.pt``, and so does the student, finished or not (a finished one is evaluated
+again, and continued if the command asks for more frames). One progress bar spans
+every stage's frames.
 
 With ``algo.teacher_processes = n > 1`` the teachers train ``n`` at a time, each in a
 forked process with ``cores // n`` torch threads: a run scales poorly past one thread
@@ -185,7 +187,9 @@ def train_with_teachers(
         paths += [str(folder / "last.pt") for folder, _ in teachers]
         # The student's config names its teachers' checkpoints: the runs are done.
         student = OmegaConf.merge(cfg, {"algo": {"teachers": paths, "teacher_runs": []}})
-        if (run_dir / "last.pt").exists() and not (run_dir / DONE).exists():
+        if (run_dir / "last.pt").exists():
+            # Finished or not: a finished student is not trained again, only evaluated
+            # (or fitted to the end, or continued with more frames).
             student.resume = str(run_dir / "last.pt")
         return _train(student, run_dir, [*hooks, _PipelineBar(bar)])
     finally:

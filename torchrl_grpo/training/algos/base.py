@@ -26,10 +26,10 @@ from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import LossModule
 
-from torchrl_grpo.branching.keys import GROUP_ID
 from torchrl_grpo.modules.crash_head import CrashHead
-from torchrl_grpo.modules.ensemble import PolicyEnsemble, member_halves
+from torchrl_grpo.modules.ensemble import PolicyEnsemble
 from torchrl_grpo.modules.forward_sharing import shared_forward
+from torchrl_grpo.training.algos.member_terms import mean_member_terms
 from torchrl_grpo.training.collect import make_collector
 from torchrl_grpo.training.env_builder import make_rollout_env
 from torchrl_grpo.training.group_schemas import (
@@ -286,6 +286,14 @@ class Algorithm:
     def on_optimizer_step(self) -> None:
         """Called after every optimiser step of :meth:`optimise`."""
 
+    def finish(self, timer: PhaseTimer, stop: Callable[[], bool]) -> dict[str, float]:
+        """Called once after the last batch of a run that was not stopped; its metrics.
+
+        An algorithm that ends with work of its own (a final fit) does it here, and
+        gives up on it when ``stop()`` turns true.
+        """
+        return {}
+
     def loss_terms(self, minibatch: TensorDictBase) -> TensorDictBase:
         """The loss's output on ``minibatch``: every ``loss_*`` entry is summed and minimised."""
         return self.loss(minibatch)
@@ -293,32 +301,19 @@ class Algorithm:
     def member_terms(self, minibatch: TensorDictBase) -> TensorDictBase:
         """:meth:`loss_terms`, or with ``model.ensemble=K`` the mean of each member's own.
 
-        Each member of a :class:`~torchrl_grpo.modules.PolicyEnsemble` gets the whole
-        loss of its own outputs (its ratios, targets and crash predictions), so the
-        members are fitted to the same data independently; the ensemble acts with
-        their mean. With ``model.bagging``, member ``k`` gets the loss of the rows of
-        its own half of the groups only (:func:`~torchrl_grpo.modules.ensemble.member_halves`).
+        With ``model.bagging``, each member fits its own half of the groups
+        (:func:`~torchrl_grpo.training.algos.member_terms.mean_member_terms`).
         """
-        ensemble = self.ensemble
-        if ensemble is None:
+        if self.ensemble is None:
             return self.loss_terms(minibatch)
-        halves = None
-        if self.cfg.model.get("bagging", False):
-            halves = member_halves(minibatch.get(GROUP_ID), len(ensemble))
-        terms = []
-        for member in range(len(ensemble)):
-            rows = minibatch if halves is None else minibatch[halves[:, member]]
-            if rows.shape[0] == 0:
-                continue  # a small minibatch with none of this member's groups
-            with ensemble.acting(member):
-                terms.append(self.loss_terms(rows))
-        mean = terms[0].empty()
-        for key in terms[0].keys(include_nested=True, leaves_only=True):
-            mean.set(key, torch.stack([t.get(key).float() for t in terms]).mean(0))
-        return mean
+        bagging = bool(self.cfg.model.get("bagging", False))
+        return mean_member_terms(self.ensemble, self.loss_terms, minibatch, bagging)
 
     def optimise(
-        self, data: TensorDictBase, refresh: Callable[[], TensorDictBase] | None = None
+        self,
+        data: TensorDictBase,
+        refresh: Callable[[], TensorDictBase] | None = None,
+        limit: int | None = None,
     ) -> dict[str, float]:
         """``algo.epochs`` passes of shuffled minibatches of ``data`` through the loss.
 
@@ -330,6 +325,7 @@ class Algorithm:
             data: flat training steps.
             refresh: called before every epoch but the first, gives the data of that
                 epoch (PPO recomputes its advantages with the updated critic).
+            limit: the most minibatches, in place of ``algo.max_minibatches``.
 
         Returns:
             The mean of every scalar the loss returns (``train/<key>``: ``loss_*``
@@ -341,18 +337,18 @@ class Algorithm:
         data = data.to(self.device)
         n = data.shape[0]
         mb = min(int(algo.minibatch_size), n)
-        cap = algo.get("max_minibatches")
-        limit = math.inf if cap is None else int(cap)
+        cap = algo.get("max_minibatches") if limit is None else limit
+        most = math.inf if cap is None else int(cap)
         sums: dict[str, float] = defaultdict(float)
         count = 0
         for epoch in range(int(algo.epochs)):
-            if count >= limit:
+            if count >= most:
                 break
             if refresh is not None and epoch > 0:
                 data = refresh()
             perm = torch.randperm(n)
             for start in range(0, n - mb + 1, mb):
-                if count >= limit:
+                if count >= most:
                     break
                 # The losses of one minibatch share the network's forward and backward.
                 with shared_forward(self.policy):
