@@ -294,8 +294,8 @@ def _leaf_keys(node: dict, prefix: str = "") -> list[str]:
         ([], 47),
         (["algo=grpo_episode"], 47),
         (["algo=ppo"], 43),
-        (["algo=distill"], 44),
-        (["experiment=search_student"], 49),
+        (["algo=distill"], 43),
+        (["experiment=search_student"], 48),
     ],
 )
 def test_a_run_composes_at_most_fifty_keys(overrides, count):

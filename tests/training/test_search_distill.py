@@ -1,9 +1,8 @@
-"""Search distillation (``algo=search_distill``): the labels, the config, a run, resume, refit."""
+"""Search distillation (``algo=search_distill``): the labels, the config, a run, resume."""
 
 from __future__ import annotations
 
 import copy
-import math
 
 import pytest
 import torch
@@ -15,10 +14,8 @@ from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.modules import VehicleTransformer, make_scripted_policy
 from torchrl_grpo.objectives import SearchLabelLoss
 from torchrl_grpo.training import Trainer, load_checkpoint
-from torchrl_grpo.training.algos import labelled_fit
 from torchrl_grpo.training.algos.search_distill import search_labels
 from torchrl_grpo.training.config import check_config
-from torchrl_grpo.training.metrics import PhaseTimer
 from torchrl_grpo.training.teacher_runs import DONE, train_with_teachers
 
 TENSOR = ["env.backend=tensor", "env.num_envs=16"]
@@ -169,68 +166,3 @@ def test_a_search_distillation_cannot_be_the_run_it_searches_over(tmp_path):
     nested = compose_config([*TINY, *STUDENT, f"algo.teacher_runs=['{' '.join(STUDENT)}']"])
     with pytest.raises(ValueError, match=r"algo.teacher_runs\[0\] .* is a distillation itself"):
         train_with_teachers(nested, tmp_path / "nested")
-
-
-def test_the_final_fit_lowers_the_loss_on_every_kept_state_once(run, tmp_path, monkeypatch):
-    monkeypatch.setattr(labelled_fit, "REFIT_CHUNK", 25)  # 4 chunks: a cosine in 4 steps
-    monkeypatch.setattr(labelled_fit, "REFIT_LR", 3e-3)  # a fit of 100 minibatches
-    extra = [
-        "experiment.total_frames=320",
-        "rollout.frames_per_batch=64",
-        "algo.max_minibatches=5",
-        "algo.minibatch_size=64",
-        "algo.refit_steps=100",
-        "optim.ema_decay=null",
-    ]
-    trainer = Trainer(student_config(run, extra), run_dir=tmp_path / "refit")
-    algo = trainer.algo
-    seen = {}
-    finish = algo.finish
-
-    def spy(timer, stop):
-        seen["head"] = copy.deepcopy(algo.loss.head)
-        return finish(timer, stop)
-
-    monkeypatch.setattr(algo, "finish", spy)
-    trainer.train()
-    kept = algo.replay.rows
-
-    def total(head) -> float:
-        loss = SearchLabelLoss(head, regret_coeff=3.0, crash_coeff=1.0)
-        with torch.no_grad():
-            return sum(float(v) for k, v in loss(kept).items() if k.startswith("loss_"))
-
-    assert total(algo.loss.head) < 0.97 * total(seen["head"])
-    # The last chunk's rate: the cosine from 3e-3 at its middle step, 87 of 100.
-    expected = 0.5 * 3e-3 * (1 + math.cos(math.pi * 87 / 100))
-    assert algo.optimizer.param_groups[0]["lr"] == pytest.approx(expected, rel=1e-12)
-    ckpt = load_checkpoint(tmp_path / "refit" / "last.pt")
-    assert ckpt["refitted"] is True
-    fitted = {k: v.clone() for k, v in trainer.policy.state_dict().items()}
-
-    # Resumed once finished, the run is not fitted again.
-    resumed = Trainer(
-        compose_config([f"resume={tmp_path / 'refit' / 'last.pt'}"]), run_dir=tmp_path / "again"
-    )
-    resumed.train()
-    for key, value in resumed.policy.state_dict().items():
-        assert torch.equal(value, fitted[key]), key
-
-    # Stopped after its first chunk, the fit is undone: weights and optimiser as before.
-    algo.refitted = False
-    before = copy.deepcopy(algo.optimizer.state_dict())
-    stops = iter([False, True])
-    assert algo.finish(PhaseTimer(), lambda: next(stops)) == {}
-    assert not algo.refitted
-    for key, value in trainer.policy.state_dict().items():
-        assert torch.equal(value, fitted[key]), key
-    after = algo.optimizer.state_dict()
-    for index, state in before["state"].items():
-        assert torch.equal(after["state"][index]["exp_avg"], state["exp_avg"])
-
-
-def test_a_final_fit_needs_steps_and_the_live_weights(run):
-    with pytest.raises(ValueError, match=r"algo.refit_steps must be >= 0 \(got -1\)"):
-        check_config(student_config(run, ["algo.refit_steps=-1"]))
-    with pytest.raises(ValueError, match=r"set optim.ema_decay=null \(got 0.99\)"):
-        check_config(student_config(run, ["algo.refit_steps=10", "optim.ema_decay=0.99"]))

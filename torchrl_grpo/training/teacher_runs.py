@@ -189,7 +189,7 @@ def train_with_teachers(
         student = OmegaConf.merge(cfg, {"algo": {"teachers": paths, "teacher_runs": []}})
         if (run_dir / "last.pt").exists():
             # Finished or not: a finished student is not trained again, only evaluated
-            # (or fitted to the end, or continued with more frames).
+            # (or continued, when the command asks for more frames).
             student.resume = str(run_dir / "last.pt")
         return _train(student, run_dir, [*hooks, _PipelineBar(bar)])
     finally:

@@ -293,8 +293,6 @@ class Trainer:
                 if pbar is not None:
                     pbar.update(new_frames)
                     pbar.set_postfix(progress_postfix(metrics), refresh=False)
-            if self.frames >= total and not self.stop_requested:
-                self._finish_algorithm(timer)
             for hook in self.hooks:
                 hook.on_loop_end(self, result)
         except KeyboardInterrupt:
@@ -317,17 +315,6 @@ class Trainer:
                 hook.on_train_end(self, result)
         self._finish_logger(result)
         return result
-
-    def _finish_algorithm(self, timer: PhaseTimer) -> None:
-        # The algorithm's own end (a final fit): timed with the training, logged at
-        # the last iteration's frames.
-        t0 = self._iteration_start = time.perf_counter()
-        metrics = self.algo.finish(timer, lambda: self.stop_requested)
-        self.progress.wall_seconds += time.perf_counter() - t0
-        self._iteration_start = None
-        if metrics:
-            metrics.update(timer.pop())
-            log_metrics(self.logger, metrics, step=self.frames)
 
     def wall_seconds(self) -> float:
         """Seconds of training so far (a resumed run's included), the iteration in progress too."""

@@ -286,14 +286,6 @@ class Algorithm:
     def on_optimizer_step(self) -> None:
         """Called after every optimiser step of :meth:`optimise`."""
 
-    def finish(self, timer: PhaseTimer, stop: Callable[[], bool]) -> dict[str, float]:
-        """Called once after the last batch of a run that was not stopped; its metrics.
-
-        An algorithm that ends with work of its own (a final fit) does it here, and
-        gives up on it when ``stop()`` turns true.
-        """
-        return {}
-
     def loss_terms(self, minibatch: TensorDictBase) -> TensorDictBase:
         """The loss's output on ``minibatch``: every ``loss_*`` entry is summed and minimised."""
         return self.loss(minibatch)
@@ -310,10 +302,7 @@ class Algorithm:
         return mean_member_terms(self.ensemble, self.loss_terms, minibatch, bagging)
 
     def optimise(
-        self,
-        data: TensorDictBase,
-        refresh: Callable[[], TensorDictBase] | None = None,
-        limit: int | None = None,
+        self, data: TensorDictBase, refresh: Callable[[], TensorDictBase] | None = None
     ) -> dict[str, float]:
         """``algo.epochs`` passes of shuffled minibatches of ``data`` through the loss.
 
@@ -325,7 +314,6 @@ class Algorithm:
             data: flat training steps.
             refresh: called before every epoch but the first, gives the data of that
                 epoch (PPO recomputes its advantages with the updated critic).
-            limit: the most minibatches, in place of ``algo.max_minibatches``.
 
         Returns:
             The mean of every scalar the loss returns (``train/<key>``: ``loss_*``
@@ -337,18 +325,18 @@ class Algorithm:
         data = data.to(self.device)
         n = data.shape[0]
         mb = min(int(algo.minibatch_size), n)
-        cap = algo.get("max_minibatches") if limit is None else limit
-        most = math.inf if cap is None else int(cap)
+        cap = algo.get("max_minibatches")
+        limit = math.inf if cap is None else int(cap)
         sums: dict[str, float] = defaultdict(float)
         count = 0
         for epoch in range(int(algo.epochs)):
-            if count >= most:
+            if count >= limit:
                 break
             if refresh is not None and epoch > 0:
                 data = refresh()
             perm = torch.randperm(n)
             for start in range(0, n - mb + 1, mb):
-                if count >= most:
+                if count >= limit:
                     break
                 # The losses of one minibatch share the network's forward and backward.
                 with shared_forward(self.policy):
