@@ -21,7 +21,7 @@ struct Params {
   double speeds[16];
   // The Kinematics observation: feature codes index FEATURES of observation.py.
   double obs_count, obs_features, normalize, absolute, clip, see_behind, perception;
-  double feature[8], ranged[8], low[8], high[8];
+  double feature[16], ranged[16], low[16], high[16];  // MAX_FEATURES
   // Fresh worlds (reset.py): the constants it derives in Python double, passed as such.
   double initial_lane, ego_speed, ego_index, ego_target, ego_offset, ego_base;
   double speed_lo, speed_span, spacing_base, spacing_per_speed, inv_density, decay;

@@ -30,8 +30,9 @@ void observe(const Params& p, const World<T>& w, T* out, std::vector<T>& key,
   for (int r = 0; r < std::min(rows, shown + 1); ++r) {
     int j = r == 0 ? 0 : order[r - 1];
     T c = std::cos(w.h[j]), s = std::sin(w.h[j]);
-    // FEATURES: presence, x, y, vx, vy, heading, cos_h, sin_h.
-    const T values[8] = {T(1), w.x[j], w.y[j], w.v[j] * c, w.v[j] * s, w.h[j], c, s};
+    // FEATURES: presence, x, y, vx, vy, heading, cos_h, sin_h, cos_d, sin_d (no routes
+    // on the highway: highway-env's destination is the position, its direction zero).
+    const T values[10] = {T(1), w.x[j], w.y[j], w.v[j] * c, w.v[j] * s, w.h[j], c, s, T(0), T(0)};
     for (int q = 0; q < f; ++q) {
       int code = int(p.feature[q]);
       T value = values[code];

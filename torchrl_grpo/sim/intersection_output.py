@@ -35,6 +35,7 @@ import torch
 from torchrl_grpo.sim import lanes as L
 from torchrl_grpo.sim.intersection_params import IntersectionParams
 from torchrl_grpo.sim.merge_output import ego_on_road, outputs
+from torchrl_grpo.sim.observation import route_intentions
 
 __all__ = ["INTERSECTION_REWARD_COMPONENTS", "arrived", "observe_intersection"]
 
@@ -99,4 +100,6 @@ def observe_intersection(world, params: IntersectionParams, action=None) -> dict
     terminated = crashed | done
     if r.offroad_terminal:
         terminated = terminated | ~on_road
-    return outputs(v, params, total, parts, terminated, world.time >= r.duration, on_road)
+    truncated = world.time >= r.duration
+    intentions = route_intentions(world, params)
+    return outputs(v, params, total, parts, terminated, truncated, on_road, intentions)

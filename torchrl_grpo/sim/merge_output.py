@@ -51,7 +51,7 @@ MERGE_REWARD_COMPONENTS = (
 )
 
 
-def _observation(v, params: MergeParams) -> torch.Tensor:
+def _observation(v, params: MergeParams, intentions=None) -> torch.Tensor:
     obs = params.observation
     lane = v.lane[:, :1]
     s = L.local_coordinates(v.x, v.y, lane, params.road.lanes)[0]
@@ -66,7 +66,7 @@ def _observation(v, params: MergeParams) -> torch.Tensor:
     key = torch.where(visible, along.abs(), torch.full_like(along, float("inf")))
     order = torch.argsort(key, dim=-1, stable=True)[:, : obs.vehicles_count - 1]
     shown = visible.gather(1, order)
-    return kinematics_table(v, params, order, shown)
+    return kinematics_table(v, params, order, shown, intentions)
 
 
 def ego_on_road(v, params) -> torch.Tensor:
@@ -80,14 +80,18 @@ def ego_on_road(v, params) -> torch.Tensor:
     return L.on_lane(s, r, lane, params.road.lanes)
 
 
-def outputs(v, params, reward, parts, terminated, truncated, on_road) -> dict[str, torch.Tensor]:
+def outputs(
+    v, params, reward, parts, terminated, truncated, on_road, intentions=None
+) -> dict[str, torch.Tensor]:
     """A step's report on a lane graph (merge, roundabout, intersection): ``observe_world``'s keys.
+
+    ``intentions`` are the routed worlds' ``route_intentions`` (``None``: no routes).
 
     Example:
         >>> # see the module's example
     """
     return {
-        "observation": _observation(v, params),
+        "observation": _observation(v, params, intentions),
         "reward": reward,
         "terminated": terminated,
         "truncated": truncated,

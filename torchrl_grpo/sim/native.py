@@ -58,6 +58,8 @@ SOURCES = (
     *(SOURCE.with_name(f"highway_{n}.h") for n in ("native", "collide", "observe", "reset")),
 )
 MAX_SPEEDS = 16
+#: The most columns of the observation the C++ step fills.
+MAX_FEATURES = 16
 
 
 class NativeParams(ctypes.Structure):
@@ -79,7 +81,9 @@ class NativeParams(ctypes.Structure):
         (name, ctypes.c_double)
         for name in "obs_count obs_features normalize absolute clip see_behind perception".split()
     ]
-    _fields_ += [(name, ctypes.c_double * 8) for name in ("feature", "ranged", "low", "high")]
+    _fields_ += [
+        (name, ctypes.c_double * MAX_FEATURES) for name in ("feature", "ranged", "low", "high")
+    ]
     _fields_ += [
         (name, ctypes.c_double)
         for name in (
@@ -167,6 +171,10 @@ def native_params(params: HighwayParams) -> NativeParams:
     for k, speed in enumerate(speeds):
         values.speeds[k] = speed
     obs = params.observation
+    if len(obs.features) > MAX_FEATURES:
+        raise ValueError(
+            f"the C++ step fills 1 to {MAX_FEATURES} features, got {len(obs.features)}"
+        )
     values.obs_count, values.obs_features = obs.vehicles_count, len(obs.features)
     values.normalize, values.absolute, values.clip = obs.normalize, obs.absolute, obs.clip
     values.see_behind, values.perception = obs.see_behind, obs.perception_distance

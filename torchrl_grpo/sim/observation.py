@@ -5,6 +5,8 @@ Row 0 is the ego in world coordinates; the next rows are the vehicles closer tha
 the ego), sorted by ``|x - x_ego|`` (ties in road order), relative to the ego unless
 ``absolute``. x, y, vx and vy are mapped from ``features_range`` to [-1, 1] (the ego's
 row too) and clipped; missing rows are zeros. Velocities are ``speed (cos, sin)(heading)``.
+``cos_d, sin_d`` point to the end of a vehicle's route (:func:`route_intentions`): the
+ego's always, the others' only with ``observe_intentions``; zeros without routes.
 
 Example:
     >>> import torch
@@ -23,16 +25,43 @@ from __future__ import annotations
 import torch
 
 from torchrl_grpo.sim.params import HighwayParams
+from torchrl_grpo.sim.routes import destination_direction
 from torchrl_grpo.sim.state import Vehicles
 
-__all__ = ["FEATURES", "observe", "shown_vehicles"]
+__all__ = ["FEATURES", "observe", "route_intentions", "shown_vehicles"]
 
 #: The Kinematics features this simulator computes.
-FEATURES = ("presence", "x", "y", "vx", "vy", "heading", "cos_h", "sin_h")
+FEATURES = ("presence", "x", "y", "vx", "vy", "heading", "cos_h", "sin_h", "cos_d", "sin_d")
+
+_INTENTIONS = ("cos_d", "sin_d")
 
 
-def _features(v: Vehicles) -> dict[str, torch.Tensor]:
+def route_intentions(world, params) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """``(cos_d, sin_d)`` ``[B, N]`` of a routed world's vehicles, if the table shows them.
+
+    ``None`` where the features leave them out or the world has no routes (the table
+    then shows zeros, as highway-env does for vehicles without a route).
+
+    Example:
+        >>> import torch
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> from torchrl_grpo.sim.state import empty_world
+        >>> params = tensor_params("roundabout-v0")
+        >>> world = empty_world(1, 2, torch.float64, route_length=params.route_length)
+        >>> route_intentions(world, params) is None  # the default features leave them out
+        True
+    """
+    if world.route is None or not set(_INTENTIONS) & set(params.observation.features):
+        return None
+    v = world.vehicles
+    return destination_direction(v.x, v.y, world.route, world.route_head, params.road)
+
+
+def _features(
+    v: Vehicles, intentions: tuple[torch.Tensor, torch.Tensor] | None
+) -> dict[str, torch.Tensor]:
     cos_h, sin_h = torch.cos(v.heading), torch.sin(v.heading)
+    cos_d, sin_d = intentions if intentions is not None else (v.x.new_zeros(()),) * 2
     return {
         "presence": torch.ones_like(v.x),
         "x": v.x,
@@ -42,6 +71,8 @@ def _features(v: Vehicles) -> dict[str, torch.Tensor]:
         "heading": v.heading,
         "cos_h": cos_h,
         "sin_h": sin_h,
+        "cos_d": cos_d.expand_as(v.x),
+        "sin_d": sin_d.expand_as(v.x),
     }
 
 
@@ -96,21 +127,30 @@ def shown_vehicles(v: Vehicles, params: HighwayParams) -> tuple[torch.Tensor, to
     return order, visible.gather(1, order)
 
 
-def kinematics_table(v: Vehicles, params, order: torch.Tensor, shown: torch.Tensor) -> torch.Tensor:
+def kinematics_table(
+    v: Vehicles,
+    params,
+    order: torch.Tensor,
+    shown: torch.Tensor,
+    intentions: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> torch.Tensor:
     """The Kinematics table ``[B, vehicles_count, F]``: the ego, then the rows ``order`` picks.
 
     Shared by every scenario's observation, which differ only in which vehicles are
     visible and how they are sorted: ``order`` ``[B, <= vehicles_count - 1]`` indexes the
     shown vehicles, ``shown`` says which of those rows hold one (the others are zeros).
+    ``intentions`` are :func:`route_intentions` (``None``: zeros).
     """
     obs = params.observation
-    feats = _features(v)
+    feats = _features(v, intentions)
     ego = {k: t[:, :1] for k, t in feats.items()}
     columns = []
     for name in obs.features:
         others = feats[name].gather(1, order)
         if not obs.absolute and name in ("x", "y", "vx", "vy"):
             others = others - ego[name]
+        if name in _INTENTIONS and not obs.observe_intentions:
+            others = torch.zeros_like(others)  # to_dict(observe_intentions=False)
         columns.append(torch.cat([ego[name], others], dim=1))
     table = torch.stack(columns, dim=-1)
     if obs.normalize:

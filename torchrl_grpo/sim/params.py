@@ -254,13 +254,15 @@ class ObservationParams:
 
     Attributes:
         vehicles_count: rows of the table, the ego's included.
-        features: columns, among presence, x, y, vx, vy, heading, cos_h, sin_h.
+        features: columns, among presence, x, y, vx, vy, heading, cos_h, sin_h, cos_d, sin_d.
         normalize: map x, y, vx and vy to [-1, 1] by ``features_range``.
         absolute: other vehicles in world coordinates, not relative to the ego.
         clip: clip normalised features to [-1, 1].
         see_behind: include vehicles more than two lengths behind the ego.
         perception_distance: only vehicles closer than this are seen (m).
         features_range: ``((name, (low, high)), ...)`` for x, y, vx, vy.
+        observe_intentions: show the other vehicles' ``cos_d, sin_d`` (the direction
+            to their route's end), not zeros.
 
     Example:
         >>> from torchrl_grpo.envs import tensor_params
@@ -277,6 +279,7 @@ class ObservationParams:
     see_behind: bool
     perception_distance: float
     features_range: tuple[tuple[str, tuple[float, float]], ...]
+    observe_intentions: bool = False
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,7 @@ from __future__ import annotations
 import torch
 
 from torchrl_grpo.sim.merge_output import ego_on_road, outputs
+from torchrl_grpo.sim.observation import route_intentions
 from torchrl_grpo.sim.roundabout_params import RoundaboutParams
 
 __all__ = ["ROUNDABOUT_REWARD_COMPONENTS", "observe_roundabout", "roundabout_reward"]
@@ -102,4 +103,5 @@ def observe_roundabout(
     on_road = ego_on_road(v, params)
     total, parts = roundabout_reward(world, params, action, on_road)
     truncated = world.time >= params.reward.duration
-    return outputs(v, params, total, parts, v.crashed[:, 0], truncated, on_road)
+    intentions = route_intentions(world, params)
+    return outputs(v, params, total, parts, v.crashed[:, 0], truncated, on_road, intentions)

@@ -32,7 +32,15 @@ import torch
 
 from torchrl_grpo.sim import lanes as L
 
-__all__ = ["RouteFollower", "head_leg", "leg_lane_id", "leg_road", "next_lane", "road_tables"]
+__all__ = [
+    "RouteFollower",
+    "destination_direction",
+    "head_leg",
+    "leg_lane_id",
+    "leg_road",
+    "next_lane",
+    "road_tables",
+]
 
 
 @functools.lru_cache(maxsize=64)
@@ -100,6 +108,49 @@ def leg_lane_id(leg: torch.Tensor, road) -> torch.Tensor:
     """
     table = road_tables(road, leg.device)["id"]
     return torch.where(leg >= 0, table[leg.clamp(min=0)], -1)
+
+
+def destination_direction(
+    x: torch.Tensor, y: torch.Tensor, route: torch.Tensor, head: torch.Tensor, road
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``Vehicle.destination_direction`` of every vehicle: the unit vector to its route's end.
+
+    The end is the last leg's lane (lane 0 of a leg ``(from, to, None)``) at its length.
+    The direction is zero where the route is used up (``route == []``: highway-env's
+    destination is then the position) or the vehicle stands on its end.
+
+    Args:
+        x: ``[B, N]`` positions.
+        y: see ``x``.
+        route: ``[B, N, R]`` leg codes.
+        head: ``[B, N]`` each route's head.
+        road: the road graph (a routed road).
+
+    Returns:
+        ``(cos_d, sin_d)``, both ``[B, N]`` in ``x``'s dtype.
+
+    Example:
+        >>> from torchrl_grpo.envs import tensor_params
+        >>> road = tensor_params("roundabout-v0").road
+        >>> x, y = torch.tensor([[2.0, 2.0]]).double(), torch.tensor([[45.0, 45.0]]).double()
+        >>> route = torch.tensor([[[0, -1], [0, -1]]])  # one leg: (se, ex, 0)
+        >>> cos_d, sin_d = destination_direction(x, y, route, torch.tensor([[0, 1]]), road)
+        >>> [round(v, 4) for v in cos_d[0].tolist()], [round(v, 4) for v in sin_d[0].tolist()]
+        ([0.4038, 0.0], [-0.9149, 0.0])
+    """
+    tab = road_tables(road, x.device)
+    count = (route >= 0).sum(-1)
+    last = route.gather(-1, (count - 1).clamp(min=0).unsqueeze(-1)).squeeze(-1)
+    lane_id = leg_lane_id(last, road).clamp(min=0)
+    lane = tab["lanes"][leg_road(last, road).clamp(min=0), lane_id]
+    length = torch.tensor(road.lanes.length, dtype=x.dtype, device=x.device)[lane]
+    end_x, end_y = L.position(length, torch.zeros_like(length), lane, road.lanes)
+    dx, dy = end_x - x, end_y - y
+    moving = (head < count) & ((dx != 0) | (dy != 0))
+    # np.linalg.norm of a 2-vector: sqrt(fma(dy, dy, dx * dx)).
+    norm = torch.where(moving, torch.sqrt(torch.addcmul(dx * dx, dy, dy)), torch.ones_like(dx))
+    zero = torch.zeros_like(dx)
+    return torch.where(moving, dx / norm, zero), torch.where(moving, dy / norm, zero)
 
 
 def next_lane(

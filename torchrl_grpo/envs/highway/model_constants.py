@@ -49,6 +49,7 @@ def observation_params(core) -> ObservationParams:
         features_range=tuple(
             (k, (float(r[0]), float(r[1]))) for k, r in (obs.features_range or {}).items()
         ),
+        observe_intentions=bool(obs.observe_intentions),
     )
 
 

@@ -76,7 +76,10 @@ _RENDERING = (
     # One straight road segment has no connected lanes: the flag changes nothing.
     "neighbour_vehicles_connected_lanes",
 )  # fmt: skip
-_OBSERVATION = ("type", "vehicles_count", "features", "normalize", "absolute", "clip", "see_behind")
+_OBSERVATION = (
+    "type", "vehicles_count", "features", "normalize", "absolute", "clip", "see_behind",
+    "observe_intentions",
+)  # fmt: skip
 _ACTION = ("type", "target_speeds")
 
 # Literals of highway-env 1.12.1's reset code (no class holds them):
@@ -179,8 +182,8 @@ def _check_observation(full: dict, refuse, ranged: bool = False) -> None:
     for key in obs:
         if ranged and key == "features_range":
             continue
-        # intersection-v0 names two options at their Kinematics defaults.
-        default = key in ("flatten", "observe_intentions") and obs[key] is False
+        # intersection-v0 names flatten at its Kinematics default.
+        default = key == "flatten" and obs[key] is False
         if (
             key not in _OBSERVATION
             and not (key == "order" and obs[key] == "sorted")
