@@ -4,7 +4,9 @@ highway-env's Kinematics features ``cos_d, sin_d`` are ``Vehicle.destination_dir
 the unit vector from a vehicle to the end of its route's last leg, zero without a route.
 The ego's row always shows it; the other rows only with ``observe_intentions``. The
 tensor simulator's tables are compared with highway-env's own (float64, before its cast)
-on recorded worlds and after one step from them, on every scenario it covers.
+on recorded worlds of the lane-graph scenarios and after one step from them (but on
+intersection-v0, whose step spawns vehicles from the simulator's own draws); on the
+highway, which has no routes, the columns are zeros.
 """
 
 from __future__ import annotations
@@ -16,31 +18,32 @@ from tensordict import TensorDict
 
 from torchrl_grpo.envs import TensorHighwayEnv
 from torchrl_grpo.envs.highway.parity import _float64_observation, record_worlds, same_world
+from torchrl_grpo.envs.highway.tensor_params import check_tensor_config
 
 DEFAULT_FEATURES = ["presence", "x", "y", "vx", "vy"]
 WORLDS = 24
 
 
 def _config(scenario: str, observe_intentions: bool) -> dict:
-    base = dict(TensorHighwayEnv(scenario).config["observation"])
+    base = check_tensor_config(scenario)["observation"]
     features = list(base.get("features") or DEFAULT_FEATURES) + ["cos_d", "sin_d"]
     return {"observation": {**base, "features": features, "observe_intentions": observe_intentions}}
 
 
 @pytest.fixture(scope="module")
 def worlds(request):
-    """(scenario, config, float64 env, recorded states) with the others' intentions shown."""
+    """(scenario, float64 env, recorded states) with the others' intentions shown."""
     scenario = request.param
     config = _config(scenario, observe_intentions=True)
     env = TensorHighwayEnv(scenario, config, num_envs=WORLDS, dtype=torch.float64)
     recorders = recording_policies(env.config, scenario)
     states, _ = record_worlds(scenario, recorders, WORLDS, config=config, seed=5)
-    return scenario, config, env, states
+    return scenario, env, states
 
 
 @pytest.mark.parametrize("worlds", ["roundabout-v0", "intersection-v0", "merge-v0"], indirect=True)
 def test_recorded_tables_match_highway_env(worlds):
-    scenario, _, env, states = worlds
+    scenario, env, states = worlds
     assert same_world(env, states)["observation"] <= 1e-9
     shown = env.reset(
         TensorDict(state=env.state_from_highway(states), batch_size=env.batch_size),
@@ -57,7 +60,7 @@ def test_recorded_tables_match_highway_env(worlds):
 @pytest.mark.parametrize("worlds", ["roundabout-v0", "merge-v0"], indirect=True)
 def test_tables_after_a_step_match_highway_env(worlds):
     """The tensor step moves each route's head as highway-env pops legs; used up, zeros."""
-    _, _, env, states = worlds
+    _, env, states = worlds
     env.reset(
         TensorDict(state=env.state_from_highway(states), batch_size=env.batch_size),
         set_state=True,
