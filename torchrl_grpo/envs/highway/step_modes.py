@@ -29,7 +29,7 @@ restore, and agree with the eager step within rounding, not bit for bit.
 
 Example:
     >>> from torchrl_grpo.envs import TensorHighwayEnv
-    >>> env = TensorHighwayEnv(num_envs=4).native()  # the C++ step
+    >>> env = TensorHighwayEnv(num_envs=4, seed=0).native()  # the C++ step
     >>> env.rollout(3)["next", "observation"].shape
     torch.Size([4, 3, 5, 5])
 """
