@@ -7,6 +7,7 @@ import copy
 import pytest
 import torch
 from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 from train_setup import TINY, compose_config
 
 from torchrl_grpo.branching import LookaheadPolicy
@@ -107,6 +108,21 @@ def test_the_student_fits_the_search_on_its_own_states(run, tmp_path):
     before, after = fit(untrained), fit(trainer.algo.loss.head)
     for term in ("loss_best_set", "loss_search_regret", "loss_search_crash"):
         assert after[term] < 0.8 * before[term], term
+
+
+def test_the_student_drives_greedily_as_it_is_evaluated(run, tmp_path):
+    # Without crash aversion an untrained student's logits are nearly flat, so a
+    # sampling collector would almost surely play some other action in 64 steps.
+    cfg = student_config(run, ["rollout.frames_per_batch=64", "model.crash_aversion=0"])
+    trainer = Trainer(cfg, tmp_path / "s")
+    collector = trainer.algo.make_collector(seed=3)
+    try:
+        batch = next(iter(collector)).reshape(-1)
+    finally:
+        collector.shutdown()
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        greedy = trainer.policy(batch.select("observation").clone())["action"]
+    assert torch.equal(batch["action"], greedy)
 
 
 def test_resume_of_a_search_distillation_continues_exactly(run, tmp_path):

@@ -71,8 +71,9 @@ def make_collector(
     ``rollout.stagger_trunks``); ``trunk_max_steps`` ends trunks at that
     episode step, ``trunk_min_steps`` starts their decision points at that step (the
     experimental ``rollout.full_horizon_roots`` and ``rollout.first_root_step``), and the
-    trunks act with ``trunk_exploration`` (the policy samples; the experimental
-    ``algo.trunk=greedy`` acts deterministically). ``learner_branches``: only the
+    trunks (or the ``Collector``'s worlds) act with ``trunk_exploration`` (the policy
+    samples; ``algo=search_distill`` and the experimental ``algo.trunk=greedy`` act
+    deterministically). ``learner_branches``: only the
     branches below it take ``algo.tail_learner_steps``
     (:class:`~torchrl_grpo.modules.GreedyTail`'s; ``None``: every branch).
 
@@ -144,6 +145,7 @@ def make_collector(
         frames_per_batch=int(rollout.frames_per_batch),
         total_frames=-1,
         auto_register_policy_transforms=False,
+        exploration_type=trunk_exploration,
     )
 
 

@@ -23,6 +23,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.collectors import BaseCollector
 from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType
 from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import LossModule
 
@@ -269,7 +270,13 @@ class Algorithm:
         env = make_rollout_env(
             cfg.env, cfg.rollout, snapshots=False, return_state=True, device=cfg.device, seed=seed
         )
-        return make_collector(self.cfg, env, self.policy, seed=seed)
+        exploration = self.trunk_exploration(cfg.algo)
+        return make_collector(cfg, env, self.policy, seed=seed, trunk_exploration=exploration)
+
+    @classmethod
+    def trunk_exploration(cls, algo_cfg: DictConfig) -> ExplorationType:
+        """How the policy acts on the worlds it drives (trunks): it samples."""
+        return ExplorationType.RANDOM
 
     # ---------------------------------------------------------------- per batch
     def batch_metrics(self, batch: TensorDictBase) -> dict[str, float]:

@@ -15,7 +15,6 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from torchrl.collectors import BaseCollector
 from torchrl.envs import EnvBase
-from torchrl.envs.utils import ExplorationType
 from torchrl.modules import ProbabilisticActor, ValueOperator
 from torchrl.objectives import LossModule
 
@@ -217,11 +216,6 @@ class GRPO(Algorithm):
     def trunk_schedule(cls, rollout: DictConfig, step_limit: int) -> tuple[int, int, int | None]:
         """Where trunks have decision points (``training.collect.trunk_schedule``)."""
         return trunk_schedule(rollout, step_limit)
-
-    @classmethod
-    def trunk_exploration(cls, algo_cfg: DictConfig) -> ExplorationType:
-        """How the policy acts on trunks: it samples."""
-        return ExplorationType.RANDOM
 
     def batch_metrics(self, batch: TensorDictBase) -> dict[str, float]:
         """Statistics of a ``[R, G, T]`` batch of branch groups."""
