@@ -295,7 +295,7 @@ def _leaf_keys(node: dict, prefix: str = "") -> list[str]:
         (["algo=grpo_episode"], 47),
         (["algo=ppo"], 43),
         (["algo=distill"], 43),
-        (["experiment=search_student"], 48),
+        (["experiment=search_student"], 49),
     ],
 )
 def test_a_run_composes_at_most_fifty_keys(overrides, count):

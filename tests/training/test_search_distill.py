@@ -178,7 +178,22 @@ def test_one_command_trains_the_searched_run_then_the_student(tmp_path):
     assert saved["teacher_runs"] == []
 
 
-def test_a_search_distillation_cannot_be_the_run_it_searches_over(tmp_path):
-    nested = compose_config([*TINY, *STUDENT, f"algo.teacher_runs=['{' '.join(STUDENT)}']"])
-    with pytest.raises(ValueError, match=r"algo.teacher_runs\[0\] .* is a distillation itself"):
-        train_with_teachers(nested, tmp_path / "nested")
+def test_start_from_run_starts_the_student_from_the_weights_it_searches_over(run, tmp_path):
+    tiny = ["rollout.frames_per_batch=32", "algo.max_minibatches=2", "algo.minibatch_size=32"]
+    first = student_config(run, [*tiny, "experiment.total_frames=32"])
+    Trainer(first, run_dir=tmp_path / "first").train()
+    searched = str(tmp_path / "first" / "last.pt")  # a search student: the next round's run
+    saved = load_checkpoint(searched)["policy"]
+    second = Trainer(
+        student_config(searched, ["algo.start_from_run=true", "model.crash_aversion=800"]),
+        run_dir=tmp_path / "second",
+    )
+    weights = second.policy.state_dict()
+    for key, value in saved.items():
+        assert torch.equal(weights[key], value), key
+    fresh = Trainer(student_config(searched), run_dir=tmp_path / "fresh")  # the control
+    assert any(not torch.equal(fresh.policy.state_dict()[k], v) for k, v in saved.items())
+    with pytest.raises(
+        ValueError, match=r"start_from_run=true starts the student .* drop init_from="
+    ):
+        check_config(student_config(searched, ["algo.start_from_run=true", f"init_from={run}"]))

@@ -11,7 +11,13 @@ from train_setup import TINY, compose_config
 from torchrl_grpo.training import load_checkpoint
 from torchrl_grpo.training.config import check_config
 from torchrl_grpo.training.hooks import Hook
-from torchrl_grpo.training.teacher_runs import DONE, teacher_configs, train_with_teachers
+from torchrl_grpo.training.resolvers import CONF_DIR
+from torchrl_grpo.training.teacher_runs import (
+    DONE,
+    _pipeline_frames,
+    teacher_configs,
+    train_with_teachers,
+)
 
 TEACHER = " ".join(TINY)
 STUDENT = [*TINY, "algo=distill", "experiment.total_frames=20", "algo.replay_frames=64"]
@@ -88,6 +94,46 @@ def test_an_interrupted_teacher_stops_the_pipeline_before_the_student(tmp_path):
     assert result.interrupted
     assert not (tmp_path / "teachers" / "0" / DONE).exists()
     assert not (tmp_path / "teachers" / "1").exists() and not (tmp_path / "last.pt").exists()
+
+
+def test_a_distillation_among_the_teachers_runs_its_own_pipeline_first(tmp_path):
+    cfg = compose_config(_student())
+    # The teacher is a distillation of a run of its own (experiment=search_student_round2's shape).
+    cfg.algo.teacher_runs = [
+        f"{' '.join(STUDENT)} \"algo.teacher_runs=['{TEACHER} experiment.total_frames=20']\""
+    ]
+    inner, innermost = tmp_path / "teachers" / "0", tmp_path / "teachers" / "0" / "teachers" / "0"
+    assert _pipeline_frames(cfg, tmp_path, CONF_DIR) == (60, 0)  # one bar over all three stages
+    stopped = train_with_teachers(cfg, tmp_path, hooks=[_StopTeacher()])
+    assert (
+        stopped.interrupted and stopped.run_dir == innermost and not inner.joinpath(DONE).exists()
+    )
+    result = train_with_teachers(cfg, tmp_path)
+    assert not result.interrupted
+    assert all((folder / DONE).exists() for folder in (innermost, inner, tmp_path))
+    assert load_checkpoint(inner / "last.pt")["config"]["algo"]["teachers"] == [
+        str(innermost / "last.pt")
+    ]
+    assert load_checkpoint(tmp_path / "last.pt")["config"]["algo"]["teachers"] == [
+        str(inner / "last.pt")
+    ]
+    counted = _CountIterations()
+    train_with_teachers(cfg, tmp_path, hooks=[counted])
+    assert counted.iterations == 0  # every stage done: nothing trains again
+
+
+def test_experiment_search_student_round2_nests_the_first_round_and_starts_from_it(tmp_path):
+    cfg = compose_config(["experiment=search_student_round2"])
+    check_config(cfg)
+    ((folder, first),) = teacher_configs(cfg, tmp_path)
+    ((_, run),) = teacher_configs(first, folder)
+    assert (str(cfg.algo.name), str(first.algo.name), str(run.algo.name)) == (
+        "search_distill",
+        "search_distill",
+        "grpo_branch",
+    )
+    assert cfg.algo.start_from_run and not first.algo.start_from_run
+    assert cfg.model.crash_aversion == 800 and first.model.crash_aversion == 200
 
 
 def test_experiment_best_composes_nine_teachers_of_the_documented_recipe(tmp_path):

@@ -15,6 +15,11 @@ With ``algo.teacher_processes = n > 1`` the teachers train ``n`` at a time, each
 forked process with ``cores // n`` torch threads: a run scales poorly past one thread
 here, so two one-thread teachers on 2 cores train about twice the frames a second of one
 two-thread teacher.
+
+A teacher run may be a distillation itself (its entry has ``algo.teacher_runs`` of its
+own): its pipeline runs first, in its folder, under the same bar. That is how
+``experiment=search_student_round2`` chains expert iteration's rounds: the search over
+the first round's student labels the second's.
 """
 
 from __future__ import annotations
@@ -56,7 +61,7 @@ def teacher_configs(
     A teacher whose folder holds a checkpoint but no ``done.json`` resumes from it.
 
     Raises:
-        ValueError: an entry does not compose (naming it), or asks for a distillation.
+        ValueError: an entry does not compose (naming it).
 
     Example:
         >>> import tempfile
@@ -76,8 +81,6 @@ def teacher_configs(
             teacher = compose_config(overrides, conf_dir=conf_dir)
         except Exception as err:  # Hydra's errors name the key; say which teacher
             raise ValueError(f"algo.teacher_runs[{index}] ({spec!r}): {err}") from err
-        if teacher.algo.get("teacher_runs") is not None:
-            raise ValueError(f"algo.teacher_runs[{index}] ({spec!r}) is a distillation itself")
         out.append((folder, teacher))
     return out
 
@@ -120,6 +123,15 @@ def _frames_done(folder: Path) -> int:
         return int(json.loads((folder / DONE).read_text())["frames"])
     path = folder / "last.pt"
     return int(load_checkpoint(path)["frames"]) if path.exists() else 0
+
+
+def _pipeline_frames(cfg: DictConfig, run_dir: Path, conf_dir: str | Path) -> tuple[int, int]:
+    """The frames a pipeline asks for and those already trained, its teachers' included."""
+    total, done = int(cfg.experiment.total_frames), _frames_done(run_dir)
+    for folder, teacher in teacher_configs(cfg, run_dir, conf_dir):
+        teacher_total, teacher_done = _pipeline_frames(teacher, folder, conf_dir)
+        total, done = total + teacher_total, done + teacher_done
+    return total, done
 
 
 def _train(cfg: DictConfig, folder: Path, hooks: Sequence[Hook]) -> TrainResult:
@@ -165,35 +177,48 @@ def train_with_teachers(
         (True, True)
     """
     run_dir = Path(run_dir)
-    teachers = teacher_configs(cfg, run_dir, conf_dir)
-    stages = [(folder, teacher) for folder, teacher in teachers if not (folder / DONE).exists()]
-    total = sum(int(t.experiment.total_frames) for _, t in teachers)
-    total += int(cfg.experiment.total_frames)
-    done = sum(_frames_done(folder) for folder, _ in teachers) + _frames_done(run_dir)
+    total, done = _pipeline_frames(cfg, run_dir, conf_dir)
     bar = tqdm(total=total, initial=done, unit="frame", disable=not sys.stderr.isatty())
-    processes = min(int(cfg.algo.get("teacher_processes") or 1), len(stages))
     try:
-        if processes > 1:
-            stopped = _train_in_processes(stages, hooks, bar, processes)
-            if stopped is not None:
-                return stopped
-        else:
-            for folder, teacher in stages:
-                log.info("teacher %s: %s", folder.name, folder)
-                result = _train(teacher, folder, [*hooks, _PipelineBar(bar)])
-                if result.interrupted:
-                    return result
-        paths = [str(path) for path in cfg.algo.get("teachers") or []]
-        paths += [str(folder / "last.pt") for folder, _ in teachers]
-        # The student's config names its teachers' checkpoints: the runs are done.
-        student = OmegaConf.merge(cfg, {"algo": {"teachers": paths, "teacher_runs": []}})
-        if (run_dir / "last.pt").exists():
-            # Finished or not: a finished student is not trained again, only evaluated
-            # (or continued, when the command asks for more frames).
-            student.resume = str(run_dir / "last.pt")
-        return _train(student, run_dir, [*hooks, _PipelineBar(bar)])
+        return _run_pipeline(cfg, run_dir, conf_dir, hooks, bar)
     finally:
         bar.close()
+
+
+def _run_pipeline(
+    cfg: DictConfig, run_dir: Path, conf_dir: str | Path, hooks: Sequence[Hook], bar: Any
+) -> TrainResult:
+    """:func:`train_with_teachers` under a bar it was given (a nested pipeline's too)."""
+    teachers = teacher_configs(cfg, run_dir, conf_dir)
+    stages = [(folder, teacher) for folder, teacher in teachers if not (folder / DONE).exists()]
+    for folder, teacher in stages:
+        if teacher.algo.get("teacher_runs"):
+            # A distillation among the teachers: its own pipeline first, in this process.
+            log.info("teacher %s: %s (a pipeline of its own)", folder.name, folder)
+            result = _run_pipeline(teacher, folder, conf_dir, hooks, bar)
+            if result.interrupted:
+                return result
+    stages = [(f, t) for f, t in stages if not t.algo.get("teacher_runs")]
+    processes = min(int(cfg.algo.get("teacher_processes") or 1), len(stages))
+    if processes > 1:
+        stopped = _train_in_processes(stages, hooks, bar, processes)
+        if stopped is not None:
+            return stopped
+    else:
+        for folder, teacher in stages:
+            log.info("teacher %s: %s", folder.name, folder)
+            result = _train(teacher, folder, [*hooks, _PipelineBar(bar)])
+            if result.interrupted:
+                return result
+    paths = [str(path) for path in cfg.algo.get("teachers") or []]
+    paths += [str(folder / "last.pt") for folder, _ in teachers]
+    # The student's config names its teachers' checkpoints: the runs are done.
+    student = OmegaConf.merge(cfg, {"algo": {"teachers": paths, "teacher_runs": []}})
+    if (run_dir / "last.pt").exists():
+        # Finished or not: a finished student is not trained again, only evaluated
+        # (or continued, when the command asks for more frames).
+        student.resume = str(run_dir / "last.pt")
+    return _train(student, run_dir, [*hooks, _PipelineBar(bar)])
 
 
 _COUNTS: Any = None  # the pipeline's shared frame counts, inherited by a forked teacher
