@@ -8,7 +8,7 @@ import pytest
 import torch
 from train_setup import TINY, compose_config
 
-from torchrl_grpo.training import load_checkpoint
+from torchrl_grpo.training import load_checkpoint, teacher_runs
 from torchrl_grpo.training.config import check_config
 from torchrl_grpo.training.hooks import Hook
 from torchrl_grpo.training.resolvers import CONF_DIR
@@ -120,6 +120,16 @@ def test_a_distillation_among_the_teachers_runs_its_own_pipeline_first(tmp_path)
     counted = _CountIterations()
     train_with_teachers(cfg, tmp_path, hooks=[counted])
     assert counted.iterations == 0  # every stage done: nothing trains again
+
+
+def test_teacher_runs_nested_too_deep_are_refused_before_any_training(tmp_path, monkeypatch):
+    # An entry naming its own experiment nests without end; a depth limit names it.
+    monkeypatch.setattr(teacher_runs, "MAX_NESTING", 0)
+    cfg = compose_config(_student())
+    cfg.algo.teacher_runs = [f"{' '.join(STUDENT)} \"algo.teacher_runs=['{TEACHER}']\""]
+    with pytest.raises(ValueError, match="algo.teacher_runs nest more than 0 deep"):
+        train_with_teachers(cfg, tmp_path)
+    assert not (tmp_path / "teachers").exists()
 
 
 def test_experiment_search_student_round2_nests_the_first_round_and_starts_from_it(tmp_path):

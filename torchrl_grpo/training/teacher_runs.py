@@ -125,11 +125,22 @@ def _frames_done(folder: Path) -> int:
     return int(load_checkpoint(path)["frames"]) if path.exists() else 0
 
 
-def _pipeline_frames(cfg: DictConfig, run_dir: Path, conf_dir: str | Path) -> tuple[int, int]:
+#: How deep teacher runs may nest: deeper, an entry most likely names its own experiment.
+MAX_NESTING = 8
+
+
+def _pipeline_frames(
+    cfg: DictConfig, run_dir: Path, conf_dir: str | Path, depth: int = 0
+) -> tuple[int, int]:
     """The frames a pipeline asks for and those already trained, its teachers' included."""
+    if depth > MAX_NESTING:
+        raise ValueError(
+            f"algo.teacher_runs nest more than {MAX_NESTING} deep (at {run_dir}): does an "
+            "entry name the experiment it is in?"
+        )
     total, done = int(cfg.experiment.total_frames), _frames_done(run_dir)
     for folder, teacher in teacher_configs(cfg, run_dir, conf_dir):
-        teacher_total, teacher_done = _pipeline_frames(teacher, folder, conf_dir)
+        teacher_total, teacher_done = _pipeline_frames(teacher, folder, conf_dir, depth + 1)
         total, done = total + teacher_total, done + teacher_done
     return total, done
 
