@@ -15,6 +15,7 @@ from torchrl_grpo.training.resolvers import CONF_DIR
 from torchrl_grpo.training.teacher_runs import (
     DONE,
     _pipeline_frames,
+    _stage_tree,
     teacher_configs,
     train_with_teachers,
 )
@@ -96,15 +97,20 @@ def test_an_interrupted_teacher_stops_the_pipeline_before_the_student(tmp_path):
     assert not (tmp_path / "teachers" / "1").exists() and not (tmp_path / "last.pt").exists()
 
 
-def test_a_distillation_among_the_teachers_runs_its_own_pipeline_first(tmp_path):
+def test_a_distillation_among_the_teachers_runs_its_own_pipeline_first(tmp_path, monkeypatch):
     cfg = compose_config(_student())
     # The teacher is a distillation of a run of its own (experiment=search_student_round2's shape).
     cfg.algo.teacher_runs = [
         f"{' '.join(STUDENT)} \"algo.teacher_runs=['{TEACHER} experiment.total_frames=20']\""
     ]
     inner, innermost = tmp_path / "teachers" / "0", tmp_path / "teachers" / "0" / "teachers" / "0"
-    assert _pipeline_frames(cfg, tmp_path, CONF_DIR) == (60, 0)  # one bar over all three stages
+    assert _pipeline_frames(_stage_tree(cfg, tmp_path, CONF_DIR)) == (60, 0)  # one bar, 3 stages
+    composed, compose = [], teacher_runs.compose_config
+    monkeypatch.setattr(
+        teacher_runs, "compose_config", lambda *a, **k: composed.append(a) or compose(*a, **k)
+    )
     stopped = train_with_teachers(cfg, tmp_path, hooks=[_StopTeacher()])
+    assert len(composed) == 2  # each teacher's config once, for the bar and the run alike
     assert (
         stopped.interrupted and stopped.run_dir == innermost and not inner.joinpath(DONE).exists()
     )

@@ -32,6 +32,7 @@ import shlex
 import sys
 from collections.abc import Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -129,18 +130,34 @@ def _frames_done(folder: Path) -> int:
 MAX_NESTING = 8
 
 
-def _pipeline_frames(
-    cfg: DictConfig, run_dir: Path, conf_dir: str | Path, depth: int = 0
-) -> tuple[int, int]:
-    """The frames a pipeline asks for and those already trained, its teachers' included."""
+@dataclass(frozen=True)
+class _Stage:
+    """A pipeline's stage: its folder, its config and its teacher runs' stages."""
+
+    folder: Path
+    cfg: DictConfig
+    teachers: tuple[_Stage, ...]
+
+
+def _stage_tree(cfg: DictConfig, run_dir: Path, conf_dir: str | Path, depth: int = 0) -> _Stage:
+    """Every stage of the pipeline, each config composed once for the bar and the run."""
     if depth > MAX_NESTING:
         raise ValueError(
             f"algo.teacher_runs nest more than {MAX_NESTING} deep (at {run_dir}): does an "
             "entry name the experiment it is in?"
         )
-    total, done = int(cfg.experiment.total_frames), _frames_done(run_dir)
-    for folder, teacher in teacher_configs(cfg, run_dir, conf_dir):
-        teacher_total, teacher_done = _pipeline_frames(teacher, folder, conf_dir, depth + 1)
+    teachers = tuple(
+        _stage_tree(teacher, folder, conf_dir, depth + 1)
+        for folder, teacher in teacher_configs(cfg, run_dir, conf_dir)
+    )
+    return _Stage(run_dir, cfg, teachers)
+
+
+def _pipeline_frames(stage: _Stage) -> tuple[int, int]:
+    """The frames a pipeline asks for and those already trained, its teachers' included."""
+    total, done = int(stage.cfg.experiment.total_frames), _frames_done(stage.folder)
+    for teacher in stage.teachers:
+        teacher_total, teacher_done = _pipeline_frames(teacher)
         total, done = total + teacher_total, done + teacher_done
     return total, done
 
@@ -187,30 +204,27 @@ def train_with_teachers(
         >>> (result.run_dir / "teachers" / "0" / DONE).exists(), result.frames >= 20
         (True, True)
     """
-    run_dir = Path(run_dir)
-    total, done = _pipeline_frames(cfg, run_dir, conf_dir)
+    pipeline = _stage_tree(cfg, Path(run_dir), conf_dir)
+    total, done = _pipeline_frames(pipeline)
     bar = tqdm(total=total, initial=done, unit="frame", disable=not sys.stderr.isatty())
     try:
-        return _run_pipeline(cfg, run_dir, conf_dir, hooks, bar)
+        return _run_pipeline(pipeline, hooks, bar)
     finally:
         bar.close()
 
 
-def _run_pipeline(
-    cfg: DictConfig, run_dir: Path, conf_dir: str | Path, hooks: Sequence[Hook], bar: Any
-) -> TrainResult:
+def _run_pipeline(pipeline: _Stage, hooks: Sequence[Hook], bar: Any) -> TrainResult:
     """:func:`train_with_teachers` under a bar it was given (a nested pipeline's too)."""
-    teachers = teacher_configs(cfg, run_dir, conf_dir)
-    stages = [(folder, teacher) for folder, teacher in teachers if not (folder / DONE).exists()]
-    for folder, teacher in stages:
-        if teacher.algo.get("teacher_runs"):
+    pending = [teacher for teacher in pipeline.teachers if not (teacher.folder / DONE).exists()]
+    for teacher in pending:
+        if teacher.teachers:
             # A distillation among the teachers: its own pipeline first, in this process.
-            log.info("teacher %s: %s (a pipeline of its own)", folder.name, folder)
-            result = _run_pipeline(teacher, folder, conf_dir, hooks, bar)
+            log.info("teacher %s: %s (a pipeline of its own)", teacher.folder.name, teacher.folder)
+            result = _run_pipeline(teacher, hooks, bar)
             if result.interrupted:
                 return result
-    stages = [(f, t) for f, t in stages if not t.algo.get("teacher_runs")]
-    processes = min(int(cfg.algo.get("teacher_processes") or 1), len(stages))
+    stages = [(teacher.folder, teacher.cfg) for teacher in pending if not teacher.teachers]
+    processes = min(int(pipeline.cfg.algo.get("teacher_processes") or 1), len(stages))
     if processes > 1:
         stopped = _train_in_processes(stages, hooks, bar, processes)
         if stopped is not None:
@@ -221,10 +235,11 @@ def _run_pipeline(
             result = _train(teacher, folder, [*hooks, _PipelineBar(bar)])
             if result.interrupted:
                 return result
-    paths = [str(path) for path in cfg.algo.get("teachers") or []]
-    paths += [str(folder / "last.pt") for folder, _ in teachers]
+    paths = [str(path) for path in pipeline.cfg.algo.get("teachers") or []]
+    paths += [str(teacher.folder / "last.pt") for teacher in pipeline.teachers]
     # The student's config names its teachers' checkpoints: the runs are done.
-    student = OmegaConf.merge(cfg, {"algo": {"teachers": paths, "teacher_runs": []}})
+    student = OmegaConf.merge(pipeline.cfg, {"algo": {"teachers": paths, "teacher_runs": []}})
+    run_dir = pipeline.folder
     if (run_dir / "last.pt").exists():
         # Finished or not: a finished student is not trained again, only evaluated
         # (or continued, when the command asks for more frames).
