@@ -1,0 +1,45 @@
+"""benchmarks/bench_pipeline_curve.py: a nested pipeline's stages joined end to end."""
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+import bench_pipeline_curve  # noqa: E402
+
+
+def _stage(folder: Path, rows: list[tuple[int, float, float]], search_frames: int = 0) -> Path:
+    """A finished run folder: (frames, wall seconds, return) rows and the checkpoint's count."""
+    folder.mkdir(parents=True, exist_ok=True)
+    lines = [
+        json.dumps({"frames": f, "wall_seconds": s, "return": r, "crash_rate": 0.0})
+        for f, s, r in rows
+    ]
+    (folder / "eval_history.jsonl").write_text("\n".join(lines) + "\n")
+    torch.save({"search_frames": search_frames}, folder / "last.pt")
+    return folder
+
+
+def test_a_nested_pipeline_joins_its_stages_frames_search_steps_and_minutes(tmp_path):
+    # The run (100 frames, 60 s), round 1 (40 own + 400 search frames, 120 s), round 2.
+    run = tmp_path / "r2"
+    _stage(run / "teachers" / "0" / "teachers" / "0", [(0, 0, 1.0), (50, 30, 2.0), (100, 60, 3.0)])
+    _stage(run / "teachers" / "0", [(0, 0, 0.5), (20, 60, 4.0), (40, 120, 5.0)], 400)
+    _stage(run, [(0, 0, 4.5), (10, 30, 6.0)], 200)
+    rows, stages = bench_pipeline_curve.pipeline_curve(run)
+    # Every stage's frame-0 row (an untrained network) is left out.
+    assert [r["return"] for r in rows] == [2.0, 3.0, 4.0, 5.0, 6.0]
+    # Round 1 at 20 own frames: the run's 100, its 20 and half its 400 search frames.
+    assert [r["frames"] for r in rows] == [50, 100, 100 + 20 + 200, 100 + 440, 540 + 10 + 200]
+    assert [r["minutes"] for r in rows] == [0.5, 1.0, 2.0, 3.0, 3.5]
+    assert [name for name, _, _ in stages] == ["r2/teachers/0/teachers/0", "r2/teachers/0", "r2"]
+    assert [frames for _, frames, _ in stages] == [100, 540, 750]
+
+
+def test_a_folder_without_evaluations_is_named(tmp_path):
+    with pytest.raises(SystemExit, match="no eval_history.jsonl"):
+        bench_pipeline_curve.pipeline_curve(tmp_path)
