@@ -7,25 +7,22 @@ a student's frames include the search steps that labelled its states
 (``search_frames`` in its checkpoint; spread over its evaluations in proportion to its
 own frames, as it labels every state it visits). Every stage's first row (its frame 0,
 the untrained network) is left out, so the axis shows the trained networks.
-Plain runs (PPO, say) are drawn beside. The minutes assume the stages ran one after
-another, as they do unless ``algo.teacher_processes > 1``.
+A plain run (PPO, say) is a pipeline of one stage, drawn beside. The minutes assume
+the stages ran one after another, as they do unless ``algo.teacher_processes > 1``.
 
-    python benchmarks/bench_pipeline_curve.py --pipeline runs/search_student_round2 \
-        --runs runs/ppo15 --labels "expert iteration, 2 rounds" PPO --out docs/img/search_student
+    python benchmarks/bench_pipeline_curve.py runs/search_student_round2 runs/ppo15 \
+        --labels "expert iteration, 2 rounds" PPO --out docs/img/search_student
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
-import torch
 from claims import claim
-from omegaconf import OmegaConf
 
-from torchrl_grpo.training import plot_learning_curve
+from torchrl_grpo.training import load_checkpoint, plot_learning_curve
 
 logging.basicConfig(level=logging.INFO, format="%(message)s")
 log = logging.getLogger("bench_pipeline_curve")
@@ -37,20 +34,13 @@ def stage_folders(run: Path) -> list[Path]:
     return [folder for teacher in teachers for folder in stage_folders(teacher)] + [run]
 
 
-def history(folder: Path) -> list[dict]:
-    """A stage's ``eval_history.jsonl`` rows (an error naming the folder when it has none)."""
-    path = folder / "eval_history.jsonl"
-    if not path.exists():
-        raise SystemExit(f"{folder} has no eval_history.jsonl: not a finished run folder")
-    return [json.loads(line) for line in path.read_text().splitlines() if line]
-
-
 def pipeline_curve(run: Path) -> tuple[list[dict], list[tuple[str, int, float]]]:
     """The pipeline's rows (``frames`` counted, ``minutes``) and each stage's totals."""
     rows, stages, frames_before, seconds_before = [], [], 0, 0.0
     for folder in stage_folders(run):
-        own = history(folder)
-        checkpoint = torch.load(folder / "last.pt", map_location="cpu", weights_only=False)
+        # The checkpoint holds the evaluations (eval_history.jsonl's rows) and the search's count.
+        checkpoint = load_checkpoint(folder / "last.pt")
+        own = checkpoint["eval_history"]
         search, final = int(checkpoint.get("search_frames") or 0), max(own[-1]["frames"], 1)
         for row in own[1:]:
             counted = row["frames"] + search * row["frames"] / final
@@ -70,26 +60,19 @@ def pipeline_curve(run: Path) -> tuple[list[dict], list[tuple[str, int, float]]]
 def main() -> None:
     """Print each curve's table and claims, and draw the three curves."""
     p = argparse.ArgumentParser()
-    p.add_argument("--pipeline", nargs="*", type=Path, default=[], help="pipeline run folders")
-    p.add_argument("--runs", nargs="*", type=Path, default=[], help="plain runs beside")
-    p.add_argument("--labels", nargs="*", default=None, help="one per folder, pipelines first")
+    p.add_argument("runs", nargs="+", type=Path, help="run folders: pipelines, or plain runs")
+    p.add_argument("--labels", nargs="*", default=None, help="one per run folder")
     p.add_argument("--out", type=Path, default=Path("docs/img/pipeline"))
     args = p.parse_args()
-    folders = [*args.pipeline, *args.runs]
-    if args.labels is not None and len(args.labels) != len(folders):
-        raise SystemExit(f"--labels takes one label per folder: {len(folders)}, {len(args.labels)}")
-    labels = args.labels or [str(folder) for folder in folders]
+    if args.labels is not None and len(args.labels) != len(args.runs):
+        raise SystemExit(f"--labels takes one label per run: {len(args.runs)}, {len(args.labels)}")
+    labels = args.labels or [str(folder) for folder in args.runs]
 
     curves = {}
-    for label, folder in zip(labels, folders, strict=True):
-        if folder in args.pipeline:
-            rows, stages = pipeline_curve(folder)
-        else:
-            rows = [{**r, "minutes": r["wall_seconds"] / 60} for r in history(folder)[1:]]
-            stages = [(folder.name, rows[-1]["frames"], rows[-1]["minutes"])]
+    for label, folder in zip(labels, args.runs, strict=True):
+        rows, stages = pipeline_curve(folder)  # a plain run: a pipeline of one stage
         curves[label] = [rows]
-        cfg = OmegaConf.load(folder / "config.yaml")
-        print(f"\n{label} ({folder}, {cfg.algo.name}):")
+        print(f"\n{label} ({folder}):")
         print("| frames counted | minutes | return | crash rate | episodes (seeds) |")
         print("|---|---|---|---|---|")
         for row in rows:

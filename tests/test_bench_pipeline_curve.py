@@ -1,26 +1,21 @@
 """benchmarks/bench_pipeline_curve.py: a nested pipeline's stages joined end to end."""
 
-import json
 import sys
 from pathlib import Path
 
 import pytest
-import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import bench_pipeline_curve  # noqa: E402
 
+from torchrl_grpo.training.checkpoint import save_checkpoint  # noqa: E402
+
 
 def _stage(folder: Path, rows: list[tuple[int, float, float]], search_frames: int = 0) -> Path:
-    """A finished run folder: (frames, wall seconds, return) rows and the checkpoint's count."""
-    folder.mkdir(parents=True, exist_ok=True)
-    lines = [
-        json.dumps({"frames": f, "wall_seconds": s, "return": r, "crash_rate": 0.0})
-        for f, s, r in rows
-    ]
-    (folder / "eval_history.jsonl").write_text("\n".join(lines) + "\n")
-    torch.save({"search_frames": search_frames}, folder / "last.pt")
+    """A finished run folder: its checkpoint's (frames, wall seconds, return) evaluations."""
+    history = [{"frames": f, "wall_seconds": s, "return": r, "crash_rate": 0.0} for f, s, r in rows]
+    save_checkpoint({"eval_history": history, "search_frames": search_frames}, folder / "last.pt")
     return folder
 
 
@@ -40,6 +35,13 @@ def test_a_nested_pipeline_joins_its_stages_frames_search_steps_and_minutes(tmp_
     assert [frames for _, frames, _ in stages] == [100, 540, 750]
 
 
-def test_a_folder_without_evaluations_is_named(tmp_path):
-    with pytest.raises(SystemExit, match="no eval_history.jsonl"):
+def test_a_plain_run_is_a_pipeline_of_one_stage(tmp_path):
+    _stage(tmp_path / "ppo", [(0, 0, 1.0), (50, 30, 2.0), (100, 60, 3.0)])
+    rows, stages = bench_pipeline_curve.pipeline_curve(tmp_path / "ppo")
+    assert [(r["frames"], r["minutes"]) for r in rows] == [(50, 0.5), (100, 1.0)]
+    assert stages == [("ppo", 100, 1.0)]
+
+
+def test_a_folder_without_a_checkpoint_is_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match=f"no checkpoint at {tmp_path}"):
         bench_pipeline_curve.pipeline_curve(tmp_path)
