@@ -3,9 +3,10 @@
 A pipeline's network is the product of every stage before it: the teacher runs, then
 each round's student. Its curve joins the stages' periodic evaluations end to end:
 each stage's frames and training minutes start where the stages before it stopped, and
-a student's frames include the search steps that labelled its states
-(``search_frames`` in its checkpoint; spread over its evaluations in proportion to its
-own frames, as it labels every state it visits). Every stage's first row (its frame 0,
+a student's frames include the search steps that labelled its states (each
+evaluation's ``search_frames``; a run that recorded only its checkpoint's total, before
+2026-12-04, has it spread over its evaluations in proportion to its own frames, as it
+labels every state it visits). Every stage's first row (its frame 0,
 the untrained network) is left out, so the axis shows the trained networks.
 A plain run (PPO, say) is a pipeline of one stage, drawn beside. The minutes assume
 the stages ran one after another, as they do unless ``algo.teacher_processes > 1``.
@@ -43,7 +44,8 @@ def pipeline_curve(run: Path) -> tuple[list[dict], list[tuple[str, int, float]]]
         own = checkpoint["eval_history"]
         search, final = int(checkpoint.get("search_frames") or 0), max(own[-1]["frames"], 1)
         for row in own[1:]:
-            counted = row["frames"] + search * row["frames"] / final
+            searched = row.get("search_frames", search * row["frames"] / final)
+            counted = row["frames"] + searched
             rows.append(
                 {
                     **row,

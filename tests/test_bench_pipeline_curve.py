@@ -35,6 +35,22 @@ def test_a_nested_pipeline_joins_its_stages_frames_search_steps_and_minutes(tmp_
     assert [frames for _, frames, _ in stages] == [100, 540, 750]
 
 
+def test_the_search_steps_each_evaluation_recorded_are_counted_as_they_are(tmp_path):
+    # The run (100 frames), then a student whose search took 300 of its 400 steps by its
+    # first evaluation: the rows' counts, not a share in proportion to its own frames.
+    run = tmp_path / "r1"
+    _stage(run / "teachers" / "0", [(0, 0, 1.0), (100, 60, 2.0)])
+    student = [(0, 0, 1.5, 0), (20, 60, 3.0, 300), (40, 120, 4.0, 400)]
+    history = [
+        {"frames": f, "wall_seconds": s, "return": r, "crash_rate": 0.0, "search_frames": n}
+        for f, s, r, n in student
+    ]
+    save_checkpoint({"eval_history": history, "search_frames": 400}, run / "last.pt")
+    rows, stages = bench_pipeline_curve.pipeline_curve(run)
+    assert [r["frames"] for r in rows] == [100, 100 + 20 + 300, 100 + 40 + 400]
+    assert [frames for _, frames, _ in stages] == [100, 540]
+
+
 def test_a_plain_run_is_a_pipeline_of_one_stage(tmp_path):
     _stage(tmp_path / "ppo", [(0, 0, 1.0), (50, 30, 2.0), (100, 60, 3.0)])
     rows, stages = bench_pipeline_curve.pipeline_curve(tmp_path / "ppo")

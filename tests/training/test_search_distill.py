@@ -87,6 +87,7 @@ def test_the_student_fits_the_search_on_its_own_states(run, tmp_path):
             "algo.max_minibatches=30",
             "algo.minibatch_size=64",
             "optim.lr=3e-3",
+            "experiment.eval_every=5",
         ],
     )
     trainer = Trainer(cfg, run_dir=tmp_path / "student")
@@ -98,6 +99,10 @@ def test_the_student_fits_the_search_on_its_own_states(run, tmp_path):
     assert len(trainer.algo.replay) == 640 and bool(net.standardised)
     # Every state's 5 branches of at most 3 steps are counted apart from the frames.
     assert 640 * 5 <= trainer.algo.search_frames <= 640 * 5 * 3
+    # Each evaluation's row records the branch steps so far: none before the first batch.
+    searched = [row["search_frames"] for row in trainer.progress.eval_history]
+    assert len(searched) == 3 and searched[0] == 0 < searched[1] < searched[2]
+    assert searched[2] == trainer.algo.search_frames
     kept = trainer.algo.replay.rows  # the states it drove itself, labelled by the search
 
     def fit(head) -> dict[str, float]:

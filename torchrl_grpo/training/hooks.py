@@ -65,6 +65,7 @@ class TrainerView(Protocol):
 
     cfg: DictConfig
     run_dir: Path
+    algo: Any
     policy: Any
     eval_policy: Any
     eval_env: EnvBase
@@ -216,7 +217,8 @@ class EvaluationHook(Hook):
     Every ``experiment.eval_every`` iterations, and before the first batch of a run that
     starts from frame 0: ``eval_episodes`` episodes from
     ``eval_seed`` (``eval/`` metrics, a row of ``eval_history.jsonl`` that names its
-    first seed). At the end:
+    first seed and holds the algorithm's :meth:`~torchrl_grpo.training.Algorithm.counters`).
+    At the end:
     ``final_eval_episodes`` episodes from ``final_eval_seed`` (a disjoint seed set) of
     the policy and of every baseline of ``experiment.baselines``, the baselines from
     their cache (:func:`~torchrl_grpo.training.evaluate_baselines`; ``results.md``,
@@ -294,6 +296,7 @@ class EvaluationHook(Hook):
         progress = trainer.progress
         # The seed names the seed set, so that a row is compared with baselines on its own.
         row = {"iteration": progress.iteration, "frames": progress.frames, "seed": seed}
+        row |= trainer.algo.counters()  # a search's branch steps, counted beside the frames
         progress.eval_history.append({**row, "wall_seconds": trainer.wall_seconds(), **summary})
         with open(trainer.run_dir / "eval_history.jsonl", "a") as f:
             f.write(json.dumps(progress.eval_history[-1]) + "\n")

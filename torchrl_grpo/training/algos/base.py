@@ -368,6 +368,14 @@ class Algorithm:
         means["train/minibatches"] = float(count)
         return means
 
+    def counters(self) -> dict[str, int]:
+        """Counts of the algorithm's own that every evaluation's row records (none here).
+
+        ``algo=search_distill`` records its search's branch steps, which a result adds
+        to the run's frames.
+        """
+        return {}
+
     # ---------------------------------------------------------------- checkpoints
     def state_dict(self) -> dict[str, Any]:
         """Its part of a checkpoint (top-level keys of the checkpoint's dict)."""

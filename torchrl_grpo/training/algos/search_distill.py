@@ -237,6 +237,10 @@ class SearchDistill(LabelledFit):
             if callable(getattr(module, "standardise_from", None)) and not module.standardised:
                 module.standardise_from(observation)
 
+    def counters(self) -> dict[str, int]:
+        """The search's branch steps so far: each evaluation's ``search_frames``."""
+        return {"search_frames": self.search_frames}
+
     def state_dict(self) -> dict[str, Any]:  # noqa: D102
         return {**super().state_dict(), "search_frames": self.search_frames}
 
