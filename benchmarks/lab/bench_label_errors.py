@@ -63,6 +63,30 @@ def flagged(crashed: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
     return crashed.gather(-1, action.long().unsqueeze(-1)).squeeze(-1) & ~crashed.all(-1)
 
 
+def last_decisions(steps: torch.Tensor, crashed: torch.Tensor, look_back: int) -> list[list[int]]:
+    """Each crashed episode's last ``look_back`` decisions, as rows of ``data[steps]``.
+
+    Args:
+        steps: ``[episodes, T]`` whether the step belongs to its episode.
+        crashed: ``[episodes, T]`` whether the step ended in a crash.
+        look_back: decisions per crash, the crash's own included.
+
+    Example:
+        >>> steps = torch.tensor([[1, 1, 1], [1, 1, 0]], dtype=torch.bool)
+        >>> crashed = torch.tensor([[0, 0, 1], [0, 1, 1]], dtype=torch.bool)
+        >>> last_decisions(steps, crashed, look_back=2)  # rows 0 1 2 | 3 4
+        [[1, 2], [3, 4]]
+    """
+    index = torch.full(steps.shape, -1, dtype=torch.long)
+    index[steps] = torch.arange(int(steps.sum()))
+    hits = crashed & steps
+    out = []
+    for episode in hits.any(1).nonzero().squeeze(-1).tolist():
+        at = int(hits[episode].long().argmax())
+        out.append(index[episode, max(0, at - look_back + 1) : at + 1].tolist())
+    return out
+
+
 def labelled(env_cfg, searched: torch.nn.Module, states: TensorDictBase, horizon: int):
     """``search_labels`` of ``states`` by the search over ``searched``, a chunk at a time."""
     parts = []
@@ -135,19 +159,16 @@ def main() -> None:
             f"{int(errors.sum())} where the student's is"
         )
 
-    # Each crash's last decisions: their rows among the flattened states.
-    index = torch.full(steps.shape, -1, dtype=torch.long)
-    index[steps] = torch.arange(states.shape[0])
-    hits = data.get(("next", "crashed")).reshape(steps.shape) & steps
+    crashes = last_decisions(
+        steps, data.get(("next", "crashed")).reshape(steps.shape), args.look_back
+    )
     seen, probs = 0, []
-    for episode in hits.any(1).nonzero().squeeze(-1).tolist():
-        at = int(hits[episode].long().argmax())
-        rows = index[episode, max(0, at - args.look_back + 1) : at + 1].tolist()
+    for rows in crashes:
         hit = [j for j in rows if errors[j]]
         seen += bool(hit)
         probs += [float(chosen[hit[0]])] if hit else []
         if args.sequences:
-            print(f"episode {episode}, crash at step {at}:")
+            print(f"a crash at decision {rows[-1]}:")
             for j in rows:
                 print(
                     f"  {ACTIONS[int(action[j])]:<10} labels crash: "
@@ -155,9 +176,8 @@ def main() -> None:
                     + " ".join(f"{x:.2f}" for x in crash_prob[j].tolist())
                     + ("  <- flagged" if errors[j] else "")
                 )
-    crashes = int(hits.any(1).sum())
     print(
-        f"\n{crashes} crashes; {seen} follow a flagged decision among the last "
+        f"\n{len(crashes)} crashes; {seen} follow a flagged decision among the last "
         f"{args.look_back}; the head's p for the first flagged action of each: "
         + ", ".join(f"{x:.3f}" for x in sorted(probs))
     )
