@@ -42,7 +42,6 @@ from torchrl_grpo.training.env_builder import env_overrides
 from torchrl_grpo.training.transfer import tensor_episodes
 
 logging.basicConfig(level=logging.INFO, format="%(message)s")
-log = logging.getLogger("bench_label_errors")
 
 #: States labelled per batched search (5 branch worlds each): bounds the memory.
 CHUNK = 8192
