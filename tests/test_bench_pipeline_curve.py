@@ -12,9 +12,16 @@ import bench_pipeline_curve  # noqa: E402
 from torchrl_grpo.training.checkpoint import save_checkpoint  # noqa: E402
 
 
-def _stage(folder: Path, rows: list[tuple[int, float, float]], search_frames: int = 0) -> Path:
-    """A finished run folder: its checkpoint's (frames, wall seconds, return) evaluations."""
-    history = [{"frames": f, "wall_seconds": s, "return": r, "crash_rate": 0.0} for f, s, r in rows]
+def _stage(folder: Path, rows: list[tuple], search_frames: int = 0) -> Path:
+    """A finished run folder: its checkpoint's evaluations.
+
+    Each row is (frames, wall seconds, return), or with a fourth figure, the search
+    frames the evaluation recorded.
+    """
+    history = []
+    for frames, seconds, ret, *recorded in rows:
+        row = {"frames": frames, "wall_seconds": seconds, "return": ret, "crash_rate": 0.0}
+        history.append(row | ({"search_frames": recorded[0]} if recorded else {}))
     save_checkpoint({"eval_history": history, "search_frames": search_frames}, folder / "last.pt")
     return folder
 
@@ -40,12 +47,7 @@ def test_the_search_steps_each_evaluation_recorded_are_counted_as_they_are(tmp_p
     # first evaluation: the rows' counts, not a share in proportion to its own frames.
     run = tmp_path / "r1"
     _stage(run / "teachers" / "0", [(0, 0, 1.0), (100, 60, 2.0)])
-    student = [(0, 0, 1.5, 0), (20, 60, 3.0, 300), (40, 120, 4.0, 400)]
-    history = [
-        {"frames": f, "wall_seconds": s, "return": r, "crash_rate": 0.0, "search_frames": n}
-        for f, s, r, n in student
-    ]
-    save_checkpoint({"eval_history": history, "search_frames": 400}, run / "last.pt")
+    _stage(run, [(0, 0, 1.5, 0), (20, 60, 3.0, 300), (40, 120, 4.0, 400)], 400)
     rows, stages = bench_pipeline_curve.pipeline_curve(run)
     assert [r["frames"] for r in rows] == [100, 100 + 20 + 300, 100 + 40 + 400]
     assert [frames for _, frames, _ in stages] == [100, 540]
