@@ -105,3 +105,26 @@ def test_a_truncated_file_or_another_file_is_not_a_valid_checkpoint(stopped, tmp
     torch.save(torch.zeros(2), tensor)
     with pytest.raises(ValueError, match=f"not a valid checkpoint: {tensor}"):
         load_checkpoint(tensor)
+
+
+def test_a_resume_under_another_thread_count_warns_and_trains_on(stopped, tmp_path, caplog):
+    path, straight = stopped
+    saved = load_checkpoint(path)["threads"]
+    assert saved == torch.get_num_threads()
+    cfg = compose_config([f"resume={path}"])
+    with caplog.at_level(logging.WARNING, logger="torchrl_grpo"):
+        Trainer(cfg, run_dir=tmp_path / "same")
+    assert "torch threads" not in caplog.text  # the same count: nothing to say
+    before = torch.get_num_threads()
+    torch.set_num_threads(saved + 1)
+    try:
+        with caplog.at_level(logging.WARNING, logger="torchrl_grpo"):
+            resumed = Trainer(cfg, run_dir=tmp_path / "more")
+        assert (
+            f"{path} was trained with {saved} torch threads and resumes with {saved + 1}: "
+            f"it will not continue bit for bit (OMP_NUM_THREADS={saved}" in caplog.text
+        )
+        resumed.train()  # a warning, not a refusal: the run goes on to its end
+    finally:
+        torch.set_num_threads(before)
+    assert (resumed.iteration, resumed.frames) == (straight.iteration, straight.frames)

@@ -106,6 +106,9 @@ def checkpoint_dict(
 ) -> dict[str, Any]:
     """A checkpoint: the parts of a run's state, and the random states of this moment.
 
+    It also records torch's thread count (``"threads"``): float sums split across
+    threads round differently, so a run continues bit for bit only with the same count.
+
     Args:
         config: the resolved config.
         progress: the run's counters.
@@ -117,6 +120,8 @@ def checkpoint_dict(
         >>> ckpt = checkpoint_dict({"seed": 0}, Progress(iteration=2), {}, {"loss": {}}, {})
         >>> ckpt["version"], ckpt["iteration"], ckpt["replay"], sorted(ckpt["rng"])
         (1, 2, None, ['numpy', 'python', 'torch'])
+        >>> ckpt["threads"] == torch.get_num_threads()
+        True
     """
     return {
         "version": CHECKPOINT_VERSION,
@@ -127,6 +132,7 @@ def checkpoint_dict(
         **algorithm,
         "collector": collector,
         "rng": get_rng_state(),
+        "threads": torch.get_num_threads(),
     }
 
 

@@ -229,6 +229,19 @@ class Trainer:
         # policy once (to learn its outputs), which draws from torch's generator.
         self._rng_state = ckpt["rng"]
         log.info("resumed from %s at iteration %d (%d frames)", path, self.iteration, self.frames)
+        threads = ckpt.get("threads")  # absent from checkpoints before 2026-12-04
+        if threads is not None and threads != torch.get_num_threads():
+            # Sums split over another number of threads round differently: the run goes
+            # on, but not as the uninterrupted run would have.
+            log.warning(
+                "%s was trained with %d torch threads and resumes with %d: it will not "
+                "continue bit for bit (OMP_NUM_THREADS=%d or torch.set_num_threads(%d) would)",
+                path,
+                threads,
+                torch.get_num_threads(),
+                threads,
+                threads,
+            )
 
     # ------------------------------------------------------------------ main loop
     def train(self) -> TrainResult:
