@@ -42,7 +42,8 @@ __all__ = [
     "set_rng_state",
 ]
 
-#: The layout of a checkpoint's dict; version 1 is every checkpoint written so far.
+#: The layout of a checkpoint's dict; version 1 is every checkpoint written so far. Keys
+#: added since are read as optional: ``"threads"`` (2026-12-04).
 CHECKPOINT_VERSION = 1
 
 # The algorithm keys of version 1, with the value an algorithm without them writes:
