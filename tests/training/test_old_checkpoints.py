@@ -137,7 +137,8 @@ def resume_and_train_on(run: str, run_dir: str) -> None:
     """Resume ``run``'s checkpoint, compare what was loaded with it, train one iteration."""
     path = DATA / f"v1_{run}.pt"
     ckpt = load_checkpoint(path)
-    overrides = [*TINY, *RUNS[run], f"resume={path}"]
+    # The run's own keys come from its checkpoint (v1's algo.roots is the lab's today).
+    overrides = [*TINY, f"resume={path}"]
     # One more iteration than the checkpoint's.
     cfg = compose_config([*overrides, f"experiment.total_frames={ckpt['frames'] + 1}"])
     trainer = Trainer(cfg, run_dir=run_dir)
