@@ -106,6 +106,30 @@ def ensemble_of(policies: list, env_cfg) -> ProbabilisticActor:
     return make_discrete_actor(PolicyEnsemble(nets), make_env(env_cfg).action_spec)
 
 
+def last_decisions(steps: torch.Tensor, crashed: torch.Tensor, look_back: int) -> list[list[int]]:
+    """Each crashed episode's last ``look_back`` decisions, as rows of ``data[steps]``.
+
+    Args:
+        steps: ``[episodes, T]`` whether the step belongs to its episode.
+        crashed: ``[episodes, T]`` whether the step ended in a crash.
+        look_back: decisions per crash, the crash's own included.
+
+    Example:
+        >>> steps = torch.tensor([[1, 1, 1], [1, 1, 0]], dtype=torch.bool)
+        >>> crashed = torch.tensor([[0, 0, 1], [0, 1, 1]], dtype=torch.bool)
+        >>> last_decisions(steps, crashed, look_back=2)  # rows 0 1 2 | 3 4
+        [[1, 2], [3, 4]]
+    """
+    index = torch.full(steps.shape, -1, dtype=torch.long)
+    index[steps] = torch.arange(int(steps.sum()))
+    hits = crashed & steps
+    out = []
+    for episode in hits.any(1).nonzero().squeeze(-1).tolist():
+        at = int(hits[episode].long().argmax())
+        out.append(index[episode, max(0, at - look_back + 1) : at + 1].tolist())
+    return out
+
+
 def anatomy(
     env_cfg, policy, planner, episodes: int, seed: int, last: int = 5, sequences: bool = False
 ) -> None:
@@ -115,14 +139,12 @@ def anatomy(
     planner scores it as costly, its regret and the planner's choice.
     """
     data, before = tensor_episodes(env_cfg, policy, episodes=episodes, seed=seed, return_state=True)
-    hits = data.get(("next", "crashed")).reshape(episodes, -1) & before
-    crashed = hits.any(1).nonzero().squeeze(-1).tolist()
-    at = hits.float().argmax(1)
-    rows = [(i, t) for i in crashed for t in range(max(0, int(at[i]) - last + 1), int(at[i]) + 1)]
-    if not rows:
+    crashes = last_decisions(before, data.get(("next", "crashed")).reshape(before.shape), last)
+    if not crashes:
         print("no crash")
         return
-    steps = torch.stack([data[i, t] for i, t in rows])
+    rows = torch.tensor([j for window in crashes for j in window])
+    steps = data[before][rows]
     scores = planner.returns(steps)
     action = steps.get("action").reshape(-1, 1)
     regret = scores.max(-1).values - scores.gather(-1, action).squeeze(-1)
@@ -132,21 +154,26 @@ def anatomy(
         for a, b, c in zip(action.squeeze(-1), scores.argmax(-1), costly, strict=True)
         if c
     )
+    # each crash's positions in ``rows``, and the episode its last decision belongs to
+    picks = torch.arange(len(rows)).split([len(window) for window in crashes])
+    episode_of = before.nonzero()[:, 0]
     if sequences:
         print()
         best = scores.argmax(-1)
-        for i in crashed:
-            picks = [j for j, (e, _) in enumerate(rows) if e == i]
+        for window, pick in zip(crashes, picks, strict=True):
             words = [
                 ACTIONS[int(action[j])]
                 + (f"({float(regret[j]):.1f}: {ACTIONS[int(best[j])]})" if costly[j] else "")
-                for j in picks
+                for j in pick.tolist()
             ]
-            speed = float(steps[picks[-1]].get(("state", "vehicles", "target_speed"))[0])
-            print(f"  episode {i} (set-point {speed:.0f} m/s): " + " ".join(words))
-    episodes_costly = len({rows[j][0] for j in costly.nonzero().squeeze(-1).tolist()})
+            speed = float(steps[int(pick[-1])].get(("state", "vehicles", "target_speed"))[0])
+            print(
+                f"  episode {int(episode_of[window[-1]])} (set-point {speed:.0f} m/s): "
+                + " ".join(words)
+            )
+    episodes_costly = sum(bool(costly[pick].any()) for pick in picks)
     print(
-        f"{len(crashed)} crashes in {episodes} episodes; {episodes_costly} follow a costly "
+        f"{len(crashes)} crashes in {episodes} episodes; {episodes_costly} follow a costly "
         f"choice (regret >= 0.5) among the last {last} decisions; {int(costly.sum())} costly "
         f"choices of {len(rows)}: {kinds.most_common(6)}"
     )

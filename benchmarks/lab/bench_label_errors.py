@@ -30,7 +30,7 @@ import logging
 
 import _path  # noqa: F401  (benchmarks/ on sys.path)
 import torch
-from bench_crash_rates import ACTIONS, trained
+from bench_crash_rates import ACTIONS, last_decisions, trained
 from tensordict import TensorDictBase, cat
 
 from torchrl_grpo.branching import LookaheadPolicy
@@ -60,30 +60,6 @@ def flagged(crashed: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         [True, False, False]
     """
     return crashed.gather(-1, action.long().unsqueeze(-1)).squeeze(-1) & ~crashed.all(-1)
-
-
-def last_decisions(steps: torch.Tensor, crashed: torch.Tensor, look_back: int) -> list[list[int]]:
-    """Each crashed episode's last ``look_back`` decisions, as rows of ``data[steps]``.
-
-    Args:
-        steps: ``[episodes, T]`` whether the step belongs to its episode.
-        crashed: ``[episodes, T]`` whether the step ended in a crash.
-        look_back: decisions per crash, the crash's own included.
-
-    Example:
-        >>> steps = torch.tensor([[1, 1, 1], [1, 1, 0]], dtype=torch.bool)
-        >>> crashed = torch.tensor([[0, 0, 1], [0, 1, 1]], dtype=torch.bool)
-        >>> last_decisions(steps, crashed, look_back=2)  # rows 0 1 2 | 3 4
-        [[1, 2], [3, 4]]
-    """
-    index = torch.full(steps.shape, -1, dtype=torch.long)
-    index[steps] = torch.arange(int(steps.sum()))
-    hits = crashed & steps
-    out = []
-    for episode in hits.any(1).nonzero().squeeze(-1).tolist():
-        at = int(hits[episode].long().argmax())
-        out.append(index[episode, max(0, at - look_back + 1) : at + 1].tolist())
-    return out
 
 
 def labelled(env_cfg, searched: torch.nn.Module, states: TensorDictBase, horizon: int):

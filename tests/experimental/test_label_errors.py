@@ -1,4 +1,4 @@
-"""bench_label_errors: which decisions its labels flag, and each crash's last decisions."""
+"""bench_label_errors: which decisions its labels flag, and its labels in chunks."""
 
 import doctest
 
@@ -28,16 +28,6 @@ def test_a_flag_needs_the_action_to_crash_and_another_not_to():
         True,
         False,  # no branch crashes
     ]
-
-
-def test_each_crash_is_its_episode_s_last_decisions_and_only_its_own():
-    # Three episodes of four steps: a crash at step 3, one at step 0, none; the rows of
-    # data[steps] run 0..3 | 4 | 5 6 7 8.
-    steps = torch.tensor([[1, 1, 1, 1], [1, 0, 0, 0], [1, 1, 1, 1]], dtype=torch.bool)
-    # A crash flag after an episode's end is not the episode's.
-    crashed = torch.tensor([[0, 0, 0, 1], [1, 0, 0, 1], [0, 0, 0, 0]], dtype=torch.bool)
-    assert bench.last_decisions(steps, crashed, look_back=3) == [[1, 2, 3], [4]]
-    assert bench.last_decisions(steps, crashed, look_back=10) == [[0, 1, 2, 3], [4]]
 
 
 def test_the_labels_in_chunks_are_the_labels_in_one():
