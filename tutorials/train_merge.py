@@ -65,7 +65,6 @@ QUICK = [
     "env=merge",
     "experiment=smoke",
     "logger=wandb",
-    "logger.video=false",
     "experiment.eval_every=1",
     "experiment.final_eval_episodes=1",
     "experiment.baselines=[slower]",
