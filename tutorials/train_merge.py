@@ -17,7 +17,7 @@ It teaches the training entry point from Python, the same one ``scripts/train.py
 
 Run it::
 
-    python tutorials/train_merge.py           # 4,000 frames: about 3 min on 2 cores
+    python tutorials/train_merge.py           # 400,000 frames: about 4 min on 2 cores
     python tutorials/train_merge.py --quick   # a few hundred frames (the tests' form)
     python tutorials/train_merge.py algo.group_size=4 seed=1   # any Hydra override
 
@@ -49,14 +49,12 @@ from torchrl_grpo.training import (
 NAME = "train_merge"
 CONF = Path(__file__).resolve().parents[1] / "conf"
 
-#: The tutorial's run: merge-v0, GRPO with branching (the default algo), wandb offline,
-#: an evaluation after every iteration so that the curve has points.
+#: The tutorial's run: merge-v0 with its own defaults on the tensor simulator, GRPO with
+#: branching (the default algo) for experiment=quick's 400,000 frames, wandb offline, an
+#: evaluation after every iteration so that the curve has points.
 FULL = [
     "env=merge",
     "experiment=quick",
-    # experiment=quick's own budget (400k frames) is sized for the tensor simulator;
-    # merge-v0 runs on highway-env workers, so the tutorial keeps 4,000 frames.
-    "experiment.total_frames=4000",
     "logger=wandb",
     "experiment.eval_every=1",
 ]
