@@ -154,12 +154,12 @@ def anatomy(
         for a, b, c in zip(action.squeeze(-1), scores.argmax(-1), costly, strict=True)
         if c
     )
-    # each crash's positions in ``rows``, and the episode its last decision belongs to
+    # each crash's positions in ``rows``
     picks = torch.arange(len(rows)).split([len(window) for window in crashes])
-    episode_of = before.nonzero()[:, 0]
     if sequences:
         print()
         best = scores.argmax(-1)
+        episode_of = before.nonzero()[:, 0]  # the episode of each row of ``data[before]``
         for window, pick in zip(crashes, picks, strict=True):
             words = [
                 ACTIONS[int(action[j])]
