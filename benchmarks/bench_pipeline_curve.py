@@ -8,8 +8,10 @@ evaluation's ``search_frames``; a run that recorded only its checkpoint's total,
 2026-12-04, has it spread over its evaluations in proportion to its own frames, as it
 labels every state it visits). Every stage's first row (its frame 0,
 the untrained network) is left out, so the axis shows the trained networks.
-A plain run (PPO, say) is a pipeline of one stage, drawn beside. The minutes assume
-the stages ran one after another, as they do unless ``algo.teacher_processes > 1``.
+A plain run (PPO, say) is a pipeline of one stage, drawn beside. Stages run one after
+another, except teachers trained in processes (``algo.teacher_processes > 1``): those
+start at the same minute, each row keeps its own network's evaluation and minute, and
+its frames are all of theirs by that minute.
 
     python benchmarks/bench_pipeline_curve.py runs/search_student_round2 runs/ppo15 \
         --labels "expert iteration, 2 rounds" PPO --out docs/img/search_student
@@ -21,6 +23,7 @@ import argparse
 import logging
 from pathlib import Path
 
+import numpy as np
 from claims import claim
 
 from torchrl_grpo.training import load_checkpoint, plot_learning_curve
@@ -29,34 +32,84 @@ logging.basicConfig(level=logging.INFO, format="%(message)s")
 log = logging.getLogger("bench_pipeline_curve")
 
 
-def stage_folders(run: Path) -> list[Path]:
-    """The stage folders in the order they train: the teachers (depth first), then ``run``."""
-    teachers = sorted((run / "teachers").glob("*"), key=lambda p: int(p.name))
-    return [folder for teacher in teachers for folder in stage_folders(teacher)] + [run]
+#: A stage's totals: its folder, and the pipeline's frames and minutes at its end.
+Stage = tuple[Path, float, float]
 
 
-def pipeline_curve(run: Path) -> tuple[list[dict], list[tuple[str, int, float]]]:
-    """The pipeline's rows (``frames`` counted, ``minutes``) and each stage's totals."""
-    rows, stages, frames_before, seconds_before = [], [], 0, 0.0
-    for folder in stage_folders(run):
-        # The checkpoint holds the evaluations (eval_history.jsonl's rows) and the search's count.
-        checkpoint = load_checkpoint(folder / "last.pt")
-        own = checkpoint["eval_history"]
-        search, final = int(checkpoint.get("search_frames") or 0), max(own[-1]["frames"], 1)
-        for row in own[1:]:
-            searched = row.get("search_frames", search * row["frames"] / final)
-            counted = row["frames"] + searched
+def _stage_rows(checkpoint: dict) -> tuple[list[dict], float, float]:
+    """One stage's rows (frames counted, ``minutes``) from its start; its frames and minutes."""
+    own = checkpoint["eval_history"]  # eval_history.jsonl's rows
+    search, final = int(checkpoint.get("search_frames") or 0), max(own[-1]["frames"], 1)
+    rows = []
+    for row in own[1:]:
+        searched = row.get("search_frames", search * row["frames"] / final)
+        rows.append(
+            {**row, "frames": row["frames"] + searched, "minutes": row["wall_seconds"] / 60}
+        )
+    return rows, own[-1]["frames"] + search, own[-1]["wall_seconds"] / 60
+
+
+def _side_by_side(lanes: list[tuple[list[dict], list[Stage]]]) -> tuple[list[dict], list[Stage]]:
+    """Teacher pipelines trained at once, from the same minute, as one curve.
+
+    A row keeps its own network's evaluation and minute; its frames are every lane's
+    frames by that minute (another lane's read off its rows, linearly between them).
+    """
+    paths = [
+        ([0.0] + [r["minutes"] for r in rows], [0.0] + [r["frames"] for r in rows])
+        for rows, _ in lanes
+    ]
+
+    def frames_at(minutes: float) -> float:
+        return float(sum(np.interp(minutes, times, frames) for times, frames in paths))
+
+    rows = [{**r, "frames": frames_at(r["minutes"])} for lane, _ in lanes for r in lane]
+    stages = [(path, frames_at(minutes), minutes) for _, lane in lanes for path, _, minutes in lane]
+    return sorted(rows, key=lambda r: r["minutes"]), sorted(stages, key=lambda s: s[2])
+
+
+def _curve(run: Path) -> tuple[list[dict], list[Stage]]:
+    lanes = [
+        _curve(teacher)
+        for teacher in sorted((run / "teachers").glob("*"), key=lambda p: int(p.name))
+    ]
+    checkpoint = load_checkpoint(run / "last.pt")
+    algo = (checkpoint.get("config") or {}).get("algo") or {}
+    if len(lanes) > 1 and int(algo.get("teacher_processes") or 1) > 1:
+        lanes = [_side_by_side(lanes)]
+    rows, stages, frames_before, minutes_before = [], [], 0.0, 0.0
+    for lane_rows, lane_stages in lanes:  # one after another
+        for row in lane_rows:
             rows.append(
                 {
                     **row,
-                    "frames": frames_before + counted,
-                    "minutes": (seconds_before + row["wall_seconds"]) / 60,
+                    "frames": row["frames"] + frames_before,
+                    "minutes": row["minutes"] + minutes_before,
                 }
             )
-        frames_before += own[-1]["frames"] + search
-        seconds_before += own[-1]["wall_seconds"]
-        stages.append((str(folder.relative_to(run.parent)), frames_before, seconds_before / 60))
+        stages += [(path, f + frames_before, m + minutes_before) for path, f, m in lane_stages]
+        frames_before, minutes_before = stages[-1][1], stages[-1][2]
+    own, frames, minutes = _stage_rows(checkpoint)
+    for row in own:
+        rows.append(
+            {
+                **row,
+                "frames": row["frames"] + frames_before,
+                "minutes": row["minutes"] + minutes_before,
+            }
+        )
+    stages.append((run, frames_before + frames, minutes_before + minutes))
     return rows, stages
+
+
+def pipeline_curve(run: Path) -> tuple[list[dict], list[tuple[str, float, float]]]:
+    """The pipeline's rows (``frames`` counted, ``minutes``) and each stage's totals.
+
+    Its teachers come first, one after another (depth first), or side by side when its
+    config trained them in processes (``algo.teacher_processes > 1``); then ``run``.
+    """
+    rows, stages = _curve(run)
+    return rows, [(str(path.relative_to(run.parent)), f, m) for path, f, m in stages]
 
 
 def main() -> None:
@@ -84,7 +137,7 @@ def main() -> None:
             )
         for name, frames, minutes in stages:
             print(f"  stage {name}: ends at {frames / 1e6:.2f}M frames, {minutes:.1f} minutes")
-        claim(f"{label}: minutes of training, stages one after another", rows[-1]["minutes"])
+        claim(f"{label}: minutes of training end to end", rows[-1]["minutes"])
         claim(f"{label}: millions of frames, search steps included", rows[-1]["frames"] / 1e6)
 
     args.out.mkdir(parents=True, exist_ok=True)

@@ -12,7 +12,9 @@ import bench_pipeline_curve  # noqa: E402
 from torchrl_grpo.training.checkpoint import save_checkpoint  # noqa: E402
 
 
-def _stage(folder: Path, rows: list[tuple], search_frames: int = 0) -> Path:
+def _stage(
+    folder: Path, rows: list[tuple], search_frames: int = 0, processes: int | None = None
+) -> Path:
     """A finished run folder: its checkpoint's evaluations.
 
     Each row is (frames, wall seconds, return), or with a fourth figure, the search
@@ -22,7 +24,10 @@ def _stage(folder: Path, rows: list[tuple], search_frames: int = 0) -> Path:
     for frames, seconds, ret, *recorded in rows:
         row = {"frames": frames, "wall_seconds": seconds, "return": ret, "crash_rate": 0.0}
         history.append(row | ({"search_frames": recorded[0]} if recorded else {}))
-    save_checkpoint({"eval_history": history, "search_frames": search_frames}, folder / "last.pt")
+    checkpoint = {"eval_history": history, "search_frames": search_frames}
+    if processes is not None:  # the pipeline's config: its teachers trained side by side
+        checkpoint["config"] = {"algo": {"teacher_processes": processes}}
+    save_checkpoint(checkpoint, folder / "last.pt")
     return folder
 
 
@@ -51,6 +56,36 @@ def test_the_search_steps_each_evaluation_recorded_are_counted_as_they_are(tmp_p
     rows, stages = bench_pipeline_curve.pipeline_curve(run)
     assert [r["frames"] for r in rows] == [100, 100 + 20 + 300, 100 + 40 + 400]
     assert [frames for _, frames, _ in stages] == [100, 540]
+
+
+def test_teachers_trained_side_by_side_start_at_the_same_minute(tmp_path):
+    # Two teachers in two processes: A (100 frames in 60 s), B (200 frames in 120 s,
+    # evaluated at 60 s and 120 s), then the student (10 frames in 30 s).
+    run = tmp_path / "pair"
+    _stage(run / "teachers" / "0", [(0, 0, 1.0), (100, 60, 2.0)])
+    _stage(run / "teachers" / "1", [(0, 0, 1.0), (100, 60, 3.0), (200, 120, 4.0)])
+    _stage(run, [(0, 0, 4.0), (10, 30, 5.0)], processes=2)
+    rows, stages = bench_pipeline_curve.pipeline_curve(run)
+    # At minute 1 both have trained 100 frames; at minute 2, A is done and B at 200.
+    assert [(r["minutes"], r["frames"], r["return"]) for r in rows] == [
+        (1.0, 200, 2.0),
+        (1.0, 200, 3.0),
+        (2.0, 300, 4.0),
+        (2.5, 310, 5.0),
+    ]
+    assert stages == [
+        ("pair/teachers/0", 200, 1.0),
+        ("pair/teachers/1", 300, 2.0),
+        ("pair", 310, 2.5),
+    ]
+    # The control: the same folders trained one after another (one process).
+    _stage(run, [(0, 0, 4.0), (10, 30, 5.0)], processes=1)
+    _, serial = bench_pipeline_curve.pipeline_curve(run)
+    assert serial == [
+        ("pair/teachers/0", 100, 1.0),
+        ("pair/teachers/1", 300, 3.0),
+        ("pair", 310, 3.5),
+    ]
 
 
 def test_a_plain_run_is_a_pipeline_of_one_stage(tmp_path):

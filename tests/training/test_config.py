@@ -294,7 +294,7 @@ def _leaf_keys(node: dict, prefix: str = "") -> list[str]:
         ([], 47),
         (["algo=grpo_episode"], 47),
         (["algo=ppo"], 43),
-        (["algo=distill"], 43),
+        (["algo=distill"], 44),
         (["experiment=search_student"], 49),
     ],
 )

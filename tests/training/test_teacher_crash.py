@@ -13,6 +13,7 @@ from torchrl_grpo.modules import CrashHead
 from torchrl_grpo.objectives import TeacherCrashLoss
 from torchrl_grpo.training import Trainer, load_checkpoint, make_env, make_policy
 from torchrl_grpo.training.checkpoint import save_checkpoint
+from torchrl_grpo.training.config import check_config
 from torchrl_grpo.training.teacher_loading import load_teachers
 
 TENSOR = ["env.backend=tensor", "env.num_envs=32"]
@@ -144,3 +145,21 @@ def test_a_student_learns_its_teachers_crash_odds_and_grpo_continues_from_it(tea
     saved = load_checkpoint(student)["policy"]
     for key, value in continued.policy.state_dict().items():
         assert torch.equal(saved[key], value), key
+
+
+def test_start_from_run_starts_the_student_from_its_first_teachers_weights(teachers, tmp_path):
+    # experiment=search_student_pair's student: the first teacher's network, at aversion 0.
+    paths = [teachers["crash3"], teachers["crash1"]]
+    student = Trainer(
+        student_config(paths, ["algo.start_from_run=true", "model.crash_aversion=0"]),
+        run_dir=tmp_path / "refit",
+    )
+    first = load_checkpoint(teachers["crash3"])["policy"]
+    weights = student.policy.state_dict()
+    assert first.keys() == weights.keys()
+    for key, value in first.items():
+        assert torch.equal(weights[key], value), key
+    fresh = Trainer(student_config(paths), run_dir=tmp_path / "fresh")  # the control
+    assert not torch.equal(fresh.policy.state_dict()[OUTPUT_BIAS], first[OUTPUT_BIAS])
+    with pytest.raises(ValueError, match=r"start_from_run=true starts the student from its first"):
+        check_config(student_config(paths, ["algo.start_from_run=true", f"init_from={paths[1]}"]))

@@ -81,6 +81,11 @@ class _CountIterations(Hook):
         return {}
 
 
+class _RecordProcess(Hook):
+    def on_train_start(self, trainer, result):
+        (trainer.run_dir / "pid").write_text(str(os.getpid()))
+
+
 class _StopTeacher(Hook):
     def due(self, trainer, batch):
         return trainer.run_dir.name == "0"
@@ -152,6 +157,22 @@ def test_experiment_search_student_round2_nests_the_first_round_and_starts_from_
     assert cfg.model.crash_aversion == 800 and first.model.crash_aversion == 200
 
 
+def test_experiment_search_student_pair_distils_two_seeds_of_the_second_round(tmp_path):
+    cfg = compose_config(["experiment=search_student_pair"])
+    check_config(cfg)
+    pair = teacher_configs(cfg, tmp_path)
+    firsts = [teacher_configs(run, folder)[0][1] for folder, run in pair]
+    assert [(run.seed, str(run.algo.name)) for _, run in pair] == [
+        (0, "search_distill"),
+        (1, "search_distill"),
+    ]
+    assert [first.seed for first in firsts] == [0, 1]  # each round of the second seeded 1
+    assert all(run.model.crash_aversion == 800 and run.algo.start_from_run for _, run in pair)
+    assert str(cfg.algo.name) == "distill" and cfg.algo.start_from_run
+    assert cfg.model.crash_aversion == 0 and cfg.algo.teacher_processes == 2
+    assert cfg.env.config == pair[0][1].env.config  # the student observes what they do
+
+
 def test_experiment_best_composes_nine_teachers_of_the_documented_recipe(tmp_path):
     cfg = compose_config(["experiment=best"])
     check_config(cfg)  # teacher_runs stand for algo.teachers
@@ -193,6 +214,39 @@ def test_an_interrupted_teacher_process_stops_the_pipeline_before_the_student(tm
     assert (tmp_path / "teachers" / "0" / "last.pt").exists()
     assert not (tmp_path / "teachers" / "0" / DONE).exists()
     assert not (tmp_path / "last.pt").exists()  # no student
+
+
+def test_distillations_among_the_teachers_run_their_pipelines_in_their_processes(tmp_path):
+    # experiment=search_student_pair's shape: each teacher a pipeline of its own, two at once.
+    cfg = compose_config(_student(extra=("algo.teacher_processes=2",)))
+    cfg.algo.teacher_runs = [
+        f"{' '.join(STUDENT)} seed={i} \"algo.teacher_runs=['{TEACHER} seed={i} "
+        "experiment.total_frames=20']\""
+        for i in range(2)
+    ]
+    inner = [tmp_path / "teachers" / str(i) for i in range(2)]
+    innermost = [folder / "teachers" / "0" for folder in inner]
+    stopped = train_with_teachers(cfg, tmp_path, hooks=[_StopTeacher()])
+    # Both innermost runs are named "0": each process stops its own, before its student.
+    assert stopped.interrupted and stopped.run_dir in innermost
+    assert not any((folder / "last.pt").exists() for folder in inner)
+    assert not (tmp_path / "last.pt").exists()
+    result = train_with_teachers(cfg, tmp_path, hooks=[_RecordProcess()])
+    assert not result.interrupted
+    assert all((folder / DONE).exists() for folder in (*innermost, *inner, tmp_path))
+    # Each teacher's pipeline, its own run and its student, trained in one forked process.
+    pids = [
+        {int((f / "pid").read_text()) for f in pair} for pair in zip(inner, innermost, strict=True)
+    ]
+    assert all(len(pid) == 1 for pid in pids) and len(set.union(*pids)) == 2
+    assert os.getpid() not in set.union(*pids)
+    for folder, run in zip(inner, innermost, strict=True):
+        assert load_checkpoint(folder / "last.pt")["config"]["algo"]["teachers"] == [
+            str(run / "last.pt")
+        ]
+    assert load_checkpoint(tmp_path / "last.pt")["config"]["algo"]["teachers"] == [
+        str(folder / "last.pt") for folder in inner
+    ]
 
 
 def test_fewer_than_one_teacher_process_is_refused():

@@ -14,7 +14,8 @@ every stage's frames.
 With ``algo.teacher_processes = n > 1`` the teachers train ``n`` at a time, each in a
 forked process with ``cores // n`` torch threads: a run scales poorly past one thread
 here, so two one-thread teachers on 2 cores train about twice the frames a second of one
-two-thread teacher.
+two-thread teacher. A teacher that is a pipeline of its own trains all its stages in its
+process (``experiment=search_student_pair``: two second rounds side by side).
 
 A teacher run may be a distillation itself (its entry has ``algo.teacher_runs`` of its
 own): its pipeline runs first, in its folder, under the same bar. That is how
@@ -213,26 +214,25 @@ def train_with_teachers(
         bar.close()
 
 
-def _run_pipeline(pipeline: _Stage, hooks: Sequence[Hook], bar: Any) -> TrainResult:
-    """:func:`train_with_teachers` under a bar it was given (a nested pipeline's too)."""
+def _run_pipeline(
+    pipeline: _Stage, hooks: Sequence[Hook], bar: Any, in_processes: bool = True
+) -> TrainResult:
+    """:func:`train_with_teachers` under a bar it was given (a nested pipeline's too).
+
+    ``in_processes=False`` trains every teacher here, one after another: a pipeline
+    inside a teacher's process, which has its share of the cores already.
+    """
     pending = [teacher for teacher in pipeline.teachers if not (teacher.folder / DONE).exists()]
-    for teacher in pending:
-        if teacher.teachers:
-            # A distillation among the teachers: its own pipeline first, in this process.
-            log.info("teacher %s: %s (a pipeline of its own)", teacher.folder.name, teacher.folder)
-            result = _run_pipeline(teacher, hooks, bar)
-            if result.interrupted:
-                return result
-    stages = [(teacher.folder, teacher.cfg) for teacher in pending if not teacher.teachers]
-    processes = min(int(pipeline.cfg.algo.get("teacher_processes") or 1), len(stages))
+    processes = int(pipeline.cfg.algo.get("teacher_processes") or 1) if in_processes else 1
+    processes = min(processes, len(pending))
     if processes > 1:
-        stopped = _train_in_processes(stages, hooks, bar, processes)
+        stopped = _train_in_processes(pending, hooks, bar, processes)
         if stopped is not None:
             return stopped
     else:
-        for folder, teacher in stages:
-            log.info("teacher %s: %s", folder.name, folder)
-            result = _train(teacher, folder, [*hooks, _PipelineBar(bar)])
+        for teacher in pending:
+            log.info("teacher %s: %s", teacher.folder.name, teacher.folder)
+            result = _train_stage(teacher, hooks, bar, in_processes)
             if result.interrupted:
                 return result
     paths = [str(path) for path in pipeline.cfg.algo.get("teachers") or []]
@@ -247,21 +247,33 @@ def _run_pipeline(pipeline: _Stage, hooks: Sequence[Hook], bar: Any) -> TrainRes
     return _train(student, run_dir, [*hooks, _PipelineBar(bar)])
 
 
+def _train_stage(
+    stage: _Stage, hooks: Sequence[Hook], bar: Any, in_processes: bool = True
+) -> TrainResult:
+    """One teacher: a run, or a distillation's whole pipeline (its own teachers first)."""
+    if stage.teachers:
+        return _run_pipeline(stage, hooks, bar, in_processes)
+    return _train(stage.cfg, stage.folder, [*hooks, _PipelineBar(bar)])
+
+
 _COUNTS: Any = None  # the pipeline's shared frame counts, inherited by a forked teacher
 
 
 def _teacher_process(
-    teacher: DictConfig, folder: Path, hooks: Sequence[Hook], slot: int, threads: int
-) -> tuple[bool, int, int]:
+    stage: _Stage, hooks: Sequence[Hook], slot: int, threads: int
+) -> tuple[bool, Path, int, int]:
     torch.set_num_threads(threads)
-    result = _train(teacher, folder, [*hooks, _PipelineBar(_SharedCount(_COUNTS, slot))])
-    return result.interrupted, result.frames, result.iterations
+    result = _train_stage(stage, hooks, _SharedCount(_COUNTS, slot), in_processes=False)
+    return result.interrupted, result.run_dir, result.frames, result.iterations
 
 
 def _train_in_processes(
-    stages: Sequence[tuple[Path, DictConfig]], hooks: Sequence[Hook], bar: Any, processes: int
+    stages: Sequence[_Stage], hooks: Sequence[Hook], bar: Any, processes: int
 ) -> TrainResult | None:
-    """Train ``stages`` ``processes`` at a time; an interrupted teacher's result, or None."""
+    """Train ``stages`` ``processes`` at a time; an interrupted teacher's result, or None.
+
+    A stage that is a pipeline of its own trains its teachers in its process too.
+    """
     global _COUNTS
     if "fork" not in mp.get_all_start_methods():
         # A forked teacher inherits what this process registered (experimental algorithms,
@@ -275,7 +287,8 @@ def _train_in_processes(
     pool = ProcessPoolExecutor(max_workers=processes, mp_context=context)
     try:
         pending: dict[Future, Path] = {}
-        for slot, (folder, teacher) in enumerate(stages):
+        for slot, stage in enumerate(stages):
+            folder = stage.folder
             log.info(
                 "teacher %s: %s (%d at a time, %d threads each)",
                 folder.name,
@@ -283,7 +296,7 @@ def _train_in_processes(
                 processes,
                 threads,
             )
-            job = pool.submit(_teacher_process, teacher, folder, hooks, slot, threads)
+            job = pool.submit(_teacher_process, stage, hooks, slot, threads)
             pending[job] = folder
         while pending:
             try:
@@ -294,8 +307,8 @@ def _train_in_processes(
                 finished = set()
             bar.update(start + sum(_COUNTS) - bar.n)
             for job in finished:
-                folder = pending.pop(job)
-                interrupted, frames, iterations = job.result()
+                pending.pop(job)
+                interrupted, folder, frames, iterations = job.result()
                 if interrupted and stopped is None:
                     stopped = TrainResult(
                         folder,

@@ -36,7 +36,9 @@ class LabelledFitConfig(AlgoConfig):
     ``replay_frames`` is how many labelled states are kept (the oldest go first);
     ``max_minibatches`` of ``minibatch_size`` states are drawn from them per batch
     (``null``: ``epochs`` passes over all of them, a cost that grows with what is kept);
-    ``crash_head_coeff`` weighs the fit of a crash head (with ``model.crash_head``).
+    ``crash_head_coeff`` weighs the fit of a crash head (with ``model.crash_head``);
+    ``start_from_run`` starts the student from its first teacher's weights (``init_from``
+    that run, once the teacher runs have trained): the same network refitted.
 
     Example:
         >>> from omegaconf import OmegaConf
@@ -53,6 +55,7 @@ class LabelledFitConfig(AlgoConfig):
     epochs: int = 1
     max_minibatches: int | None = 200
     crash_head_coeff: float = 1.0
+    start_from_run: bool = False
 
 
 class LabelledFit(TrunkEpisodes):
@@ -70,7 +73,7 @@ class LabelledFit(TrunkEpisodes):
 
     @classmethod
     def check_config(cls, cfg: DictConfig) -> None:
-        """Also refuses teacher_processes < 1 and a replay under a minibatch."""
+        """Also refuses teacher_processes < 1, a replay under a minibatch, and two starts."""
         super().check_config(cfg)
         algo = cfg.algo
         if algo.teacher_processes < 1:
@@ -82,6 +85,20 @@ class LabelledFit(TrunkEpisodes):
                 f"algo.replay_frames ({algo.replay_frames}) must hold at least one "
                 f"minibatch (algo.minibatch_size={algo.minibatch_size})"
             )
+        first = [str(path) for path in algo.teachers[:1]]
+        if algo.start_from_run and cfg.get("init_from") and str(cfg.init_from) not in first:
+            raise ValueError(
+                "algo.start_from_run=true starts the student from its first teacher's "
+                f"weights: drop init_from={cfg.init_from}, or set algo.start_from_run=false"
+            )
+
+    @classmethod
+    def with_fixed_settings(cls, cfg: DictConfig) -> DictConfig:
+        """Also ``init_from`` the first teacher under ``algo.start_from_run`` (once it is known)."""
+        cfg = super().with_fixed_settings(cfg)
+        if cfg.algo.get("start_from_run") and cfg.algo.teachers and not cfg.get("init_from"):
+            cfg.init_from = str(cfg.algo.teachers[0])
+        return cfg
 
     def fit_kept(self, labels: TensorDictBase, timer: PhaseTimer) -> dict[str, float]:
         """Keep ``labels`` (a flat batch of labelled states), then train on all kept."""

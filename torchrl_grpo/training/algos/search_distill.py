@@ -61,8 +61,8 @@ class SearchDistillConfig(LabelledFitConfig):
     ``<run>/teachers/0``). ``horizon`` is the steps of a branch; ``regret_coeff`` weighs
     the expected regret beside the best set's cross-entropy, and ``crash_head_coeff``
     the crash head's fit to the branches' crash flags. ``start_from_run`` starts the
-    student from the run's own weights (the same network; ``init_from`` that run): the
-    next round of expert iteration, when the run is a search student itself.
+    student from the run's own weights: the next round of expert iteration, when the
+    run is a search student itself.
 
     Example:
         >>> from omegaconf import OmegaConf
@@ -77,7 +77,6 @@ class SearchDistillConfig(LabelledFitConfig):
     minibatch_size: int = 256
     max_minibatches: int | None = 64
     regret_coeff: float = 3.0
-    start_from_run: bool = False
 
 
 @torch.no_grad()
@@ -162,20 +161,6 @@ class SearchDistill(LabelledFit):
             )
         if algo.horizon < 1:
             raise ValueError(f"algo.horizon must be >= 1 (steps a branch), got {algo.horizon}")
-        searched = [str(path) for path in algo.teachers]
-        if algo.start_from_run and cfg.get("init_from") and str(cfg.init_from) not in searched:
-            raise ValueError(
-                "algo.start_from_run=true starts the student from the run it searches over: "
-                f"drop init_from={cfg.init_from}, or set algo.start_from_run=false"
-            )
-
-    @classmethod
-    def with_fixed_settings(cls, cfg: DictConfig) -> DictConfig:
-        """Also ``init_from`` the searched run under ``algo.start_from_run`` (once it is known)."""
-        cfg = super().with_fixed_settings(cfg)
-        if cfg.algo.get("start_from_run") and cfg.algo.teachers and not cfg.get("init_from"):
-            cfg.init_from = str(cfg.algo.teachers[0])
-        return cfg
 
     @classmethod
     def make_loss(
