@@ -216,6 +216,38 @@ def test_an_interrupted_teacher_process_stops_the_pipeline_before_the_student(tm
     assert not (tmp_path / "last.pt").exists()  # no student
 
 
+class _StopAt(Hook):
+    def __init__(self, folder):
+        self.folder = folder
+
+    def due(self, trainer, batch):
+        return trainer.run_dir == self.folder
+
+    def on_iteration(self, trainer, batch, result):
+        trainer.stop_requested = True  # as Ctrl-C does
+        return {}
+
+
+def test_a_nested_student_stopped_midway_resumes_with_its_teachers_named(tmp_path, caplog):
+    cfg = compose_config(_student())
+    cfg.algo.teacher_runs = [
+        f"{' '.join(STUDENT)} experiment.total_frames=200 "
+        f"\"algo.teacher_runs=['{TEACHER} experiment.total_frames=20']\""
+    ]
+    inner = tmp_path / "teachers" / "0"
+    assert train_with_teachers(cfg, tmp_path, hooks=[_StopAt(inner)]).interrupted
+    stopped = load_checkpoint(inner / "last.pt")
+    assert stopped["frames"] < 200 and not (inner / DONE).exists()
+    with caplog.at_level("WARNING"):
+        result = train_with_teachers(cfg, tmp_path)
+    assert not result.interrupted and (inner / DONE).exists()
+    resumed = load_checkpoint(inner / "last.pt")
+    assert resumed["iteration"] > stopped["iteration"] and resumed["frames"] >= 200
+    assert resumed["config"]["algo"]["teachers"] == [str(inner / "teachers" / "0" / "last.pt")]
+    # Its pipeline fills in its teachers: no warning that the resume drops them.
+    assert "the checkpoint's run had" not in caplog.text
+
+
 def test_distillations_among_the_teachers_run_their_pipelines_in_their_processes(tmp_path):
     # experiment=search_student_pair's shape: each teacher a pipeline of its own, two at once.
     cfg = compose_config(_student(extra=("algo.teacher_processes=2",)))

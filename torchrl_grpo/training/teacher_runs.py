@@ -60,7 +60,9 @@ def teacher_configs(
 ) -> list[tuple[Path, DictConfig]]:
     """Each teacher run's folder and config, composed from its entry of ``algo.teacher_runs``.
 
-    A teacher whose folder holds a checkpoint but no ``done.json`` resumes from it.
+    A teacher whose folder holds a checkpoint but no ``done.json`` resumes from it (a
+    teacher that is a pipeline of its own is resumed by its pipeline instead, once its
+    teachers' checkpoints are known).
 
     Raises:
         ValueError: an entry does not compose (naming it).
@@ -77,10 +79,12 @@ def teacher_configs(
     for index, spec in enumerate(cfg.algo.get("teacher_runs") or []):
         folder = Path(run_dir) / "teachers" / str(index)
         overrides = [*shlex.split(str(spec)), f"experiment.out_dir={folder}"]
-        if (folder / "last.pt").exists() and not (folder / DONE).exists():
-            overrides.append(f"resume={folder / 'last.pt'}")
         try:
             teacher = compose_config(overrides, conf_dir=conf_dir)
+            resumable = (folder / "last.pt").exists() and not (folder / DONE).exists()
+            if resumable and not teacher.algo.get("teacher_runs"):
+                resume = f"resume={folder / 'last.pt'}"
+                teacher = compose_config([*overrides, resume], conf_dir=conf_dir)
         except Exception as err:  # Hydra's errors name the key; say which teacher
             raise ValueError(f"algo.teacher_runs[{index}] ({spec!r}): {err}") from err
         out.append((folder, teacher))
