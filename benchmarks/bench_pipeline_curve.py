@@ -77,28 +77,16 @@ def _curve(run: Path) -> tuple[list[dict], list[Stage]]:
     algo = (checkpoint.get("config") or {}).get("algo") or {}
     if len(lanes) > 1 and int(algo.get("teacher_processes") or 1) > 1:
         lanes = [_side_by_side(lanes)]
+    own, frames, minutes = _stage_rows(checkpoint)
+    lanes.append((own, [(run, frames, minutes)]))
     rows, stages, frames_before, minutes_before = [], [], 0.0, 0.0
-    for lane_rows, lane_stages in lanes:  # one after another
-        for row in lane_rows:
-            rows.append(
-                {
-                    **row,
-                    "frames": row["frames"] + frames_before,
-                    "minutes": row["minutes"] + minutes_before,
-                }
-            )
+    for lane_rows, lane_stages in lanes:  # one after another, the run's own stage last
+        rows += [
+            {**r, "frames": r["frames"] + frames_before, "minutes": r["minutes"] + minutes_before}
+            for r in lane_rows
+        ]
         stages += [(path, f + frames_before, m + minutes_before) for path, f, m in lane_stages]
         frames_before, minutes_before = stages[-1][1], stages[-1][2]
-    own, frames, minutes = _stage_rows(checkpoint)
-    for row in own:
-        rows.append(
-            {
-                **row,
-                "frames": row["frames"] + frames_before,
-                "minutes": row["minutes"] + minutes_before,
-            }
-        )
-    stages.append((run, frames_before + frames, minutes_before + minutes))
     return rows, stages
 
 
