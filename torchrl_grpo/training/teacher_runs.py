@@ -42,7 +42,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm.auto import tqdm
 
 from torchrl_grpo.training.checkpoint import load_checkpoint
-from torchrl_grpo.training.compose import compose_config
+from torchrl_grpo.training.compose import compose_config, resume_config
 from torchrl_grpo.training.hooks import Hook
 from torchrl_grpo.training.resolvers import CONF_DIR
 from torchrl_grpo.training.trainer import Trainer, TrainResult
@@ -83,8 +83,9 @@ def teacher_configs(
             teacher = compose_config(overrides, conf_dir=conf_dir)
             resumable = (folder / "last.pt").exists() and not (folder / DONE).exists()
             if resumable and not teacher.algo.get("teacher_runs"):
-                resume = f"resume={folder / 'last.pt'}"
-                teacher = compose_config([*overrides, resume], conf_dir=conf_dir)
+                # The checkpoint's config with the entry's overrides on top, as resume= gives.
+                teacher.resume = str(folder / "last.pt")
+                teacher = resume_config(teacher, overrides, conf_dir=conf_dir)
         except Exception as err:  # Hydra's errors name the key; say which teacher
             raise ValueError(f"algo.teacher_runs[{index}] ({spec!r}): {err}") from err
         out.append((folder, teacher))
